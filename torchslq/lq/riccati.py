@@ -1,0 +1,264 @@
+"""The batched Riccati recursion and linear rollout: the one LQ kernel of torchslq.
+
+Every solver that needs an LQ solve (SLQ, iLQR/DDP, GoPRONTO's projection, the MPC
+layer's implicit backward) goes through the two functions here.
+
+Homogeneous form
+----------------
+Internally a stage is written in homogeneous coordinates ``z_t = [u_t; x_t; 1]``
+(``m + n + 1`` entries) and ``xh_t = [x_t; 1]``:
+
+* dynamics ``xh_{t+1} = F_t z_t`` with ``F_t = [[B_t, A_t, c_t], [0, 0, 1]]``,
+* stage cost ``1/2 z_t' H_t z_t`` with ``H_t = [[R, S, r], [S', Q, q], [r', q', 0]]``,
+* value function ``1/2 xh' Vh_t xh`` with ``Vh_t = [[V_t, v_t], [v_t', 2 c_t]]``.
+
+One backward step is then ``M = H_t + F_t' Vh_{t+1} F_t`` (two matmuls), a Cholesky
+factorisation of ``Quu = M[:m, :m]``, one triangular solve for the feedback and
+feedforward gains together (``[K_t, k_t] = -Quu^{-1} M[:m, m:]``) and one update
+``Vh_t = M[m:, m:] + M[:m, m:]' [K_t, k_t]``. This is the standard gain form of
+the Riccati recursion (Quu = R + B'VB, K = -Quu^{-1} Qux, k = -Quu^{-1} qu); without a
+cross term it is algebraically Algorithm 1 of Sideris & Bobrow (2005), eqs. (21)-(26),
+which ``tests/test_lq_kernel.py`` checks against a literal transcription.
+
+The loop over time is inherent; its body is a handful of batched kernels and has no
+host synchronisation. A Cholesky failure (``Quu`` not positive definite) is recorded
+per element by ``cholesky_ex`` and never stops the batch.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = [
+    "RiccatiFactors",
+    "riccati_backward",
+    "rollout_linear",
+    "homogeneous_dynamics",
+    "homogeneous_cost",
+]
+
+
+@dataclass
+class RiccatiFactors:
+    """Output of :func:`riccati_backward`.
+
+    Attributes:
+        K: feedback gains ``(B, T, m, n)``; the optimal control is ``u_t = K_t x_t + k_t``.
+        k: feedforward terms ``(B, T, m)``.
+        V: value-function Hessians ``(B, T+1, n, n)``.
+        v: value-function gradients ``(B, T+1, n)``.
+        chol: lower Cholesky factors of ``Quu`` ``(B, T, m, m)``, reusable for a second
+            solve with the same quadratic terms (the implicit backward pass).
+        failed: ``(B,)`` bool, True where some ``Quu`` was not positive definite.
+        Kk: ``(B, T, m, n+1)``, ``[K_t, k_t]`` side by side (what the rollout uses).
+        Vh: ``(B, T+1, n+1, n+1)``, homogeneous value matrices (``Vh[..., n, n]`` is
+            twice the constant term of the cost-to-go).
+    """
+
+    Kk: Tensor
+    Vh: Tensor
+    chol: Tensor
+    failed: Tensor
+
+    @property
+    def K(self) -> Tensor:
+        return self.Kk[..., :-1]
+
+    @property
+    def k(self) -> Tensor:
+        return self.Kk[..., -1]
+
+    @property
+    def V(self) -> Tensor:
+        return self.Vh[..., :-1, :-1]
+
+    @property
+    def v(self) -> Tensor:
+        return self.Vh[..., :-1, -1]
+
+
+def _sym(X: Tensor) -> Tensor:
+    return 0.5 * (X + X.mT)
+
+
+def homogeneous_dynamics(A: Tensor, B: Tensor, c: Tensor | None = None) -> Tensor:
+    """``F_t = [[B_t, A_t, c_t], [0, 0, 1]]`` of shape ``(..., T, n+1, m+n+1)``.
+
+    ``A (..., T, n, n)``, ``B (..., T, n, m)`` and ``c (..., T, n)`` broadcast together.
+    """
+    n, m = A.shape[-1], B.shape[-1]
+    if c is None:
+        c = A.new_zeros(()).expand(*A.shape[:-1])
+    lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2], c.shape[:-1])
+    top = torch.cat(
+        [B.expand(*lead, n, m), A.expand(*lead, n, n), c.expand(*lead, n).unsqueeze(-1)], dim=-1
+    )
+    bottom = A.new_zeros(*lead, 1, m + n + 1)
+    bottom[..., 0, -1] = 1.0
+    return torch.cat([top, bottom], dim=-2)
+
+
+def homogeneous_cost(
+    Q: Tensor,
+    R: Tensor,
+    q: Tensor | None = None,
+    r: Tensor | None = None,
+    S: Tensor | None = None,
+) -> tuple[Tensor, Tensor]:
+    """Stage matrices ``H_t (..., T, m+n+1, m+n+1)`` and terminal ``Vh_T (..., n+1, n+1)``.
+
+    ``Q (..., T+1, n, n)`` (index T is the terminal weight), ``R (..., T, m, m)``,
+    ``q (..., T+1, n)``, ``r (..., T, m)``, ``S (..., T, m, n)``; all broadcast. ``Q`` and
+    ``R`` enter through their symmetric parts.
+    """
+    n, m = Q.shape[-1], R.shape[-1]
+    T = R.shape[-3]
+    Q = _sym(Q)
+    R = _sym(R)
+    if q is None:
+        q = Q.new_zeros(()).expand(*Q.shape[:-1])
+    if r is None:
+        r = R.new_zeros(()).expand(*R.shape[:-1])
+    if S is None:
+        S = R.new_zeros(()).expand(*R.shape[:-3], T, m, n)
+    Qs, qs = Q[..., :T, :, :], q[..., :T, :]
+    lead = torch.broadcast_shapes(Qs.shape[:-2], R.shape[:-2], qs.shape[:-1], r.shape[:-1], S.shape[:-2])
+    Qs, R, S = Qs.expand(*lead, n, n), R.expand(*lead, m, m), S.expand(*lead, m, n)
+    qs, r = qs.expand(*lead, n).unsqueeze(-1), r.expand(*lead, m).unsqueeze(-1)
+    corner = Q.new_zeros(*lead, 1, 1)
+    H = torch.cat(
+        [
+            torch.cat([R, S, r], dim=-1),
+            torch.cat([S.mT, Qs, qs], dim=-1),
+            torch.cat([r.mT, qs.mT, corner], dim=-1),
+        ],
+        dim=-2,
+    )
+    QT, qT = Q[..., T, :, :], q[..., T, :]
+    lead_T = torch.broadcast_shapes(QT.shape[:-2], qT.shape[:-1])
+    QT, qT = QT.expand(*lead_T, n, n), qT.expand(*lead_T, n).unsqueeze(-1)
+    VhT = torch.cat(
+        [torch.cat([QT, qT], dim=-1), torch.cat([qT.mT, Q.new_zeros(*lead_T, 1, 1)], dim=-1)],
+        dim=-2,
+    )
+    return H, VhT
+
+
+def riccati_homogeneous(
+    F: Tensor, H: Tensor, VhT: Tensor, reg: Tensor | float | None = None
+) -> RiccatiFactors:
+    """Backward Riccati pass in homogeneous form (see the module docstring).
+
+    Args:
+        F: ``(Bf, T, n+1, m+n+1)`` homogeneous dynamics.
+        H: ``(Bh, T, m+n+1, m+n+1)`` homogeneous stage costs.
+        VhT: ``(Bv, n+1, n+1)`` terminal value matrix.
+        reg: optional Levenberg-Marquardt term added to ``Quu`` (scalar or ``(B,)``);
+            the value update then uses the regularisation-consistent form of
+            Tassa et al. (2012), ``V = Qxx + K'Quu K + K'Qux + Qux'K`` with the
+            unregularised ``Quu``.
+
+    The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B).
+    """
+    T = F.shape[-3]
+    n = F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    batch = torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2])
+    if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
+        batch = torch.broadcast_shapes(batch, reg.shape)
+    Vh = VhT.expand(*batch, n + 1, n + 1)
+    eye_m = torch.eye(m, dtype=F.dtype, device=F.device)
+    if reg is not None:
+        reg_t = torch.as_tensor(reg, dtype=F.dtype, device=F.device)
+        reg_eye = reg_t.reshape(*reg_t.shape, 1, 1) * eye_m
+    Vhs: list[Tensor] = [Vh] * (T + 1)
+    Kks: list[Tensor] = [Vh] * T
+    Ls: list[Tensor] = [Vh] * T
+    infos: list[Tensor] = []
+    for t in range(T - 1, -1, -1):
+        Ft = F[..., t, :, :]
+        M = H[..., t, :, :] + Ft.mT @ (Vh @ Ft)
+        Quu = M[..., :m, :m]
+        Qu_xh = M[..., :m, m:]
+        if reg is None:
+            L, info = torch.linalg.cholesky_ex(Quu)
+            Kk = -torch.cholesky_solve(Qu_xh, L)
+            Vh = M[..., m:, m:] + Qu_xh.mT @ Kk
+        else:
+            L, info = torch.linalg.cholesky_ex(Quu + reg_eye)
+            Kk = -torch.cholesky_solve(Qu_xh, L)
+            KtQuu = Kk.mT @ Quu
+            cross = Kk.mT @ Qu_xh
+            Vh = M[..., m:, m:] + KtQuu @ Kk + cross + cross.mT
+        Vh = _sym(Vh)
+        Vhs[t], Kks[t], Ls[t] = Vh, Kk, L
+        infos.append(info)
+    failed = torch.stack(infos, dim=-1).ne(0).any(dim=-1) if T > 0 else Vh.new_zeros(batch, dtype=torch.bool)
+    return RiccatiFactors(
+        Kk=torch.stack([K.expand(*batch, m, n + 1) for K in Kks], dim=-3),
+        Vh=torch.stack(Vhs, dim=-3),
+        chol=torch.stack([L.expand(*batch, m, m) for L in Ls], dim=-3),
+        failed=failed.expand(batch),
+    )
+
+
+def rollout_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
+    """Closed-loop rollout ``u_t = K_t x_t + k_t``, ``x_{t+1} = A_t x_t + B_t u_t + c_t``.
+
+    Args:
+        F: ``(Bf, T, n+1, m+n+1)`` homogeneous dynamics, Kk ``(B, T, m, n+1)``,
+            x0 ``(B, n)``.
+
+    Returns:
+        x ``(B, T+1, n)`` and u ``(B, T, m)``.
+    """
+    T = Kk.shape[-3]
+    xh = torch.cat([x0, x0.new_ones(*x0.shape[:-1], 1)], dim=-1).unsqueeze(-1)
+    xs, us = [xh], []
+    for t in range(T):
+        u = Kk[..., t, :, :] @ xh
+        xh = F[..., t, :, :] @ torch.cat([u, xh], dim=-2)
+        xs.append(xh)
+        us.append(u)
+    x = torch.stack(xs, dim=-3)[..., :-1, 0]
+    u = torch.stack(us, dim=-3)[..., 0] if T > 0 else x0.new_zeros(*x0.shape[:-1], 0, Kk.shape[-2])
+    return x, u
+
+
+def riccati_backward(
+    A: Tensor,
+    B: Tensor,
+    Q: Tensor,
+    R: Tensor,
+    q: Tensor | None = None,
+    r: Tensor | None = None,
+    S: Tensor | None = None,
+    c: Tensor | None = None,
+    reg: Tensor | float | None = None,
+) -> RiccatiFactors:
+    """Backward Riccati pass of the LQ problem solved by :func:`torchslq.lqr_solve`.
+
+    Shapes as in :func:`torchslq.lqr_solve` (one flat batch dimension, broadcast):
+    ``A (B,T,n,n)``, ``B (B,T,n,m)``, ``Q (B,T+1,n,n)``, ``R (B,T,m,m)``, ``q (B,T+1,n)``,
+    ``r (B,T,m)``, ``S (B,T,m,n)``, ``c (B,T,n)``. ``reg`` adds ``reg * I`` to every
+    ``Quu`` (scalar or ``(B,)``). No input validation: this is the inner-loop entry point.
+    """
+    F = homogeneous_dynamics(A, B, c)
+    H, VhT = homogeneous_cost(Q, R, q, r, S)
+    return riccati_homogeneous(F, H, VhT, reg)
+
+
+def rollout_linear(
+    A: Tensor, B: Tensor, K: Tensor, k: Tensor, x0: Tensor, c: Tensor | None = None
+) -> tuple[Tensor, Tensor]:
+    """Roll ``x_{t+1} = A_t x_t + B_t u_t + c_t`` forward under ``u_t = K_t x_t + k_t``.
+
+    ``A (B,T,n,n)``, ``B (B,T,n,m)``, ``K (B,T,m,n)``, ``k (B,T,m)``, ``x0 (B,n)``,
+    ``c (B,T,n)``. Returns ``x (B,T+1,n)``, ``u (B,T,m)``.
+    """
+    F = homogeneous_dynamics(A, B, c)
+    Kk = torch.cat([K, k.unsqueeze(-1)], dim=-1)
+    return rollout_homogeneous(F, Kk, x0)

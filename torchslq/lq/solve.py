@@ -1,0 +1,328 @@
+"""``lqr_solve``: the batched, differentiable LQ (Riccati) layer.
+
+Solves, for every batch element independently::
+
+    min  sum_{t<T} [ 1/2 x'Q_t x + 1/2 u'R_t u + u'S_t x + q_t'x + r_t'u ]
+         + 1/2 x_T'Q_T x_T + q_T'x_T
+    s.t. x_{t+1} = A_t x_t + B_t u_t + c_t,   x_0 = x0
+
+Gradients (with respect to every tensor argument) come from implicit differentiation
+of the KKT conditions (Amos et al. 2018, "Differentiable MPC", Section 4.2): the
+backward pass is one more LQ solve with the same quadratic terms, so it reuses the
+forward Cholesky factors and gains and only recomputes the linear terms. Memory is
+``O(B T (n^2 + n m))``; nothing is unrolled.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+from torch.autograd.function import once_differentiable
+
+from ..status import Status
+from .riccati import (
+    homogeneous_cost,
+    homogeneous_dynamics,
+    riccati_homogeneous,
+    rollout_homogeneous,
+)
+
+__all__ = ["LQRSolution", "lqr_solve"]
+
+
+@dataclass
+class LQRSolution:
+    """Solution of a batch of LQ problems (leading batch dims as in the inputs).
+
+    Attributes:
+        x: optimal states ``(B, T+1, n)``; differentiable.
+        u: optimal controls ``(B, T, m)``; differentiable.
+        K: feedback gains ``(B, T, m, n)`` with ``u_t = K_t x_t + k_t``.
+        k: feedforward ``(B, T, m)``.
+        V: value-function Hessians ``(B, T+1, n, n)``.
+        v: value-function gradients ``(B, T+1, n)``.
+        lam: costates ``(B, T+1, n)``, ``lam_t = V_t x_t + v_t`` (the KKT multipliers of
+            the dynamics; ``lam_0`` is the gradient of the optimal cost w.r.t. ``x0``).
+        cost: optimal objective ``(B,)``; differentiable.
+        status: ``(B,)`` int64 :class:`torchslq.Status` codes: ``CONVERGED`` (solved),
+            ``NOT_POSITIVE_DEFINITE`` (some ``Quu`` was not PD: the problem is not
+            strictly convex in u), ``NON_FINITE``.
+
+    Only ``x``, ``u`` and ``cost`` carry gradients; the gains, value function and
+    costates are returned detached.
+    """
+
+    x: Tensor
+    u: Tensor
+    K: Tensor
+    k: Tensor
+    V: Tensor
+    v: Tensor
+    lam: Tensor
+    cost: Tensor
+    status: Tensor
+
+
+class _LQRFunction(torch.autograd.Function):
+    """(F, H, VhT, x0) -> (x, u) with the implicit-KKT backward pass.
+
+    All inputs arrive expanded to the full batch so gradients have their shapes;
+    autograd then sums them back through the expand/cat that built F and H.
+    """
+
+    @staticmethod
+    def forward(ctx, F, H, VhT, x0):  # noqa: D401
+        fac = riccati_homogeneous(F, H, VhT)
+        x, u = rollout_homogeneous(F, fac.Kk, x0)
+        ctx.save_for_backward(F, fac.Kk, fac.Vh, fac.chol, x, u)
+        ctx.mark_non_differentiable(fac.Kk, fac.Vh, fac.chol, fac.failed)
+        return x, u, fac.Kk, fac.Vh, fac.chol, fac.failed
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, gx, gu, _gKk, _gVh, _gchol, _gfailed):
+        F, Kk, Vh, chol, x, u = ctx.saved_tensors
+        T, m = u.shape[-2], u.shape[-1]
+        n = x.shape[-1]
+        if gx is None:
+            gx = torch.zeros_like(x)
+        if gu is None:
+            gu = torch.zeros_like(u)
+        dx, du, dlam = lq_adjoint_solve(F, Kk, Vh, chol, gx, gu)
+        lam = (Vh[..., :n, :] @ _homog(x).unsqueeze(-1))[..., 0]  # (B, T+1, n)
+        one = x.new_ones(*x.shape[:-1], 1)
+        z = torch.cat([u, x[..., :T, :], one[..., :T, :]], dim=-1)  # (B, T, m+n+1)
+        dz = torch.cat([du, dx[..., :T, :], torch.zeros_like(one[..., :T, :])], dim=-1)
+        gH = 0.5 * (dz.unsqueeze(-1) * z.unsqueeze(-2) + z.unsqueeze(-1) * dz.unsqueeze(-2))
+        xhT = torch.cat([x[..., T, :], one[..., T, :]], dim=-1)
+        dxhT = torch.cat([dx[..., T, :], torch.zeros_like(one[..., T, :])], dim=-1)
+        gVhT = 0.5 * (dxhT.unsqueeze(-1) * xhT.unsqueeze(-2) + xhT.unsqueeze(-1) * dxhT.unsqueeze(-2))
+        zero_row = torch.zeros_like(one[..., 1:, :])
+        lam_next = torch.cat([lam[..., 1:, :], zero_row], dim=-1)  # (B, T, n+1)
+        dlam_next = torch.cat([dlam[..., 1:, :], zero_row], dim=-1)
+        gF = dlam_next.unsqueeze(-1) * z.unsqueeze(-2) + lam_next.unsqueeze(-1) * dz.unsqueeze(-2)
+        gx0 = dlam[..., 0, :]
+        del m
+        return gF, gH, gVhT, gx0
+
+
+def _homog(x: Tensor) -> Tensor:
+    return torch.cat([x, x.new_ones(*x.shape[:-1], 1)], dim=-1)
+
+
+def lq_adjoint_solve(
+    F: Tensor, Kk: Tensor, Vh: Tensor, chol: Tensor, gx: Tensor, gu: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Second LQ solve of the implicit backward pass, reusing the forward factorisation.
+
+    Solves the LQ problem with the forward problem's quadratic terms and dynamics
+    matrices but linear cost terms ``q = gx``, ``r = gu``, ``c = 0`` and ``x0 = 0``
+    (the KKT system with the incoming gradient as right-hand side). Only the linear
+    value term is recomputed: ``qu = gu_t + B'v``, ``k = -Quu^{-1} qu`` (by the stored
+    Cholesky factor) and ``v_t = gx_t + A'v + K'qu`` (since ``Qux = -Quu K``).
+
+    Returns ``dx (B,T+1,n)``, ``du (B,T,m)`` and the costates ``dlam (B,T+1,n)``.
+    """
+    T, m = gu.shape[-2], gu.shape[-1]
+    n = gx.shape[-1]
+    K = Kk[..., :n]
+    v = gx[..., T, :].unsqueeze(-1)
+    ks: list[Tensor] = [v] * T
+    vs: list[Tensor] = [v] * (T + 1)
+    for t in range(T - 1, -1, -1):
+        BA = F[..., t, :n, : m + n]
+        g = BA.mT @ v  # [B'v; A'v]
+        qu = gu[..., t, :].unsqueeze(-1) + g[..., :m, :]
+        k = -torch.cholesky_solve(qu, chol[..., t, :, :])
+        v = gx[..., t, :].unsqueeze(-1) + g[..., m:, :] + K[..., t, :, :].mT @ qu
+        ks[t], vs[t] = k, v
+    vs[T] = gx[..., T, :].unsqueeze(-1)
+    v_all = torch.stack(vs, dim=-3)[..., 0]  # (B, T+1, n)
+    # forward pass of the adjoint problem: zero initial state and no affine term c
+    dxt = torch.zeros_like(gx[..., 0, :]).unsqueeze(-1)
+    dxs, dus = [dxt], []
+    for t in range(T):
+        dut = K[..., t, :, :] @ dxt + ks[t]
+        dxt = F[..., t, :n, : m + n] @ torch.cat([dut, dxt], dim=-2)
+        dxs.append(dxt)
+        dus.append(dut)
+    dx = torch.stack(dxs, dim=-3)[..., 0]
+    du = torch.stack(dus, dim=-3)[..., 0]
+    dlam = (Vh[..., :n, :n] @ dx.unsqueeze(-1))[..., 0] + v_all
+    return dx, du, dlam
+
+
+def lq_objective(
+    x: Tensor,
+    u: Tensor,
+    Q: Tensor,
+    R: Tensor,
+    q: Tensor | None = None,
+    r: Tensor | None = None,
+    S: Tensor | None = None,
+) -> Tensor:
+    """Value of the LQ objective of :func:`lqr_solve` at ``(x, u)``; shape ``(B,)``."""
+    T = u.shape[-2]
+    xs = x[..., :T, :]
+    J = 0.5 * torch.einsum("...ti,...tij,...tj->...", xs, Q[..., :T, :, :], xs)
+    J = J + 0.5 * torch.einsum("...ti,...tij,...tj->...", u, R, u)
+    J = J + 0.5 * torch.einsum("...i,...ij,...j->...", x[..., T, :], Q[..., T, :, :], x[..., T, :])
+    if S is not None:
+        J = J + torch.einsum("...ti,...tij,...tj->...", u, S, xs)
+    if q is not None:
+        J = J + (q * x).sum((-1, -2))
+    if r is not None:
+        J = J + (r * u).sum((-1, -2))
+    return J
+
+
+# ----------------------------------------------------------------------------- validation
+
+
+def _check_tensor(name: str, t: Tensor | None, min_ndim: int, tail: tuple[int, ...], time: int | None):
+    if t is None:
+        return
+    if not torch.is_tensor(t):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
+    if t.ndim < min_ndim:
+        raise ValueError(
+            f"{name} must have shape (..., {', '.join(map(str, tail))}) with at least "
+            f"{min_ndim} dims, got {tuple(t.shape)}"
+        )
+    if tuple(t.shape[-len(tail) :]) != tail:
+        raise ValueError(
+            f"{name} must end in shape {tail} (n = state dim, m = control dim), got {tuple(t.shape)}"
+        )
+    if time is not None and t.ndim >= len(tail) + 1:
+        tt = t.shape[-len(tail) - 1]
+        if tt not in (1, time):
+            raise ValueError(
+                f"{name} has {tt} time steps, expected {time} (or 1 to broadcast); shape {tuple(t.shape)}"
+            )
+    if not t.is_floating_point():
+        raise TypeError(f"{name} must be a floating-point tensor, got {t.dtype}")
+    if not bool(torch.isfinite(t).all()):
+        raise ValueError(f"{name} contains non-finite values (nan or inf)")
+
+
+def _with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
+    """Give a constant argument (no time dim) a broadcastable time dim of size 1."""
+    if t is None:
+        return None
+    if t.ndim == tail_ndim:
+        t = t.unsqueeze(0)
+    return t.expand(*t.shape[:-tail_ndim - 1], steps, *t.shape[-tail_ndim:])
+
+
+def lqr_solve(
+    A: Tensor,
+    B: Tensor,
+    Q: Tensor,
+    R: Tensor,
+    x0: Tensor,
+    q: Tensor | None = None,
+    r: Tensor | None = None,
+    S: Tensor | None = None,
+    c: Tensor | None = None,
+    *,
+    validate: bool = True,
+) -> LQRSolution:
+    """Solve a batch of finite-horizon LQ problems (module docstring gives the problem).
+
+    Args:
+        A: ``(B, T, n, n)`` state matrices; ``T`` is read from here.
+        B: ``(B, T, n, m)`` input matrices.
+        Q: ``(B, T+1, n, n)`` state weights, index ``T`` is the terminal weight; a
+            ``(n, n)`` matrix means the same weight at every step.
+        R: ``(B, T, m, m)`` (or ``(m, m)``) control weights; must be positive definite.
+        x0: ``(B, n)`` initial states.
+        q: ``(B, T+1, n)`` linear state terms. r: ``(B, T, m)`` linear control terms.
+        S: ``(B, T, m, n)`` cross terms (cost ``u'S x``). c: ``(B, T, n)`` affine dynamics.
+        validate: check shapes, finiteness and ``R > 0`` (one host sync each); solvers
+            calling this in an inner loop pass ``False``.
+
+    All leading (batch) dims broadcast together, and a time dim of 1 broadcasts over
+    time; a fully unbatched problem (``A (T,n,n)``, ``x0 (n,)``) returns unbatched
+    results. Weights enter through their symmetric parts.
+
+    Returns:
+        :class:`LQRSolution`. ``x``, ``u`` and ``cost`` are differentiable w.r.t. every
+        tensor argument (implicit differentiation, one extra LQ solve).
+    """
+    if validate:
+        if not torch.is_tensor(A) or A.ndim < 3:
+            raise ValueError(f"A must have shape (B, T, n, n), got {getattr(A, 'shape', type(A))}")
+    T, n = A.shape[-3], A.shape[-1]
+    if validate:
+        if not torch.is_tensor(B) or B.ndim < 2:
+            raise ValueError(f"B must have shape (B, T, n, m), got {getattr(B, 'shape', type(B))}")
+        m = B.shape[-1]
+        _check_tensor("A", A, 3, (n, n), None)
+        _check_tensor("B", B, 3, (n, m), T)
+        _check_tensor("Q", Q, 2, (n, n), T + 1)
+        _check_tensor("R", R, 2, (m, m), T)
+        _check_tensor("x0", x0, 1, (n,), None)
+        _check_tensor("q", q, 1, (n,), T + 1)
+        _check_tensor("r", r, 1, (m,), T)
+        _check_tensor("S", S, 2, (m, n), T)
+        _check_tensor("c", c, 1, (n,), T)
+        if T == 0:
+            raise ValueError("A has a horizon of T = 0 steps; need T >= 1")
+        Rsym = 0.5 * (R + R.mT)
+        if bool((torch.linalg.cholesky_ex(Rsym).info != 0).any()):
+            raise ValueError("R must be symmetric positive definite (Cholesky failed)")
+    m = B.shape[-1]
+    Q = _with_time(Q, 2, T + 1)
+    R = _with_time(R, 2, T)
+    q = _with_time(q, 1, T + 1)
+    r = _with_time(r, 1, T)
+    S = _with_time(S, 2, T)
+    c = _with_time(c, 1, T)
+
+    F = homogeneous_dynamics(A, B, c)
+    H, VhT = homogeneous_cost(Q, R, q, r, S)
+    batch = torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
+    if validate:
+        try:
+            torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
+        except RuntimeError as err:  # pragma: no cover - broadcast_shapes above raises first
+            raise ValueError(f"batch dimensions do not broadcast: {err}") from err
+    # one flat batch dim for the kernel
+    nb = int(torch.Size(batch).numel())
+    Ff = F.expand(*batch, *F.shape[-3:]).reshape(nb, *F.shape[-3:])
+    Hf = H.expand(*batch, *H.shape[-3:]).reshape(nb, *H.shape[-3:])
+    VhTf = VhT.expand(*batch, *VhT.shape[-2:]).reshape(nb, *VhT.shape[-2:])
+    x0f = x0.expand(*batch, n).reshape(nb, n)
+    x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f)
+
+    finite = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
+    status = torch.where(
+        failed,
+        torch.full_like(failed, Status.NOT_POSITIVE_DEFINITE, dtype=torch.int64),
+        torch.where(
+            finite,
+            torch.full_like(failed, Status.CONVERGED, dtype=torch.int64),
+            torch.full_like(failed, Status.NON_FINITE, dtype=torch.int64),
+        ),
+    )
+    lam = (Vh[..., :n, :] @ _homog(x).unsqueeze(-1))[..., 0]
+
+    def unflat(t: Tensor) -> Tensor:
+        return t.reshape(*batch, *t.shape[1:])
+
+    x, u = unflat(x), unflat(u)
+    cost = lq_objective(x, u, Q, R, q, r, S)
+    return LQRSolution(
+        x=x,
+        u=u,
+        K=unflat(Kk[..., :n]),
+        k=unflat(Kk[..., n]),
+        V=unflat(Vh[..., :n, :n]),
+        v=unflat(Vh[..., :n, n]),
+        lam=unflat(lam),
+        cost=cost,
+        status=unflat(status),
+    )
+

@@ -1,0 +1,39 @@
+"""Per-problem status codes shared by the LQ kernel and every solver.
+
+Each batch element carries its own status as an integer code in a ``(B,)`` int64
+tensor (so no host sync is needed to track it). :class:`Status` names the codes and
+:func:`status_names` turns a status tensor into a list of strings for display.
+"""
+
+from __future__ import annotations
+
+from enum import IntEnum
+
+import torch
+
+__all__ = ["Status", "status_names"]
+
+
+class Status(IntEnum):
+    """Outcome of one batch element.
+
+    ``RUNNING`` is only seen inside a solver loop. For :func:`torchslq.lqr_solve`,
+    ``CONVERGED`` means "solved" (the LQ problem is solved exactly in one pass).
+    """
+
+    RUNNING = -1
+    CONVERGED = 0
+    MAX_ITER = 1
+    LINE_SEARCH_FAILED = 2
+    NON_FINITE = 3
+    DIVERGED = 4
+    NOT_POSITIVE_DEFINITE = 5
+
+    @property
+    def label(self) -> str:
+        return self.name.lower()
+
+
+def status_names(status: torch.Tensor) -> list[str]:
+    """Names (``"converged"``, ``"max_iter"``, ...) of a ``(B,)`` status tensor."""
+    return [Status(int(s)).label for s in status.reshape(-1).tolist()]
