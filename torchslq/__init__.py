@@ -1,13 +1,30 @@
 """torchslq: batched, differentiable nonlinear optimal control in PyTorch."""
 
+from .costs import CostExpansion, QuadraticCost
+from .dynamics import (
+    ContinuousDynamics,
+    DiscretizedDynamics,
+    Dynamics,
+    LearnedDynamics,
+    discretize,
+    linearize,
+)
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
 from .status import Status, status_names
 
 __version__ = "0.1.0"
 
 __all__ = [
+    "ContinuousDynamics",
+    "CostExpansion",
+    "DiscretizedDynamics",
+    "Dynamics",
     "LQRSolution",
+    "LearnedDynamics",
+    "QuadraticCost",
     "Status",
+    "discretize",
+    "linearize",
     "lqr_solve",
     "riccati_backward",
     "rollout_linear",

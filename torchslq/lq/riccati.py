@@ -125,7 +125,9 @@ def homogeneous_cost(
     if S is None:
         S = R.new_zeros(()).expand(*R.shape[:-3], T, m, n)
     Qs, qs = Q[..., :T, :, :], q[..., :T, :]
-    lead = torch.broadcast_shapes(Qs.shape[:-2], R.shape[:-2], qs.shape[:-1], r.shape[:-1], S.shape[:-2])
+    lead = torch.broadcast_shapes(
+        Qs.shape[:-2], R.shape[:-2], qs.shape[:-1], r.shape[:-1], S.shape[:-2]
+    )
     Qs, R, S = Qs.expand(*lead, n, n), R.expand(*lead, m, m), S.expand(*lead, m, n)
     qs, r = qs.expand(*lead, n).unsqueeze(-1), r.expand(*lead, m).unsqueeze(-1)
     corner = Q.new_zeros(*lead, 1, 1)
@@ -196,7 +198,11 @@ def riccati_homogeneous(
         Vh = _sym(Vh)
         Vhs[t], Kks[t], Ls[t] = Vh, Kk, L
         infos.append(info)
-    failed = torch.stack(infos, dim=-1).ne(0).any(dim=-1) if T > 0 else Vh.new_zeros(batch, dtype=torch.bool)
+    failed = (
+        torch.stack(infos, dim=-1).ne(0).any(dim=-1)
+        if T > 0
+        else Vh.new_zeros(batch, dtype=torch.bool)
+    )
     return RiccatiFactors(
         Kk=torch.stack([K.expand(*batch, m, n + 1) for K in Kks], dim=-3),
         Vh=torch.stack(Vhs, dim=-3),

@@ -98,7 +98,9 @@ class _LQRFunction(torch.autograd.Function):
         gH = 0.5 * (dz.unsqueeze(-1) * z.unsqueeze(-2) + z.unsqueeze(-1) * dz.unsqueeze(-2))
         xhT = torch.cat([x[..., T, :], one[..., T, :]], dim=-1)
         dxhT = torch.cat([dx[..., T, :], torch.zeros_like(one[..., T, :])], dim=-1)
-        gVhT = 0.5 * (dxhT.unsqueeze(-1) * xhT.unsqueeze(-2) + xhT.unsqueeze(-1) * dxhT.unsqueeze(-2))
+        gVhT = 0.5 * (
+            dxhT.unsqueeze(-1) * xhT.unsqueeze(-2) + xhT.unsqueeze(-1) * dxhT.unsqueeze(-2)
+        )
         zero_row = torch.zeros_like(one[..., 1:, :])
         lam_next = torch.cat([lam[..., 1:, :], zero_row], dim=-1)  # (B, T, n+1)
         dlam_next = torch.cat([dlam[..., 1:, :], zero_row], dim=-1)
@@ -181,7 +183,9 @@ def lq_objective(
 # ----------------------------------------------------------------------------- validation
 
 
-def _check_tensor(name: str, t: Tensor | None, min_ndim: int, tail: tuple[int, ...], time: int | None):
+def _check_tensor(
+    name: str, t: Tensor | None, min_ndim: int, tail: tuple[int, ...], time: int | None
+):
     if t is None:
         return
     if not torch.is_tensor(t):
@@ -213,7 +217,7 @@ def _with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
         return None
     if t.ndim == tail_ndim:
         t = t.unsqueeze(0)
-    return t.expand(*t.shape[:-tail_ndim - 1], steps, *t.shape[-tail_ndim:])
+    return t.expand(*t.shape[: -tail_ndim - 1], steps, *t.shape[-tail_ndim:])
 
 
 def lqr_solve(
@@ -325,4 +329,3 @@ def lqr_solve(
         cost=cost,
         status=unflat(status),
     )
-

@@ -1,0 +1,211 @@
+"""Quadratic tracking cost of Sideris & Bobrow (2005), eqs. (3)-(4)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["CostExpansion", "QuadraticCost"]
+
+
+@dataclass
+class CostExpansion:
+    """Second-order expansion of a cost about a trajectory ``(x, u)``.
+
+    ``J(x + dx, u + du) ~ J + sum_t [lx'dx + lu'du + 1/2 dx'lxx dx + 1/2 du'luu du +
+    du'lux dx]`` with ``lxx (.., T+1, n, n)`` (index T: terminal), ``luu (.., T, m, m)``,
+    ``lux (.., T, m, n)`` or None, ``lx (B, T+1, n)``, ``lu (B, T, m)``. The Hessians may
+    keep a broadcastable (shared) batch dim. These are exactly the ``Q, R, S, q, r``
+    arguments of :func:`torchslq.lqr_solve`.
+    """
+
+    lxx: Tensor
+    luu: Tensor
+    lux: Tensor | None
+    lx: Tensor
+    lu: Tensor
+
+
+def _register(module: nn.Module, name: str, value: Tensor | None) -> None:
+    if isinstance(value, nn.Parameter):
+        module.register_parameter(name, value)
+    else:
+        module.register_buffer(name, value)
+
+
+class QuadraticCost(nn.Module):
+    """``J = 1/2 sum_{t<T} [|x_t - x°_t|^2_Q_t + |u_t - u°_t|^2_R_t] + 1/2 |x_T - x°_T|^2_Qf``.
+
+    This is the performance index of Sideris & Bobrow eqs. (1), (3), (4).
+
+    Args:
+        Q: state weight, ``(n, n)`` constant, ``(T, n, n)`` time-varying, or
+            ``(B, T, n, n)`` per batch element (time dim 1 broadcasts: ``(B, 1, n, n)``
+            is a per-element constant). Symmetric positive semidefinite.
+        R: control weight, ``(m, m)``, ``(T, m, m)`` or ``(B, T, m, m)``; symmetric
+            positive definite.
+        Qf: terminal weight ``(n, n)`` or ``(B, n, n)``; defaults to the last stage
+            weight (``Q`` itself when constant).
+        x_ref: state targets ``x°``: ``(n,)``, ``(T+1, n)`` or ``(B, T+1, n)``; default 0.
+        u_ref: control targets ``u°``: ``(m,)``, ``(T, m)`` or ``(B, T, m)``; default 0.
+
+    Tensors that require grad (e.g. ``nn.Parameter``) stay connected, so cost
+    parameters can be learned through a differentiable solve.
+    """
+
+    def __init__(
+        self,
+        Q: Tensor,
+        R: Tensor,
+        Qf: Tensor | None = None,
+        x_ref: Tensor | None = None,
+        u_ref: Tensor | None = None,
+    ):
+        super().__init__()
+        Q = _as_tensor("Q", Q)
+        R = _as_tensor("R", R, like=Q)
+        if Q.ndim not in (2, 3, 4) or Q.shape[-1] != Q.shape[-2]:
+            raise ValueError(f"Q must have shape (n,n), (T,n,n) or (B,T,n,n), got {tuple(Q.shape)}")
+        if R.ndim not in (2, 3, 4) or R.shape[-1] != R.shape[-2]:
+            raise ValueError(f"R must have shape (m,m), (T,m,m) or (B,T,m,m), got {tuple(R.shape)}")
+        n, m = Q.shape[-1], R.shape[-1]
+        if Qf is not None:
+            Qf = _as_tensor("Qf", Qf, like=Q)
+            if Qf.ndim not in (2, 3) or Qf.shape[-2:] != (n, n):
+                raise ValueError(
+                    f"Qf must have shape ({n},{n}) or (B,{n},{n}), got {tuple(Qf.shape)}"
+                )
+        if x_ref is not None:
+            x_ref = _as_tensor("x_ref", x_ref, like=Q)
+            if x_ref.ndim not in (1, 2, 3) or x_ref.shape[-1] != n:
+                raise ValueError(
+                    f"x_ref must have shape (n,), (T+1,n) or (B,T+1,n) with n={n}, got {tuple(x_ref.shape)}"
+                )
+        if u_ref is not None:
+            u_ref = _as_tensor("u_ref", u_ref, like=Q)
+            if u_ref.ndim not in (1, 2, 3) or u_ref.shape[-1] != m:
+                raise ValueError(
+                    f"u_ref must have shape (m,), (T,m) or (B,T,m) with m={m}, got {tuple(u_ref.shape)}"
+                )
+        _check_symmetric("Q", Q, psd=True)
+        _check_symmetric("R", R, psd=False)
+        if Qf is not None:
+            _check_symmetric("Qf", Qf, psd=True)
+        self.state_dim, self.control_dim = n, m
+        _register(self, "Q", Q)
+        _register(self, "R", R)
+        _register(self, "Qf", Qf)
+        _register(self, "x_ref", x_ref)
+        _register(self, "u_ref", u_ref)
+
+    # ------------------------------------------------------------------ shapes per horizon
+    def _time_varying(self, W: Tensor, steps: int, name: str, tail: int) -> Tensor:
+        """``W`` as ``(Bw, steps, *tail)`` with broadcastable ``Bw`` (1 or B)."""
+        if W.ndim == tail:
+            return W.reshape(1, 1, *W.shape)
+        if W.ndim == tail + 1:
+            W = W.unsqueeze(0)
+        if W.shape[1] not in (1, steps):
+            raise ValueError(
+                f"{name} has {W.shape[1]} time steps but the horizon needs {steps} (or 1)"
+            )
+        return W
+
+    def weights(self, T: int) -> tuple[Tensor, Tensor]:
+        """``Q (Bq, T+1, n, n)`` (index T is ``Qf``) and ``R (Br, T, m, m)``; batch dims 1 or B."""
+        Qs = self._time_varying(self.Q, T, "Q", 2)
+        if self.Qf is not None:
+            QT = self.Qf if self.Qf.ndim == 3 else self.Qf.unsqueeze(0)
+            QT = QT.unsqueeze(1)
+        else:
+            QT = Qs[:, -1:]
+        bq = torch.broadcast_shapes(Qs.shape[:1], QT.shape[:1])
+        n = Qs.shape[-1]
+        Qfull = torch.cat([Qs.expand(*bq, T, n, n), QT.expand(*bq, 1, n, n)], dim=1)
+        return Qfull, self._time_varying(self.R, T, "R", 2)
+
+    def references(self, T: int, like: Tensor) -> tuple[Tensor, Tensor]:
+        """``x° (Bx, T+1, n)`` and ``u° (Bu, T, m)`` (zeros when not given)."""
+        n, m = self.state_dim, self.control_dim
+        xr = (
+            like.new_zeros(1, 1, n)
+            if self.x_ref is None
+            else self._time_varying(self.x_ref, T + 1, "x_ref", 1)
+        )
+        ur = (
+            like.new_zeros(1, 1, m)
+            if self.u_ref is None
+            else self._time_varying(self.u_ref, T, "u_ref", 1)
+        )
+        return xr, ur
+
+    def _check_traj(self, x: Tensor, u: Tensor) -> int:
+        if x.ndim != 3 or u.ndim != 3:
+            raise ValueError(
+                f"x must be (B,T+1,n) and u (B,T,m), got {tuple(x.shape)} and {tuple(u.shape)}"
+            )
+        T = u.shape[1]
+        if x.shape[1] != T + 1 or x.shape[-1] != self.state_dim or u.shape[-1] != self.control_dim:
+            raise ValueError(
+                f"expected x (B,T+1,{self.state_dim}) and u (B,T,{self.control_dim}), "
+                f"got {tuple(x.shape)} and {tuple(u.shape)}"
+            )
+        return T
+
+    # ------------------------------------------------------------------ evaluation
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        """Cost ``(B,)`` of trajectories ``x (B, T+1, n)``, ``u (B, T, m)``."""
+        T = self._check_traj(x, u)
+        Q, R = self.weights(T)
+        xr, ur = self.references(T, x)
+        dx, du = x - xr, u - ur
+        Jx = torch.einsum("bti,btij,btj->b", dx, Q.expand(x.shape[0], *Q.shape[1:]), dx)
+        Ju = torch.einsum("bti,btij,btj->b", du, R.expand(u.shape[0], *R.shape[1:]), du)
+        return 0.5 * (Jx + Ju)
+
+    def quadratize(self, x: Tensor, u: Tensor) -> CostExpansion:
+        """Exact second-order expansion (the cost is quadratic): gradients
+        ``lx = Q (x - x°)``, ``lu = R (u - u°)`` and Hessians ``Q``, ``R``."""
+        T = self._check_traj(x, u)
+        Q, R = self.weights(T)
+        xr, ur = self.references(T, x)
+        lx = (Q @ (x - xr).unsqueeze(-1)).squeeze(-1)
+        lu = (R @ (u - ur).unsqueeze(-1)).squeeze(-1)
+        return CostExpansion(lxx=Q, luu=R, lux=None, lx=lx, lu=lu)
+
+
+def _as_tensor(name: str, value, like: Tensor | None = None) -> Tensor:
+    if isinstance(value, Tensor):
+        t = value
+    else:
+        try:
+            t = torch.as_tensor(value, dtype=None if like is None else like.dtype)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(
+                f"{name} must be a tensor or array-like, got {type(value).__name__}"
+            ) from err
+    if not t.is_floating_point():
+        t = t.to(torch.get_default_dtype() if like is None else like.dtype)
+    if not bool(torch.isfinite(t.detach()).all()):
+        raise ValueError(f"{name} contains non-finite values")
+    return t
+
+
+def _check_symmetric(name: str, W: Tensor, psd: bool) -> None:
+    Wd = W.detach()
+    scale = Wd.abs().amax().clamp_min(1.0)
+    tol = 1e-6 if Wd.dtype == torch.float32 else 1e-10
+    if not bool(((Wd - Wd.mT).abs() <= tol * scale).all()):
+        raise ValueError(f"{name} must be symmetric")
+    eig = torch.linalg.eigvalsh(Wd)
+    if psd:
+        if bool((eig < -tol * scale * 10).any()):
+            raise ValueError(
+                f"{name} must be positive semidefinite (min eigenvalue {eig.min().item():.3g})"
+            )
+    elif bool((eig <= 0).any()):
+        raise ValueError(
+            f"{name} must be positive definite (min eigenvalue {eig.min().item():.3g})"
+        )

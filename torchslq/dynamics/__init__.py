@@ -1,0 +1,16 @@
+"""Dynamics models: base classes, discretisation and linearisation."""
+
+from .base import ContinuousDynamics, Dynamics, state_control_dims
+from .discretize import DiscretizedDynamics, discretize
+from .linearize import LearnedDynamics, as_transition, linearize
+
+__all__ = [
+    "ContinuousDynamics",
+    "DiscretizedDynamics",
+    "Dynamics",
+    "LearnedDynamics",
+    "as_transition",
+    "discretize",
+    "linearize",
+    "state_control_dims",
+]

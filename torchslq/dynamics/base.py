@@ -1,0 +1,81 @@
+"""Base classes for user dynamics: discrete-time :class:`Dynamics` and
+continuous-time :class:`ContinuousDynamics`.
+
+Dynamics are ``nn.Module``s called on batched tensors: ``x (..., n)``, ``u (..., m)``
+with any leading shape (batch and time together). Each row must depend only on its
+own inputs (no mixing across the batch, e.g. no BatchNorm in training mode), which is
+what lets :func:`torchslq.linearize` take all Jacobians at once. A per-element
+parameter is a tensor that broadcasts against the leading dims, e.g. a ``(B, 1, 1)``
+mass for inputs of shape ``(B, T, n)``.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+__all__ = ["Dynamics", "ContinuousDynamics"]
+
+
+class Dynamics(nn.Module):
+    """Discrete-time dynamics ``x_{t+1} = f(x_t, u_t)``.
+
+    Subclasses set ``state_dim`` and ``control_dim`` and implement :meth:`forward`.
+    They may override :meth:`jacobians` with analytic derivatives, which
+    :func:`torchslq.linearize` then uses instead of automatic differentiation.
+    """
+
+    state_dim: int
+    control_dim: int
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:  # pragma: no cover - abstract
+        """Next state ``(..., n)`` from ``x (..., n)`` and ``u (..., m)``."""
+        raise NotImplementedError(f"{type(self).__name__} must implement forward(x, u)")
+
+    def jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+        """Analytic ``(A, B) = (df/dx (..., n, n), df/du (..., n, m))``; optional."""
+        raise NotImplementedError
+
+    @property
+    def has_analytic_jacobians(self) -> bool:
+        return type(self).jacobians is not Dynamics.jacobians
+
+
+class ContinuousDynamics(nn.Module):
+    """Continuous-time dynamics ``xdot = f(x, u, t)``.
+
+    Subclasses set ``state_dim`` and ``control_dim`` and implement :meth:`forward`; they
+    may override :meth:`jacobians` (``(df/dx, df/du)``) with analytic derivatives,
+    which :func:`torchslq.discretize` chains through its integration scheme.
+    """
+
+    state_dim: int
+    control_dim: int
+
+    def forward(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> Tensor:  # pragma: no cover
+        """Time derivative ``(..., n)``."""
+        raise NotImplementedError(f"{type(self).__name__} must implement forward(x, u, t=None)")
+
+    def jacobians(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Analytic ``(df/dx (..., n, n), df/du (..., n, m))``; optional."""
+        raise NotImplementedError
+
+    @property
+    def has_analytic_jacobians(self) -> bool:
+        return type(self).jacobians is not ContinuousDynamics.jacobians
+
+
+def state_control_dims(dynamics: nn.Module) -> tuple[int, int]:
+    """``(state_dim, control_dim)`` of a dynamics module, with a clear error if missing."""
+    n = getattr(dynamics, "state_dim", None)
+    m = getattr(dynamics, "control_dim", None)
+    if not isinstance(n, int) or not isinstance(m, int):
+        raise TypeError(
+            f"{type(dynamics).__name__} must declare integer attributes state_dim and "
+            "control_dim (wrap a plain network with torchslq.LearnedDynamics)"
+        )
+    return n, m
+
+
+def identity_like(x: Tensor, n: int) -> Tensor:
+    return torch.eye(n, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], n, n)

@@ -1,0 +1,134 @@
+"""``linearize``: Jacobians of any dynamics over batch and time at once.
+
+This is the single linearisation used by every solver (see DESIGN.md).
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from contextlib import nullcontext
+
+import torch
+from torch import Tensor, nn
+from torch.func import jacfwd, jacrev, vjp, vmap
+
+from .base import Dynamics, state_control_dims
+
+__all__ = ["linearize", "LearnedDynamics", "as_transition"]
+
+_METHODS = ("auto", "vjp", "jacrev", "jacfwd")
+
+
+class LearnedDynamics(Dynamics):
+    """Wraps a network ``net: (..., n+m) -> (..., n)`` (e.g. an ``nn.Sequential`` MLP).
+
+    ``x_next = x + net([x, u])`` when ``residual=True`` (the usual choice for learned
+    models), else ``net([x, u])``.
+    """
+
+    def __init__(self, net: nn.Module, state_dim: int, control_dim: int, residual: bool = True):
+        super().__init__()
+        self.net = net
+        self.state_dim = int(state_dim)
+        self.control_dim = int(control_dim)
+        self.residual = residual
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        out = self.net(torch.cat([x, u], dim=-1))
+        return x + out if self.residual else out
+
+
+def _takes_one_input(module: nn.Module) -> bool:
+    try:
+        params = [
+            p
+            for p in inspect.signature(module.forward).parameters.values()
+            if p.kind in (p.POSITIONAL_ONLY, p.POSITIONAL_OR_KEYWORD) and p.default is p.empty
+        ]
+    except (TypeError, ValueError):  # pragma: no cover - builtins without signature
+        return False
+    return len(params) == 1 or isinstance(module, nn.Sequential)
+
+
+def as_transition(dynamics: Callable) -> Callable[[Tensor, Tensor], Tensor]:
+    """``f(x, u) -> x_next`` for a :class:`Dynamics`, a two-argument callable, or a plain
+    network taking the concatenation ``[x, u]`` (such as an ``nn.Sequential``)."""
+    if isinstance(dynamics, Dynamics):
+        return dynamics
+    if isinstance(dynamics, nn.Module) and _takes_one_input(dynamics):
+        return lambda x, u: dynamics(torch.cat([x, u], dim=-1))
+    if callable(dynamics):
+        return dynamics
+    raise TypeError(
+        f"dynamics must be a Dynamics module or callable, got {type(dynamics).__name__}"
+    )
+
+
+def linearize(
+    dynamics: Callable,
+    x: Tensor,
+    u: Tensor,
+    *,
+    create_graph: bool = False,
+    method: str = "auto",
+) -> tuple[Tensor, Tensor]:
+    """Jacobians ``A = df/dx (..., n, n)`` and ``B = df/du (..., n, m)`` at ``(x, u)``.
+
+    Args:
+        dynamics: a :class:`Dynamics` (its analytic :meth:`~Dynamics.jacobians` are used
+            when overridden), a callable ``f(x, u)``, or a network on ``[x, u]``.
+        x: ``(..., n)`` states; u: ``(..., m)`` controls. Any leading shape (batch and
+            time together); it must be the same for both.
+        create_graph: keep the graph from ``A, B`` to the module's parameters (and to
+            ``x, u``) so a later layer can differentiate through them. When False the
+            Jacobians are returned detached.
+        method: ``"vjp"`` calls the dynamics once on the whole batch and pulls back the
+            ``n`` output basis vectors (rows must be independent, see
+            :mod:`torchslq.dynamics.base`); ``"jacrev"`` / ``"jacfwd"`` use
+            ``vmap(jacrev|jacfwd)`` over per-row calls; ``"auto"`` picks ``"vjp"``.
+    """
+    if method not in _METHODS:
+        raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    if x.shape[:-1] != u.shape[:-1]:
+        raise ValueError(
+            f"x and u must share leading dims, got x {tuple(x.shape)} and u {tuple(u.shape)}"
+        )
+    if getattr(dynamics, "has_analytic_jacobians", False):
+        ctx = torch.enable_grad() if create_graph else torch.no_grad()
+        with ctx:
+            A, B = dynamics.jacobians(x, u)
+        return A, B
+    f = as_transition(dynamics)
+    if isinstance(dynamics, Dynamics):
+        n, m = state_control_dims(dynamics)
+    else:
+        n, m = x.shape[-1], u.shape[-1]
+    lead = x.shape[:-1]
+    xf = x.reshape(-1, x.shape[-1])
+    uf = u.reshape(-1, u.shape[-1])
+    if not create_graph:
+        xf, uf = xf.detach(), uf.detach()
+    ctx = nullcontext() if create_graph else torch.no_grad()
+    with ctx:
+        if method in ("auto", "vjp"):
+            out, pullback = vjp(f, xf, uf)
+            n_out = out.shape[-1]
+            basis = torch.eye(n_out, dtype=out.dtype, device=out.device)
+            basis = basis.unsqueeze(1).expand(n_out, out.shape[0], n_out)
+            Jx, Ju = vmap(pullback)(basis)  # (n, N, n), (n, N, m)
+            A, B = Jx.transpose(0, 1), Ju.transpose(0, 1)
+        else:
+            jac = jacrev if method == "jacrev" else jacfwd
+
+            def single(xi: Tensor, ui: Tensor) -> Tensor:
+                return f(xi.unsqueeze(0), ui.unsqueeze(0)).squeeze(0)
+
+            A, B = vmap(jac(single, argnums=(0, 1)))(xf, uf)
+    n_out = A.shape[-2]
+    if n_out != x.shape[-1]:
+        raise ValueError(
+            f"dynamics returned {n_out} outputs for a state of dimension {x.shape[-1]}"
+        )
+    del n, m
+    return A.reshape(*lead, n_out, x.shape[-1]), B.reshape(*lead, n_out, u.shape[-1])
