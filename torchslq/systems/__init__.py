@@ -1,0 +1,16 @@
+"""A small zoo of example systems with analytic Jacobians.
+
+Continuous time (discretise with :func:`torchslq.discretize`): :class:`Pendulum`,
+:class:`CartPole`. Discrete time, in the Euler form of Sideris & Bobrow (2005):
+:class:`DragVehicle` (Section 4.1) and :class:`Hopper` (Section 4.2).
+
+All parameters may be per-element tensors broadcasting against ``x[..., 0]`` (e.g.
+``(B, 1)`` for inputs ``(B, T, n)``).
+"""
+
+from .cartpole import CartPole
+from .drag_vehicle import DragVehicle
+from .hopper import Hopper
+from .pendulum import Pendulum
+
+__all__ = ["CartPole", "DragVehicle", "Hopper", "Pendulum"]
