@@ -341,12 +341,6 @@ def _compare_with_single_solves(args, sol, bsz, T, n, m, unbatched: bool):
             assert_rel(getattr(sol, name)[i], ref, 1e-12, name)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=TypeError,
-    reason="library bug: lqr_solve on fully unbatched inputs (A (T,n,n), x0 (n,)) raises "
-    "TypeError in unflat(): status.reshape(*(), *()) is reshape() with no shape",
-)
 def test_batch_of_64_equals_unbatched_single_solves():
     bsz, T, n, m = 64, 7, 4, 2
     args = random_problem(1234, bsz, T, n, m)
@@ -463,12 +457,6 @@ def test_bad_input_raises_value_error_naming_argument(name, args):
         lqr_solve(**args)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=RuntimeError,
-    reason="batch-dim mismatch raises torch's RuntimeError from broadcast_shapes before "
-    "lqr_solve's validation can turn it into a ValueError",
-)
 def test_batch_mismatch_raises_value_error():
     args = random_problem(5, 2, 3, 3, 2)
     args["x0"] = torch.randn(3, 3, dtype=F64)

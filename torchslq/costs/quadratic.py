@@ -142,12 +142,12 @@ class QuadraticCost(nn.Module):
         return xr, ur
 
     def _check_traj(self, x: Tensor, u: Tensor) -> int:
-        if x.ndim != 3 or u.ndim != 3:
+        if x.ndim < 3 or u.ndim < 3:
             raise ValueError(
                 f"x must be (B,T+1,n) and u (B,T,m), got {tuple(x.shape)} and {tuple(u.shape)}"
             )
-        T = u.shape[1]
-        if x.shape[1] != T + 1 or x.shape[-1] != self.state_dim or u.shape[-1] != self.control_dim:
+        T = u.shape[-2]
+        if x.shape[-2] != T + 1 or x.shape[-1] != self.state_dim or u.shape[-1] != self.control_dim:
             raise ValueError(
                 f"expected x (B,T+1,{self.state_dim}) and u (B,T,{self.control_dim}), "
                 f"got {tuple(x.shape)} and {tuple(u.shape)}"
@@ -156,13 +156,17 @@ class QuadraticCost(nn.Module):
 
     # ------------------------------------------------------------------ evaluation
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
-        """Cost ``(B,)`` of trajectories ``x (B, T+1, n)``, ``u (B, T, m)``."""
+        """Cost ``(B,)`` of trajectories ``x (B, T+1, n)``, ``u (B, T, m)``.
+
+        Extra leading dims are allowed (``x (..., B, T+1, n)`` gives ``(..., B)``); the
+        batch dim of per-element weights aligns with the dim just before time.
+        """
         T = self._check_traj(x, u)
         Q, R = self.weights(T)
         xr, ur = self.references(T, x)
         dx, du = x - xr, u - ur
-        Jx = torch.einsum("bti,btij,btj->b", dx, Q.expand(x.shape[0], *Q.shape[1:]), dx)
-        Ju = torch.einsum("bti,btij,btj->b", du, R.expand(u.shape[0], *R.shape[1:]), du)
+        Jx = torch.einsum("...ti,...tij,...tj->...", dx, Q, dx)
+        Ju = torch.einsum("...ti,...tij,...tj->...", du, R, du)
         return 0.5 * (Jx + Ju)
 
     def quadratize(self, x: Tensor, u: Tensor) -> CostExpansion:

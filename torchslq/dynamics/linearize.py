@@ -85,8 +85,9 @@ def linearize(
             Jacobians are returned detached.
         method: ``"vjp"`` calls the dynamics once on the whole batch and pulls back the
             ``n`` output basis vectors (rows must be independent, see
-            :mod:`torchslq.dynamics.base`); ``"jacrev"`` / ``"jacfwd"`` use
-            ``vmap(jacrev|jacfwd)`` over per-row calls; ``"auto"`` picks ``"vjp"``.
+            :mod:`torchslq.dynamics.base`) and supports per-element parameters;
+            ``"jacrev"`` / ``"jacfwd"`` use ``vmap(jacrev|jacfwd)`` over per-row calls
+            (parameters must then be shared by all rows); ``"auto"`` picks ``"vjp"``.
     """
     if method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
@@ -105,21 +106,22 @@ def linearize(
     else:
         n, m = x.shape[-1], u.shape[-1]
     lead = x.shape[:-1]
-    xf = x.reshape(-1, x.shape[-1])
-    uf = u.reshape(-1, u.shape[-1])
     if not create_graph:
-        xf, uf = xf.detach(), uf.detach()
+        x, u = x.detach(), u.detach()
     ctx = nullcontext() if create_graph else torch.no_grad()
     with ctx:
         if method in ("auto", "vjp"):
-            out, pullback = vjp(f, xf, uf)
+            # one call on the full (..., n) batch keeps per-element parameters aligned
+            out, pullback = vjp(f, x, u)
             n_out = out.shape[-1]
             basis = torch.eye(n_out, dtype=out.dtype, device=out.device)
-            basis = basis.unsqueeze(1).expand(n_out, out.shape[0], n_out)
-            Jx, Ju = vmap(pullback)(basis)  # (n, N, n), (n, N, m)
-            A, B = Jx.transpose(0, 1), Ju.transpose(0, 1)
+            basis = basis.reshape(n_out, *([1] * len(lead)), n_out).expand(n_out, *out.shape)
+            Jx, Ju = vmap(pullback)(basis)  # (n_out, ..., n), (n_out, ..., m)
+            A, B = Jx.movedim(0, -2), Ju.movedim(0, -2)
         else:
             jac = jacrev if method == "jacrev" else jacfwd
+            xf = x.reshape(-1, x.shape[-1])
+            uf = u.reshape(-1, u.shape[-1])
 
             def single(xi: Tensor, ui: Tensor) -> Tensor:
                 return f(xi.unsqueeze(0), ui.unsqueeze(0)).squeeze(0)

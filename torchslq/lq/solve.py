@@ -285,14 +285,22 @@ def lqr_solve(
     S = _with_time(S, 2, T)
     c = _with_time(c, 1, T)
 
+    if validate:
+        try:
+            torch.broadcast_shapes(
+                A.shape[:-3],
+                B.shape[:-3],
+                Q.shape[:-3],
+                R.shape[:-3],
+                x0.shape[:-1],
+                *(t.shape[:-2] for t in (q, r, c) if t is not None),
+                *(() if S is None else (S.shape[:-3],)),
+            )
+        except RuntimeError as err:
+            raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
     F = homogeneous_dynamics(A, B, c)
     H, VhT = homogeneous_cost(Q, R, q, r, S)
     batch = torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
-    if validate:
-        try:
-            torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
-        except RuntimeError as err:  # pragma: no cover - broadcast_shapes above raises first
-            raise ValueError(f"batch dimensions do not broadcast: {err}") from err
     # one flat batch dim for the kernel
     nb = int(torch.Size(batch).numel())
     Ff = F.expand(*batch, *F.shape[-3:]).reshape(nb, *F.shape[-3:])
@@ -314,7 +322,7 @@ def lqr_solve(
     lam = (Vh[..., :n, :] @ _homog(x).unsqueeze(-1))[..., 0]
 
     def unflat(t: Tensor) -> Tensor:
-        return t.reshape(*batch, *t.shape[1:])
+        return t.reshape(tuple(batch) + tuple(t.shape[1:]))
 
     x, u = unflat(x), unflat(u)
     cost = lq_objective(x, u, Q, R, q, r, S)
