@@ -10,6 +10,8 @@ from .dynamics import (
     linearize,
 )
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
+from .problem import Problem
+from .solvers import SLQ, SolverResult
 from .status import Status, status_names
 
 __version__ = "0.1.0"
@@ -21,7 +23,10 @@ __all__ = [
     "Dynamics",
     "LQRSolution",
     "LearnedDynamics",
+    "Problem",
     "QuadraticCost",
+    "SLQ",
+    "SolverResult",
     "Status",
     "discretize",
     "linearize",

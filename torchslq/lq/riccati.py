@@ -80,6 +80,16 @@ class RiccatiFactors:
         return self.Vh[..., :-1, -1]
 
 
+def with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
+    """Expand the time dim of an argument to ``steps``: a constant (no time dim, e.g.
+    ``(n, n)``) or a time dim of 1 broadcasts over the horizon."""
+    if t is None:
+        return None
+    if t.ndim == tail_ndim:
+        t = t.unsqueeze(0)
+    return t.expand(*t.shape[: -tail_ndim - 1], steps, *t.shape[-tail_ndim:])
+
+
 def _sym(X: Tensor) -> Tensor:
     return 0.5 * (X + X.mT)
 
@@ -249,11 +259,19 @@ def riccati_backward(
 
     Shapes as in :func:`torchslq.lqr_solve` (one flat batch dimension, broadcast):
     ``A (B,T,n,n)``, ``B (B,T,n,m)``, ``Q (B,T+1,n,n)``, ``R (B,T,m,m)``, ``q (B,T+1,n)``,
-    ``r (B,T,m)``, ``S (B,T,m,n)``, ``c (B,T,n)``. ``reg`` adds ``reg * I`` to every
+    ``r (B,T,m)``, ``S (B,T,m,n)``, ``c (B,T,n)``; a missing or size-1 time dim
+    broadcasts over the horizon ``T = A.shape[-3]``. ``reg`` adds ``reg * I`` to every
     ``Quu`` (scalar or ``(B,)``). No input validation: this is the inner-loop entry point.
     """
-    F = homogeneous_dynamics(A, B, c)
-    H, VhT = homogeneous_cost(Q, R, q, r, S)
+    T = A.shape[-3]
+    F = homogeneous_dynamics(A, B, with_time(c, 1, T))
+    H, VhT = homogeneous_cost(
+        with_time(Q, 2, T + 1),
+        with_time(R, 2, T),
+        with_time(q, 1, T + 1),
+        with_time(r, 1, T),
+        with_time(S, 2, T),
+    )
     return riccati_homogeneous(F, H, VhT, reg)
 
 
@@ -265,6 +283,6 @@ def rollout_linear(
     ``A (B,T,n,n)``, ``B (B,T,n,m)``, ``K (B,T,m,n)``, ``k (B,T,m)``, ``x0 (B,n)``,
     ``c (B,T,n)``. Returns ``x (B,T+1,n)``, ``u (B,T,m)``.
     """
-    F = homogeneous_dynamics(A, B, c)
+    F = homogeneous_dynamics(A, B, with_time(c, 1, K.shape[-3]))
     Kk = torch.cat([K, k.unsqueeze(-1)], dim=-1)
     return rollout_homogeneous(F, Kk, x0)

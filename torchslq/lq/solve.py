@@ -27,6 +27,7 @@ from .riccati import (
     homogeneous_dynamics,
     riccati_homogeneous,
     rollout_homogeneous,
+    with_time,
 )
 
 __all__ = ["LQRSolution", "lqr_solve"]
@@ -211,15 +212,6 @@ def _check_tensor(
         raise ValueError(f"{name} contains non-finite values (nan or inf)")
 
 
-def _with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
-    """Give a constant argument (no time dim) a broadcastable time dim of size 1."""
-    if t is None:
-        return None
-    if t.ndim == tail_ndim:
-        t = t.unsqueeze(0)
-    return t.expand(*t.shape[: -tail_ndim - 1], steps, *t.shape[-tail_ndim:])
-
-
 def lqr_solve(
     A: Tensor,
     B: Tensor,
@@ -278,12 +270,12 @@ def lqr_solve(
         if bool((torch.linalg.cholesky_ex(Rsym).info != 0).any()):
             raise ValueError("R must be symmetric positive definite (Cholesky failed)")
     m = B.shape[-1]
-    Q = _with_time(Q, 2, T + 1)
-    R = _with_time(R, 2, T)
-    q = _with_time(q, 1, T + 1)
-    r = _with_time(r, 1, T)
-    S = _with_time(S, 2, T)
-    c = _with_time(c, 1, T)
+    Q = with_time(Q, 2, T + 1)
+    R = with_time(R, 2, T)
+    q = with_time(q, 1, T + 1)
+    r = with_time(r, 1, T)
+    S = with_time(S, 2, T)
+    c = with_time(c, 1, T)
 
     if validate:
         try:

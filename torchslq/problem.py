@@ -1,0 +1,85 @@
+"""``Problem``: dynamics + cost + horizon, the input of every solver."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor, nn
+
+from .dynamics.base import state_control_dims
+from .dynamics.linearize import as_transition
+from .solvers.rollout import rollout
+
+__all__ = ["Problem"]
+
+
+class Problem(nn.Module):
+    """A discrete-time optimal control problem ``min J(x, u)`` s.t. ``x_{t+1} = f(x_t, u_t)``.
+
+    Args:
+        dynamics: a :class:`torchslq.Dynamics` (use :func:`torchslq.discretize` for a
+            continuous model), or a network on ``[x, u]`` wrapped in
+            :class:`torchslq.LearnedDynamics`.
+        cost: a cost module with ``cost(x, u) -> (B,)`` and ``quadratize(x, u)``, e.g.
+            :class:`torchslq.QuadraticCost`.
+        horizon: number of steps ``T``; trajectories are ``x (B, T+1, n)``, ``u (B, T, m)``.
+
+    Batch convention: solvers call the dynamics on ``x (..., B, 1, n)`` during rollouts
+    and on ``(B, T, n)`` for linearisation, so a per-element parameter of shape
+    ``(B, 1)`` broadcasts against ``x[..., 0]`` in both.
+    """
+
+    def __init__(self, dynamics: nn.Module, cost: nn.Module, horizon: int):
+        super().__init__()
+        n, m = state_control_dims(dynamics)
+        if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
+            raise ValueError(f"horizon must be a positive int, got {horizon!r}")
+        cn, cm = getattr(cost, "state_dim", n), getattr(cost, "control_dim", m)
+        if (cn, cm) != (n, m):
+            raise ValueError(
+                f"cost is for state/control dims ({cn}, {cm}) but dynamics has ({n}, {m})"
+            )
+        if not callable(getattr(cost, "quadratize", None)):
+            raise TypeError(f"cost must provide quadratize(x, u); got {type(cost).__name__}")
+        self.dynamics = dynamics
+        self.cost = cost
+        self.horizon = horizon
+        self.state_dim, self.control_dim = n, m
+
+    @property
+    def transition(self) -> Callable[[Tensor, Tensor], Tensor]:
+        return as_transition(self.dynamics)
+
+    def rollout(self, x0: Tensor, u: Tensor) -> Tensor:
+        """States ``(..., B, T+1, n)`` from ``x0 (..., B, n)`` under open-loop ``u (..., B, T, m)``."""
+        return rollout(self.transition, x0, u)
+
+    def total_cost(self, x0: Tensor, u: Tensor) -> Tensor:
+        """``J(U)`` ``(..., B)`` of open-loop controls (rollout + cost)."""
+        return self.cost(self.rollout(x0, u), u)
+
+    def check_inputs(self, x0: Tensor, u_init: Tensor | None) -> tuple[Tensor, Tensor, bool]:
+        """Validate and batch ``x0`` ``(B, n)`` or ``(n,)`` and ``u_init``; returns
+        ``(x0 (B,n), u (B,T,m), unbatched)``."""
+        n, m, T = self.state_dim, self.control_dim, self.horizon
+        if not torch.is_tensor(x0) or not x0.is_floating_point():
+            raise TypeError("x0 must be a floating-point tensor of shape (B, n) or (n,)")
+        if x0.ndim not in (1, 2) or x0.shape[-1] != n:
+            raise ValueError(f"x0 must have shape (B, {n}) or ({n},), got {tuple(x0.shape)}")
+        unbatched = x0.ndim == 1
+        x0 = x0.reshape(-1, n)
+        Bsz = x0.shape[0]
+        if u_init is None:
+            u = x0.new_zeros(Bsz, T, m)
+        else:
+            if not torch.is_tensor(u_init):
+                raise TypeError("u_init must be a tensor of shape (B, T, m) or (T, m)")
+            if u_init.shape[-2:] != (T, m) or u_init.ndim not in (2, 3):
+                raise ValueError(
+                    f"u_init must have shape (B, {T}, {m}) or ({T}, {m}), got {tuple(u_init.shape)}"
+                )
+            u = u_init.to(dtype=x0.dtype, device=x0.device).expand(Bsz, T, m).clone()
+        if not bool(torch.isfinite(x0).all()):
+            raise ValueError("x0 contains non-finite values")
+        return x0, u, unbatched

@@ -1,0 +1,17 @@
+"""Solvers and their shared pieces (rollout, costate gradient, line search, result)."""
+
+from .line_search import armijo_search, exact_search
+from .result import SolverResult
+from .rollout import costate_gradient, rollout, rollout_closed_loop
+from .slq import SLQ, SLQOptions
+
+__all__ = [
+    "SLQ",
+    "SLQOptions",
+    "SolverResult",
+    "armijo_search",
+    "costate_gradient",
+    "exact_search",
+    "rollout",
+    "rollout_closed_loop",
+]

@@ -1,0 +1,131 @@
+"""Batched line searches: many step sizes per element in one rollout.
+
+Both searches take ``evaluate(alphas) -> J`` where ``alphas`` is ``(Na, B)`` (a set of
+candidate steps for every element, evaluated as an extra batch dimension) and return a
+step per element. Non-finite trial costs count as +inf, so a candidate that blows up is
+simply never chosen.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+__all__ = ["armijo_search", "exact_search", "EXACT_GRID"]
+
+# Candidate steps of the exact search: dense near 1 (the Gauss-Newton step), then halving.
+EXACT_GRID = (1.0, 0.85, 0.7, 0.5, 0.35, 0.25) + tuple(0.5**k for k in range(3, 16))
+
+
+def _finite(J: Tensor) -> Tensor:
+    return torch.nan_to_num(J, nan=float("inf"), posinf=float("inf"))
+
+
+def _within_roundoff(J1: Tensor, J0: Tensor, slope: Tensor | None, noise: float) -> Tensor:
+    """True where the predicted decrease ``|slope|`` is below the rounding noise of ``J``
+    and the full step ``J(1)`` is no worse than ``J0`` up to that noise.
+
+    Near a minimum of a badly scaled problem the cost change of a (good) Gauss-Newton
+    step can be smaller than the rounding error of evaluating ``J``; no comparison of
+    costs can then tell a good step from a bad one, so the full step is taken instead of
+    declaring failure (the gradient test still decides convergence).
+    """
+    if slope is None or noise <= 0:
+        return torch.zeros_like(J0, dtype=torch.bool)
+    tol = noise * torch.finfo(J0.dtype).eps * J0.abs().clamp_min(1.0)
+    return (slope.abs() <= tol) & (J1 <= J0 + tol)
+
+
+def armijo_search(
+    evaluate: Callable[[Tensor], Tensor],
+    J0: Tensor,
+    slope: Tensor,
+    *,
+    c1: float = 1e-4,
+    beta: float = 0.5,
+    max_backtracks: int = 20,
+    alpha0: float = 1.0,
+    roundoff: float = 64.0,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Backtracking on sufficient decrease ``J(a) <= J0 + c1 a slope`` (Armijo).
+
+    All ``alpha0 * beta^j`` (``j < max_backtracks``) are tried at once; the result is the
+    largest that satisfies the condition, i.e. what serial backtracking would return.
+
+    Args:
+        J0: ``(B,)`` current cost; slope ``(B,)`` directional derivative (< 0).
+        roundoff: when ``|slope| <= roundoff * eps * |J0|`` the decrease cannot be
+            resolved in floating point and the full step is accepted if ``J(alpha0)`` is
+            within that noise of ``J0`` (0 disables this).
+
+    Returns:
+        ``(alpha (B,), J (B,), ok (B,) bool)``; ``alpha = 0`` where no step was accepted.
+    """
+    grid = alpha0 * beta ** torch.arange(max_backtracks, dtype=J0.dtype, device=J0.device)
+    alphas = grid.unsqueeze(-1).expand(-1, J0.shape[0])
+    J = _finite(evaluate(alphas))
+    ok = J <= J0 + c1 * alphas * slope
+    first = torch.argmax(ok.to(torch.int8), dim=0)  # first True (largest alpha)
+    found = ok.any(dim=0)
+    alpha = torch.where(found, grid[first], torch.zeros_like(J0))
+    Jbest = torch.where(found, J.gather(0, first.unsqueeze(0))[0], J0)
+    flat = ~found & _within_roundoff(J[0], J0, slope, roundoff)
+    alpha = torch.where(flat, grid[0], alpha)
+    Jbest = torch.where(flat, J[0], Jbest)
+    return alpha, Jbest, found | flat
+
+
+def exact_search(
+    evaluate: Callable[[Tensor], Tensor],
+    J0: Tensor,
+    *,
+    grid: tuple[float, ...] = EXACT_GRID,
+    refine: bool = True,
+    slope: Tensor | None = None,
+    roundoff: float = 64.0,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Approximately minimise ``J(a)`` over ``a`` in ``(0, 1]``.
+
+    Evaluates a grid of steps at once, then refines around the best grid point with one
+    quadratic fit through it and its two neighbours (clamped to the bracket), keeping
+    whichever of the grid point and the fitted point is lower.
+
+    With ``slope`` (the directional derivative) given, a full step is accepted where the
+    predicted decrease is below rounding noise (see :func:`armijo_search`).
+
+    Returns:
+        ``(alpha (B,), J (B,), ok (B,) bool)``; ``ok`` is False (and ``alpha = 0``) when
+        no tried step lowers the cost below ``J0``.
+    """
+    g = torch.tensor(sorted(grid), dtype=J0.dtype, device=J0.device)  # ascending
+    Na, Bsz = g.shape[0], J0.shape[0]
+    J = _finite(evaluate(g.unsqueeze(-1).expand(Na, Bsz)))  # (Na, B)
+    i = torch.argmin(J, dim=0)  # (B,)
+    a_best = g[i]
+    J_best = J.gather(0, i.unsqueeze(0))[0]
+    if refine and Na >= 3:
+        # bracket (lo, mid, hi) in grid order; at the ends use the nearest three points
+        mid = i.clamp(1, Na - 2)
+        lo, hi = mid - 1, mid + 1
+        a0, a1, a2 = g[lo], g[mid], g[hi]
+        J0_, J1_, J2_ = (J.gather(0, j.unsqueeze(0))[0] for j in (lo, mid, hi))
+        # vertex of the parabola through three points (divided differences)
+        d01 = (J1_ - J0_) / (a1 - a0)
+        d12 = (J2_ - J1_) / (a2 - a1)
+        curv = (d12 - d01) / (a2 - a0)
+        vertex = 0.5 * (a0 + a1) - d01 / (2.0 * curv)
+        usable = torch.isfinite(vertex) & (curv > 0)
+        a_fit = torch.where(usable, vertex, a_best).clamp(min=a0, max=a2).clamp(max=1.0)
+        J_fit = _finite(evaluate(a_fit.unsqueeze(0)))[0]
+        better = J_fit < J_best
+        a_best = torch.where(better, a_fit, a_best)
+        J_best = torch.where(better, J_fit, J_best)
+    ok = J_best < J0
+    flat = ~ok & _within_roundoff(J[-1], J0, slope, roundoff)
+    a_best = torch.where(flat, g[-1], a_best)
+    J_best = torch.where(flat, J[-1], J_best)
+    ok = ok | flat
+    alpha = torch.where(ok, a_best, torch.zeros_like(a_best))
+    return alpha, torch.where(ok, J_best, J0), ok

@@ -1,0 +1,78 @@
+"""Nonlinear rollouts and the costate (adjoint) gradient, shared by all solvers."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+__all__ = ["rollout", "rollout_closed_loop", "costate_gradient"]
+
+
+def rollout(f: Callable[[Tensor, Tensor], Tensor], x0: Tensor, u: Tensor) -> Tensor:
+    """``x_{t+1} = f(x_t, u_t)`` for ``x0 (..., n)``, ``u (..., T, m)`` -> ``x (..., T+1, n)``.
+
+    ``f`` is called on ``(..., 1, n)`` slices (a singleton time dim) so that per-element
+    parameters shaped ``(B, 1)`` broadcast the same way as in linearisation.
+    """
+    xt = x0.unsqueeze(-2)
+    xs = [xt]
+    for t in range(u.shape[-2]):
+        xt = f(xt, u[..., t : t + 1, :])
+        xs.append(xt)
+    return torch.cat(xs, dim=-2)
+
+
+def rollout_closed_loop(
+    f: Callable[[Tensor, Tensor], Tensor],
+    x0: Tensor,
+    x_nom: Tensor,
+    u_nom: Tensor,
+    K: Tensor,
+    k: Tensor,
+    alpha: Tensor,
+) -> tuple[Tensor, Tensor]:
+    """Feedback rollout ``u_t = u_nom_t + alpha k_t + K_t (x_t - x_nom_t)``.
+
+    Args:
+        x0: ``(..., B, n)``; x_nom ``(B, T+1, n)``; u_nom ``(B, T, m)``; K ``(B, T, m, n)``;
+        k ``(B, T, m)``; alpha ``(..., B)`` step sizes (leading dims: candidate steps).
+
+    Returns:
+        ``x (..., B, T+1, n)`` and ``u (..., B, T, m)``.
+    """
+    a = alpha.unsqueeze(-1)
+    xt = x0.unsqueeze(-2)
+    xs, us = [xt], []
+    for t in range(u_nom.shape[-2]):
+        dx = xt[..., 0, :] - x_nom[..., t, :]
+        ut = u_nom[..., t, :] + a * k[..., t, :] + (K[..., t, :, :] @ dx.unsqueeze(-1))[..., 0]
+        ut = ut.unsqueeze(-2)
+        xt = f(xt, ut)
+        xs.append(xt)
+        us.append(ut)
+    return torch.cat(xs, dim=-2), torch.cat(us, dim=-2)
+
+
+def costate_gradient(A: Tensor, B: Tensor, lx: Tensor, lu: Tensor) -> tuple[Tensor, Tensor]:
+    """Gradient of ``J(U)`` by the costate recursion (Sideris & Bobrow eqs. 8-11).
+
+    ``lam_T = l_x(T)``, ``lam_t = l_x(t) + A_t' lam_{t+1}`` (eq. 8-9) and
+    ``dJ/du_t = l_u(t) + B_t' lam_{t+1}`` (eq. 10).
+
+    Args:
+        A ``(B, T, n, n)``, B ``(B, T, n, m)``, lx ``(B, T+1, n)``, lu ``(B, T, m)``.
+
+    Returns:
+        ``grad (B, T, m)`` and costates ``lam (B, T+1, n)``.
+    """
+    T = lu.shape[-2]
+    lam = lx[..., T, :].unsqueeze(-1)
+    lams = [lam] * (T + 1)
+    grads = [lam] * T
+    for t in range(T - 1, -1, -1):
+        grads[t] = lu[..., t, :].unsqueeze(-1) + B[..., t, :, :].mT @ lam
+        lam = lx[..., t, :].unsqueeze(-1) + A[..., t, :, :].mT @ lam
+        lams[t] = lam
+    return torch.stack(grads, dim=-3)[..., 0], torch.stack(lams, dim=-3)[..., 0]

@@ -1,0 +1,270 @@
+"""SLQ: the Sequential Linear Quadratic algorithm of Sideris & Bobrow (2005), batched.
+
+Algorithm 2 of the paper, for every batch element independently:
+
+1. roll out ``x`` under the current controls ``U`` (Step 1);
+2. linearise the dynamics along ``(x, u)`` (Step 2, ``A = f_x``, ``B = f_u``) and solve the
+   LQ tracking problem with ``x̄(0) = 0`` and targets ``x̄° = x° - x``, ``ū° = u° - u``
+   (eq. 29-30) by the shared Riccati kernel (Algorithm 1). For the quadratic cost this
+   is exactly the LQ problem with linear terms ``q = Q (x - x°)`` and ``r = R (u - u°)``,
+   i.e. the cost's gradient; the cost is *not* linearised (Gauss-Newton, Section 3.3);
+3. stop when ``||Ū|| < tol ||U||`` and/or ``||∇_U J|| < tol`` (configurable);
+4. otherwise step ``U + α Ū`` (eq. 28) with ``α`` from a line search over ``(0, 1]``:
+   "exact" (Theorem 2) or "armijo" with the directional derivative of eq. (34).
+
+Every element keeps its own step size, iteration count and status; finished or failed
+elements are frozen by a mask and never affect the others.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import asdict, dataclass
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from ..dynamics.linearize import linearize
+from ..lq.riccati import riccati_backward, rollout_linear
+from ..status import Status
+from .line_search import armijo_search, exact_search
+from .progress import progress_bar
+from .result import SolverResult
+from .rollout import costate_gradient, rollout, rollout_closed_loop
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..problem import Problem
+
+__all__ = ["SLQ", "SLQOptions"]
+
+_LINE_SEARCHES = ("exact", "armijo")
+_ROLLOUTS = ("open_loop", "closed_loop")
+_STOPS = ("grad", "step", "either", "both")
+
+
+@dataclass
+class SLQOptions:
+    """Options of :class:`SLQ` (see its docstring)."""
+
+    max_iter: int = 100
+    tol: float = 1e-6
+    line_search: str = "exact"
+    stop: str = "grad"
+    step_tol: float | None = None
+    rollout: str = "open_loop"
+    armijo_c1: float = 1e-4
+    armijo_beta: float = 0.5
+    max_backtracks: int = 20
+    linearize_method: str = "auto"
+    progress: bool = True
+
+
+class SLQ:
+    """Sequential Linear Quadratic solver (Sideris & Bobrow 2005, Algorithm 2).
+
+    Args:
+        max_iter: iterations per element (default 100).
+        tol: tolerance of the stopping rule (default 1e-6).
+        line_search: ``"exact"`` (minimise ``J(U + αŪ)`` over ``α ∈ (0, 1]``: a grid of
+            steps evaluated as one batched rollout, refined by a quadratic fit) or
+            ``"armijo"`` (backtracking from 1 on ``J(U+αŪ) <= J(U) + c1 α D`` with
+            ``D = ∇J·Ū = -(Σ x̄'Qx̄ + ū'Rū)``, eq. 34).
+        stop: ``"grad"``: ``||∇_U J|| < tol`` (the test of the paper's Section 4);
+            ``"step"``: ``||Ū|| < step_tol ||U||`` (Algorithm 2, Step 2); ``"either"`` /
+            ``"both"`` combine the two.
+        step_tol: tolerance of the step rule (defaults to ``tol``).
+        rollout: ``"open_loop"`` (the paper's ``U + αŪ``) or ``"closed_loop"`` (the line
+            search applies the LQ feedback: ``u = u + α k + K (x_new - x)``).
+        armijo_c1, armijo_beta, max_backtracks: Armijo constants.
+        linearize_method: passed to :func:`torchslq.linearize`.
+        progress: show a tqdm bar when a solve takes longer than a second.
+    """
+
+    name = "slq"
+
+    def __init__(
+        self, max_iter: int = 100, tol: float = 1e-6, line_search: str = "exact", **kwargs: Any
+    ):
+        self.options = SLQOptions(max_iter=max_iter, tol=tol, line_search=line_search, **kwargs)
+        o = self.options
+        if not isinstance(o.max_iter, int) or o.max_iter < 0:
+            raise ValueError(f"max_iter must be a non-negative int, got {o.max_iter!r}")
+        if not o.tol > 0:
+            raise ValueError(f"tol must be positive, got {o.tol!r}")
+        if o.line_search not in _LINE_SEARCHES:
+            raise ValueError(f"line_search must be one of {_LINE_SEARCHES}, got {o.line_search!r}")
+        if o.rollout not in _ROLLOUTS:
+            raise ValueError(f"rollout must be one of {_ROLLOUTS}, got {o.rollout!r}")
+        if o.stop not in _STOPS:
+            raise ValueError(f"stop must be one of {_STOPS}, got {o.stop!r}")
+
+    # ------------------------------------------------------------------ one SLQ direction
+    def direction(self, problem: Problem, x: Tensor, u: Tensor) -> dict[str, Tensor]:
+        """Linearise at ``(x, u)`` and solve the LQ subproblem (Algorithm 2, Step 2).
+
+        Returns a dict with the direction ``du (B,T,m)``, its state response
+        ``dx (B,T+1,n)``, the gains ``K``, ``k``, the gradient ``grad (B,T,m)`` (eqs.
+        8-11), the directional derivative ``slope = ∇J·Ū (B,)`` and the factor status
+        ``failed (B,)``.
+        """
+        T = problem.horizon
+        A, B = linearize(problem.transition, x[:, :T], u, method=self.options.linearize_method)
+        e = problem.cost.quadratize(x, u)
+        grad, _ = costate_gradient(A, B, e.lx, e.lu)
+        fac = riccati_backward(A, B, e.lxx, e.luu, e.lx, e.lu, e.lux)
+        dx, du = rollout_linear(A, B, fac.K, fac.k, torch.zeros_like(x[:, 0]))
+        slope = (grad * du).sum(dim=(-1, -2))
+        return {
+            "dx": dx,
+            "du": du,
+            "K": fac.K,
+            "k": fac.k,
+            "grad": grad,
+            "slope": slope,
+            "failed": fac.failed,
+        }
+
+    # ------------------------------------------------------------------ solve
+    def solve(
+        self,
+        problem: Problem,
+        x0: Tensor,
+        u_init: Tensor | None = None,
+        logger: Any = None,
+    ) -> SolverResult:
+        """Solve ``problem`` from initial states ``x0 (B, n)`` (or ``(n,)``).
+
+        Args:
+            u_init: initial controls ``(B, T, m)`` or ``(T, m)``; zeros by default.
+            logger: e.g. :class:`torchslq.TensorBoardLogger`; None costs nothing.
+        """
+        o = self.options
+        x0, u, unbatched = problem.check_inputs(x0, u_init)
+        f = problem.transition
+        cost_fn = problem.cost
+        Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
+        step_tol = o.tol if o.step_tol is None else o.step_tol
+        t_start = time.perf_counter()
+
+        with torch.no_grad():
+            x = rollout(f, x0, u)
+            J = cost_fn(x, u)
+            status = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=x0.device)
+            finite0 = torch.isfinite(J) & torch.isfinite(x).flatten(1).all(1)
+            status = torch.where(finite0, status, torch.full_like(status, int(Status.NON_FINITE)))
+            iterations = torch.zeros(Bsz, dtype=torch.int64, device=x0.device)
+            step = torch.zeros_like(J)
+            hist_cost, hist_grad, hist_step, hist_time = [], [], [], []
+            K = x0.new_zeros(Bsz, T, m, n)
+            k = x0.new_zeros(Bsz, T, m)
+            grad_norm = torch.full_like(J, float("nan"))
+            if logger is not None:
+                logger.log_options(self.name, asdict(o))
+            bar = progress_bar(o.max_iter, enabled=o.progress, desc="SLQ")
+            for it in range(o.max_iter + 1):
+                running = status == Status.RUNNING
+                d = self.direction(problem, x, u)
+                gn = d["grad"].flatten(1).norm(dim=1)
+                grad_norm = torch.where(running, gn, grad_norm)
+                K = torch.where(running[:, None, None, None], d["K"], K)
+                k = torch.where(running[:, None, None], d["k"], k)
+                small_grad = gn < o.tol
+                small_step = d["du"].flatten(1).norm(dim=1) < step_tol * u.flatten(1).norm(dim=1)
+                done = {
+                    "grad": small_grad,
+                    "step": small_step,
+                    "either": small_grad | small_step,
+                    "both": small_grad & small_step,
+                }[o.stop]
+                status = torch.where(
+                    running & done, torch.full_like(status, int(Status.CONVERGED)), status
+                )
+                bad = running & ~done & (d["failed"] | ~torch.isfinite(d["slope"]))
+                status = torch.where(bad, torch.full_like(status, int(Status.NON_FINITE)), status)
+                running = status == Status.RUNNING
+                hist_cost.append(J)
+                hist_grad.append(grad_norm)
+                hist_step.append(step)
+                hist_time.append(time.perf_counter() - t_start)
+                if logger is not None:
+                    logger.log_iteration(
+                        it,
+                        cost=J,
+                        grad_norm=grad_norm,
+                        step=step,
+                        status=status,
+                        wall_time=hist_time[-1],
+                    )
+                n_running = int(running.sum())  # the one host sync per iteration
+                if n_running == 0 or it == o.max_iter:
+                    break
+                alpha, J_new, ok = self._line_search(f, cost_fn, x0, x, u, J, d)
+                accept = running & ok
+                status = torch.where(
+                    running & ~ok, torch.full_like(status, int(Status.LINE_SEARCH_FAILED)), status
+                )
+                a = torch.where(accept, alpha, torch.zeros_like(alpha))
+                if o.rollout == "open_loop":
+                    u_new = u + a[:, None, None] * d["du"]
+                    x_new = rollout(f, x0, u_new)
+                else:
+                    x_new, u_new = rollout_closed_loop(f, x0, x, u, d["K"], d["k"], a)
+                J_new = cost_fn(x_new, u_new)
+                u = torch.where(accept[:, None, None], u_new, u)
+                x = torch.where(accept[:, None, None], x_new, x)
+                J = torch.where(accept, J_new, J)
+                step = a
+                iterations = iterations + accept.to(torch.int64)
+                bar.update(1)
+                bar.set_postfix(running=n_running)
+            bar.close()
+            status = torch.where(
+                status == Status.RUNNING, torch.full_like(status, int(Status.MAX_ITER)), status
+            )
+
+        result = SolverResult(
+            x=x,
+            u=u,
+            cost=J,
+            grad_norm=grad_norm,
+            iterations=iterations,
+            status=status,
+            converged=status == Status.CONVERGED,
+            K=K,
+            k=k,
+            history={
+                "cost": torch.stack(hist_cost, dim=1),
+                "grad_norm": torch.stack(hist_grad, dim=1),
+                "step": torch.stack(hist_step, dim=1),
+                "time": torch.tensor(hist_time, dtype=torch.float64),
+            },
+            options={"solver": self.name, **asdict(o)},
+        )
+        if logger is not None:
+            logger.log_result(result, problem)
+        return result.squeeze_batch() if unbatched else result
+
+    def _line_search(self, f, cost_fn, x0, x, u, J, d) -> tuple[Tensor, Tensor, Tensor]:
+        o = self.options
+
+        def evaluate(alphas: Tensor) -> Tensor:  # alphas (Na, B) -> J (Na, B)
+            Na = alphas.shape[0]
+            x0c = x0.expand(Na, *x0.shape)
+            if o.rollout == "open_loop":
+                uc = u + alphas[..., None, None] * d["du"]
+                xc = rollout(f, x0c, uc)
+            else:
+                xc, uc = rollout_closed_loop(f, x0c, x, u, d["K"], d["k"], alphas)
+            return cost_fn(xc, uc)
+
+        if o.line_search == "exact":
+            return exact_search(evaluate, J, slope=d["slope"])
+        return armijo_search(
+            evaluate,
+            J,
+            d["slope"],
+            c1=o.armijo_c1,
+            beta=o.armijo_beta,
+            max_backtracks=o.max_backtracks,
+        )
