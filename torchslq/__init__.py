@@ -9,6 +9,7 @@ from .dynamics import (
     discretize,
     linearize,
 )
+from .logging import TensorBoardLogger
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
 from .problem import Problem
 from .solvers import SLQ, SolverResult
@@ -28,6 +29,7 @@ __all__ = [
     "SLQ",
     "SolverResult",
     "Status",
+    "TensorBoardLogger",
     "discretize",
     "linearize",
     "lqr_solve",

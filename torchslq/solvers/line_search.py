@@ -13,10 +13,38 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-__all__ = ["armijo_search", "exact_search", "EXACT_GRID"]
+__all__ = ["armijo_search", "exact_search", "EXACT_GRID", "TrialRecorder"]
 
 # Candidate steps of the exact search: dense near 1 (the Gauss-Newton step), then halving.
 EXACT_GRID = (1.0, 0.85, 0.7, 0.5, 0.35, 0.25) + tuple(0.5**k for k in range(3, 16))
+
+
+class TrialRecorder:
+    """Keeps the trajectories of every trial step so the chosen one need not be re-rolled.
+
+    ``record(alphas (Na, B), *tensors (Na, B, ...))`` is called by the evaluator;
+    ``select(alpha (B,))`` returns, per element, the recorded tensors of the trial whose
+    step equals ``alpha`` (elements without a matching trial, e.g. ``alpha = 0`` after a
+    failed search, get the first trial's values; callers mask those out).
+    """
+
+    def __init__(self) -> None:
+        self._alphas: list[Tensor] = []
+        self._tensors: list[tuple[Tensor, ...]] = []
+
+    def record(self, alphas: Tensor, *tensors: Tensor) -> None:
+        self._alphas.append(alphas)
+        self._tensors.append(tensors)
+
+    def select(self, alpha: Tensor) -> tuple[Tensor, ...]:
+        alphas = torch.cat(self._alphas, dim=0)  # (N, B)
+        idx = torch.argmax((alphas == alpha.unsqueeze(0)).to(torch.int8), dim=0)  # (B,)
+        out = []
+        for parts in zip(*self._tensors, strict=True):
+            allt = torch.cat(parts, dim=0)  # (N, B, ...)
+            ix = idx.reshape(1, -1, *([1] * (allt.ndim - 2))).expand(1, *allt.shape[1:])
+            out.append(allt.gather(0, ix)[0])
+        return tuple(out)
 
 
 def _finite(J: Tensor) -> Tensor:

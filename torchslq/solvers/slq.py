@@ -28,7 +28,7 @@ from torch import Tensor
 from ..dynamics.linearize import linearize
 from ..lq.riccati import riccati_backward, rollout_linear
 from ..status import Status
-from .line_search import armijo_search, exact_search
+from .line_search import TrialRecorder, armijo_search, exact_search
 from .progress import progress_bar
 from .result import SolverResult
 from .rollout import costate_gradient, rollout, rollout_closed_loop
@@ -199,18 +199,12 @@ class SLQ:
                 n_running = int(running.sum())  # the one host sync per iteration
                 if n_running == 0 or it == o.max_iter:
                     break
-                alpha, J_new, ok = self._line_search(f, cost_fn, x0, x, u, J, d)
+                alpha, J_new, ok, x_new, u_new = self._line_search(f, cost_fn, x0, x, u, J, d)
                 accept = running & ok
                 status = torch.where(
                     running & ~ok, torch.full_like(status, int(Status.LINE_SEARCH_FAILED)), status
                 )
                 a = torch.where(accept, alpha, torch.zeros_like(alpha))
-                if o.rollout == "open_loop":
-                    u_new = u + a[:, None, None] * d["du"]
-                    x_new = rollout(f, x0, u_new)
-                else:
-                    x_new, u_new = rollout_closed_loop(f, x0, x, u, d["K"], d["k"], a)
-                J_new = cost_fn(x_new, u_new)
                 u = torch.where(accept[:, None, None], u_new, u)
                 x = torch.where(accept[:, None, None], x_new, x)
                 J = torch.where(accept, J_new, J)
@@ -245,8 +239,10 @@ class SLQ:
             logger.log_result(result, problem)
         return result.squeeze_batch() if unbatched else result
 
-    def _line_search(self, f, cost_fn, x0, x, u, J, d) -> tuple[Tensor, Tensor, Tensor]:
+    def _line_search(self, f, cost_fn, x0, x, u, J, d) -> tuple[Tensor, ...]:
+        """Step sizes ``(B,)``, new costs, success flags and the chosen trajectories."""
         o = self.options
+        trials = TrialRecorder()
 
         def evaluate(alphas: Tensor) -> Tensor:  # alphas (Na, B) -> J (Na, B)
             Na = alphas.shape[0]
@@ -256,15 +252,19 @@ class SLQ:
                 xc = rollout(f, x0c, uc)
             else:
                 xc, uc = rollout_closed_loop(f, x0c, x, u, d["K"], d["k"], alphas)
+            trials.record(alphas, xc, uc)
             return cost_fn(xc, uc)
 
         if o.line_search == "exact":
-            return exact_search(evaluate, J, slope=d["slope"])
-        return armijo_search(
-            evaluate,
-            J,
-            d["slope"],
-            c1=o.armijo_c1,
-            beta=o.armijo_beta,
-            max_backtracks=o.max_backtracks,
-        )
+            alpha, J_new, ok = exact_search(evaluate, J, slope=d["slope"])
+        else:
+            alpha, J_new, ok = armijo_search(
+                evaluate,
+                J,
+                d["slope"],
+                c1=o.armijo_c1,
+                beta=o.armijo_beta,
+                max_backtracks=o.max_backtracks,
+            )
+        x_new, u_new = trials.select(alpha)
+        return alpha, J_new, ok, x_new, u_new
