@@ -1,0 +1,156 @@
+"""The ``torchslq`` command: ``demo``, ``solve`` and ``reproduce``.
+
+Errors in the command line (unknown system, solver or option) print one line and exit
+with status 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+SOLVERS = ("slq",)
+REPRODUCTIONS = ("sideris-table1", "sideris-hopper")
+DTYPES = {"float64": torch.float64, "float32": torch.float32}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str):  # one clear line, exit code 2
+        self.exit(2, f"torchslq: error: {message}\n")
+
+
+def _fail(message: str) -> int:
+    print(f"torchslq: error: {message}", file=sys.stderr)
+    return 2
+
+
+def _device(name: str) -> torch.device:
+    try:
+        dev = torch.device(name)
+    except RuntimeError as err:
+        raise ValueError(f"invalid device {name!r}") from err
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ValueError(f"device {name!r} requested but CUDA is not available")
+    return dev
+
+
+def _make_solver(name: str, args: argparse.Namespace):
+    from .solvers import SLQ
+
+    if name == "slq":
+        return SLQ(
+            max_iter=args.max_iter,
+            tol=args.tol,
+            line_search=args.line_search,
+            rollout=args.rollout,
+            progress=not args.no_progress,
+        )
+    raise ValueError(f"unknown solver {name!r}; choose from {', '.join(SOLVERS)}")
+
+
+def _run(system: str, args: argparse.Namespace, title: str) -> int:
+    from .logging import TensorBoardLogger
+    from .plotting import convergence_figure, trajectory_figure
+    from .tasks import TASKS, make_task, swingup_success
+
+    if system not in TASKS:
+        return _fail(f"unknown system {system!r}; choose from {', '.join(TASKS)}")
+    try:
+        device = _device(args.device)
+        solver = _make_solver(args.solver, args)
+    except ValueError as err:
+        return _fail(str(err))
+    if args.batch < 1:
+        return _fail(f"--batch must be >= 1, got {args.batch}")
+    torch.set_num_threads(args.threads) if args.threads else None
+    problem, x0 = make_task(
+        system, batch=args.batch, seed=args.seed, device=device, dtype=DTYPES[args.dtype]
+    )
+    logdir = Path(args.logdir) / time.strftime("%Y%m%d-%H%M%S")
+    dt = getattr(problem.dynamics, "dt", None)
+    t0 = time.perf_counter()
+    with TensorBoardLogger(logdir, dt=dt) as logger:
+        result = solver.solve(problem, x0, logger=logger)
+    elapsed = time.perf_counter() - t0
+    png = logdir / "trajectories.png"
+    trajectory_figure(result.x, result.u, dt=dt, max_elements=8, title=title).savefig(png, dpi=110)
+    conv_png = logdir / "convergence.png"
+    convergence_figure(
+        {args.solver: result.history["cost"]}, title=f"{title}: cost of element 0"
+    ).savefig(conv_png, dpi=110)
+
+    print(f"# {title}")
+    print(
+        f"solver: {args.solver} ({args.line_search} line search, {args.rollout} rollout), device {device}, {args.dtype}"
+    )
+    print(result.summary())
+    if system in ("pendulum", "cartpole"):
+        ok = swingup_success(result.x, angle_index=0 if system == "pendulum" else 1)
+        print(f"swung up (final angle within 0.1 rad of upright): {int(ok.sum())}/{ok.numel()}")
+    print(
+        f"wall time: {elapsed:.2f} s for {x0.shape[0]} problems ({elapsed / x0.shape[0] * 1e3:.2f} ms per problem)"
+    )
+    print(f"TensorBoard logs: {logdir}   (view: tensorboard --logdir {args.logdir})")
+    print(f"plots: {png}, {conv_png}")
+    return 0
+
+
+def _reproduce(name: str, args: argparse.Namespace) -> int:
+    if name not in REPRODUCTIONS:
+        return _fail(f"unknown reproduction {name!r}; choose from {', '.join(REPRODUCTIONS)}")
+    from .paper import sideris
+
+    if name == "sideris-table1":
+        rows = sideris.reproduce_table1(line_search=args.line_search)
+    else:
+        rows = sideris.reproduce_hopper(line_search=args.line_search)
+    print(sideris.format_table(rows))
+    return 0
+
+
+def _add_solve_options(p: argparse.ArgumentParser, batch: int, logdir: str, rollout: str) -> None:
+    p.add_argument("--solver", default="slq", choices=SOLVERS)
+    p.add_argument("--batch", type=int, default=batch, help="number of problems solved at once")
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--dtype", default="float64", choices=tuple(DTYPES))
+    p.add_argument("--logdir", default=logdir, help="TensorBoard log root")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--max-iter", type=int, default=100)
+    p.add_argument("--tol", type=float, default=1e-6)
+    p.add_argument("--line-search", default="exact", choices=("exact", "armijo"))
+    p.add_argument("--rollout", default=rollout, choices=("open_loop", "closed_loop"))
+    p.add_argument("--threads", type=int, default=0, help="torch threads (0: torch default)")
+    p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = _Parser(prog="torchslq", description="Batched, differentiable optimal control.")
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
+    demo = sub.add_parser(
+        "demo", help="256 pendulum swing-ups by SLQ, with TensorBoard logs and plots"
+    )
+    _add_solve_options(demo, batch=256, logdir="runs/demo", rollout="closed_loop")
+    solve = sub.add_parser("solve", help="solve a batch of a built-in system")
+    solve.add_argument("system", help="pendulum | cartpole | drag-vehicle | hopper")
+    _add_solve_options(solve, batch=64, logdir="runs/solve", rollout="closed_loop")
+    rep = sub.add_parser("reproduce", help="reproduce a paper's table, ours beside the paper's")
+    rep.add_argument("name", help=" | ".join(REPRODUCTIONS))
+    rep.add_argument("--line-search", default="armijo", choices=("exact", "armijo"))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.command == "demo":
+        return _run("pendulum", args, "pendulum swing-up demo")
+    if args.command == "solve":
+        return _run(args.system, args, f"{args.system} ({args.batch} problems)")
+    return _reproduce(args.name, args)
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

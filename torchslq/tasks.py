@@ -1,0 +1,118 @@
+"""Ready-made problems used by the CLI, the demo, examples and benchmarks.
+
+Each builder returns ``(problem, x0)`` with ``x0 (B, n)`` drawn from a seeded generator,
+so runs are repeatable.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+from torch import Tensor
+
+from .costs import QuadraticCost
+from .dynamics import discretize
+from .problem import Problem
+from .systems import CartPole, Pendulum
+
+__all__ = ["TASKS", "pendulum_swingup", "cartpole_swingup", "make_task", "swingup_success"]
+
+
+def _gen(seed: int) -> torch.Generator:
+    g = torch.Generator()
+    g.manual_seed(seed)
+    return g
+
+
+def pendulum_swingup(
+    batch: int = 256,
+    horizon: int = 100,
+    dt: float = 0.05,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float64,
+    control_weight: float = 0.1,
+) -> tuple[Problem, Tensor]:
+    """Swing a damped pendulum (m = l = 1, g = 9.81, b = 0.1; RK4, ``dt``) up to
+    ``theta = pi`` in ``horizon`` steps from random ``theta, theta_dot ~ U(-1, 1)``.
+
+    Cost (1/2 convention): ``Q = dt diag(1, 0.1)``, ``R = control_weight * dt``,
+    ``Qf = diag(100, 10)``, target ``[pi, 0]``.
+    """
+    kw = {"dtype": dtype, "device": device}
+    dyn = discretize(Pendulum(), dt, "rk4").to(**kw)
+    cost = QuadraticCost(
+        dt * torch.diag(torch.tensor([1.0, 0.1], **kw)),
+        control_weight * dt * torch.eye(1, **kw),
+        Qf=torch.diag(torch.tensor([100.0, 10.0], **kw)),
+        x_ref=torch.tensor([math.pi, 0.0], **kw),
+    )
+    x0 = (torch.rand(batch, 2, generator=_gen(seed), dtype=torch.float64) * 2 - 1).to(**kw)
+    return Problem(dyn, cost, horizon), x0
+
+
+def cartpole_swingup(
+    batch: int = 64,
+    horizon: int = 50,
+    dt: float = 0.05,
+    seed: int = 0,
+    device: str | torch.device = "cpu",
+    dtype: torch.dtype = torch.float64,
+) -> tuple[Problem, Tensor]:
+    """Cart-pole swing-up of the iLQR benchmark: point-mass cart-pole (cart 1.0, tip
+    0.1, length 0.5), one RK4 step per ``dt = 0.05``, ``T = 50``; cost
+    ``sum 0.01 u^2 + 100 |x_T - [0, pi, 0, 0]|^2`` (i.e. ``R = 0.02``, ``Qf = 200 I`` in
+    the 1/2 convention); ``x0 = [0, 0.05 N(0, 1), 0, 0]``."""
+    kw = {"dtype": dtype, "device": device}
+    dyn = discretize(CartPole(mc=1.0, mp=0.1, l=0.5), dt, "rk4").to(**kw)
+    cost = QuadraticCost(
+        torch.zeros(4, 4, **kw),
+        0.02 * torch.eye(1, **kw),
+        Qf=200.0 * torch.eye(4, **kw),
+        x_ref=torch.tensor([0.0, math.pi, 0.0, 0.0], **kw),
+    )
+    x0 = torch.zeros(batch, 4, dtype=torch.float64)
+    x0[:, 1] = 0.05 * torch.randn(batch, generator=_gen(seed), dtype=torch.float64)
+    return Problem(dyn, cost, horizon), x0.to(**kw)
+
+
+def swingup_success(x: Tensor, angle_index: int = 0, tol: float = 0.1) -> Tensor:
+    """``(B,)`` bool: final angle within ``tol`` rad of upright (``pi`` modulo ``2 pi``)."""
+    th = x[..., -1, angle_index]
+    err = torch.remainder(th - math.pi + math.pi, 2 * math.pi) - math.pi
+    return err.abs() < tol
+
+
+def _drag(batch: int = 5, seed: int = 0, device="cpu", dtype=torch.float64, **_):
+    from .paper.sideris import drag_vehicle_problem
+
+    betas = [0.01, 0.05, 0.1, 0.5, 1.0]
+    betas = (betas * (batch // len(betas) + 1))[:batch]
+    problem, x0 = drag_vehicle_problem(betas, dtype=dtype)
+    return problem.to(device), x0.to(device)
+
+
+def _hopper(batch: int = 3, seed: int = 0, device="cpu", dtype=torch.float64, **_):
+    from .paper.sideris import hopper_problem
+
+    targets = [1.0, 20.0, 50.0]
+    targets = (targets * (batch // len(targets) + 1))[:batch]
+    problem, x0 = hopper_problem(targets, dtype=dtype)
+    return problem.to(device), x0.to(device)
+
+
+TASKS: dict[str, Callable[..., tuple[Problem, Tensor]]] = {
+    "pendulum": pendulum_swingup,
+    "cartpole": cartpole_swingup,
+    "drag-vehicle": _drag,
+    "hopper": _hopper,
+}
+
+
+def make_task(name: str, **kwargs) -> tuple[Problem, Tensor]:
+    """Build a task by name (see :data:`TASKS`)."""
+    if name not in TASKS:
+        raise ValueError(f"unknown system {name!r}; choose from {', '.join(TASKS)}")
+    return TASKS[name](**kwargs)
