@@ -76,8 +76,12 @@ def armijo_search(
     max_backtracks: int = 20,
     alpha0: float = 1.0,
     roundoff: float = 64.0,
+    curvature: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """Backtracking on sufficient decrease ``J(a) <= J0 + c1 a slope`` (Armijo).
+    """Backtracking on sufficient decrease ``J(a) <= J0 + c1 dJ(a)`` (Armijo).
+
+    The model decrease is ``dJ(a) = a slope`` (first order), or with ``curvature`` given
+    ``dJ(a) = a slope + a^2/2 curvature`` (the expected improvement of iLQR/DDP).
 
     All ``alpha0 * beta^j`` (``j < max_backtracks``) are tried at once; the result is the
     largest that satisfies the condition, i.e. what serial backtracking would return.
@@ -94,7 +98,10 @@ def armijo_search(
     grid = alpha0 * beta ** torch.arange(max_backtracks, dtype=J0.dtype, device=J0.device)
     alphas = grid.unsqueeze(-1).expand(-1, J0.shape[0])
     J = _finite(evaluate(alphas))
-    ok = J <= J0 + c1 * alphas * slope
+    model = alphas * slope
+    if curvature is not None:
+        model = model + 0.5 * alphas * alphas * curvature
+    ok = J <= J0 + c1 * model
     first = torch.argmax(ok.to(torch.int8), dim=0)  # first True (largest alpha)
     found = ok.any(dim=0)
     alpha = torch.where(found, grid[first], torch.zeros_like(J0))
