@@ -1,11 +1,13 @@
 """Solvers and their shared pieces (rollout, costate gradient, line search, result)."""
 
+from .gradient import GradientMethod
 from .line_search import armijo_search, exact_search
 from .result import SolverResult
 from .rollout import costate_gradient, rollout, rollout_closed_loop
 from .slq import SLQ, SLQOptions
 
 __all__ = [
+    "GradientMethod",
     "SLQ",
     "SLQOptions",
     "SolverResult",
