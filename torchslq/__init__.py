@@ -1,6 +1,6 @@
 """torchslq: batched, differentiable nonlinear optimal control in PyTorch."""
 
-from .costs import CostExpansion, QuadraticCost
+from .costs import Cost, CostExpansion, QuadraticCost
 from .dynamics import (
     ContinuousDynamics,
     DiscretizedDynamics,
@@ -12,15 +12,18 @@ from .dynamics import (
 from .logging import TensorBoardLogger
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
 from .problem import Problem
-from .solvers import SLQ, SolverResult
+from .solvers import ILQR, SLQ, GradientMethod, SolverResult
 from .status import Status, status_names
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ContinuousDynamics",
+    "Cost",
     "CostExpansion",
     "DiscretizedDynamics",
+    "GradientMethod",
+    "ILQR",
     "Dynamics",
     "LQRSolution",
     "LearnedDynamics",

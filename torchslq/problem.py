@@ -79,7 +79,18 @@ class Problem(nn.Module):
                 raise ValueError(
                     f"u_init must have shape (B, {T}, {m}) or ({T}, {m}), got {tuple(u_init.shape)}"
                 )
+            if u_init.ndim == 3 and u_init.shape[0] not in (1, Bsz):
+                raise ValueError(
+                    f"u_init has batch size {u_init.shape[0]} but x0 has {Bsz}; expected "
+                    f"u_init of shape ({Bsz}, {T}, {m}) or ({T}, {m})"
+                )
             u = u_init.to(dtype=x0.dtype, device=x0.device).expand(Bsz, T, m).clone()
+        for name, t in list(self.named_parameters()) + list(self.named_buffers()):
+            if t.is_floating_point() and t.dtype != x0.dtype:
+                raise TypeError(
+                    f"x0 has dtype {x0.dtype} but the problem's tensor {name!r} has dtype "
+                    f"{t.dtype}; convert one of them (e.g. problem.to({x0.dtype}))"
+                )
         if not bool(torch.isfinite(x0).all()):
             raise ValueError("x0 contains non-finite values")
         return x0, u, unbatched

@@ -165,9 +165,13 @@ class QuadraticCost(nn.Module):
         Q, R = self.weights(T)
         xr, ur = self.references(T, x)
         dx, du = x - xr, u - ur
-        Jx = torch.einsum("...ti,...tij,...tj->...", dx, Q, dx)
-        Ju = torch.einsum("...ti,...tij,...tj->...", du, R, du)
-        return 0.5 * (Jx + Ju)
+        # per-row products then a row-wise sum over time: unlike einsum (which may turn
+        # into a batched GEMM whose blocking depends on B), this gives every element the
+        # same bits whatever the batch it is evaluated in; line searches near the optimum
+        # compare costs at that level
+        Jx = (dx * (Q @ dx.unsqueeze(-1)).squeeze(-1)).sum(-1)
+        Ju = (du * (R @ du.unsqueeze(-1)).squeeze(-1)).sum(-1)
+        return 0.5 * (Jx.sum(-1) + Ju.sum(-1))
 
     def quadratize(self, x: Tensor, u: Tensor) -> CostExpansion:
         """Exact second-order expansion (the cost is quadratic): gradients

@@ -1,6 +1,7 @@
 """Solvers and their shared pieces (rollout, costate gradient, line search, result)."""
 
 from .gradient import GradientMethod
+from .ilqr import ILQR
 from .line_search import armijo_search, exact_search
 from .result import SolverResult
 from .rollout import costate_gradient, rollout, rollout_closed_loop
@@ -8,6 +9,7 @@ from .slq import SLQ, SLQOptions
 
 __all__ = [
     "GradientMethod",
+    "ILQR",
     "SLQ",
     "SLQOptions",
     "SolverResult",

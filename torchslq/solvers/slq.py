@@ -52,6 +52,7 @@ class SLQOptions:
     line_search: str = "exact"
     stop: str = "grad"
     step_tol: float | None = None
+    rtol: float = 0.0
     rollout: str = "open_loop"
     armijo_c1: float = 1e-4
     armijo_beta: float = 0.5
@@ -74,6 +75,8 @@ class SLQ:
             ``"step"``: ``||Ū|| < step_tol ||U||`` (Algorithm 2, Step 2); ``"either"`` /
             ``"both"`` combine the two.
         step_tol: tolerance of the step rule (defaults to ``tol``).
+        rtol: also stop (as converged) after an accepted step that changes the cost by
+            at most ``rtol |J|``; 0 (default) disables this test.
         rollout: ``"open_loop"`` (the paper's ``U + αŪ``) or ``"closed_loop"`` (the line
             search applies the LQ feedback: ``u = u + α k + K (x_new - x)``).
         armijo_c1, armijo_beta, max_backtracks: Armijo constants.
@@ -96,6 +99,8 @@ class SLQ:
             raise ValueError(f"line_search must be one of {_LINE_SEARCHES}, got {o.line_search!r}")
         if o.rollout not in _ROLLOUTS:
             raise ValueError(f"rollout must be one of {_ROLLOUTS}, got {o.rollout!r}")
+        if not o.rtol >= 0:
+            raise ValueError(f"rtol must be >= 0, got {o.rtol!r}")
         if o.stop not in _STOPS:
             raise ValueError(f"stop must be one of {_STOPS}, got {o.stop!r}")
 
@@ -145,6 +150,7 @@ class SLQ:
         cost_fn = problem.cost
         Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
         step_tol = o.tol if o.step_tol is None else o.step_tol
+        self._begin(x0)
         t_start = time.perf_counter()
 
         with torch.no_grad():
@@ -201,12 +207,18 @@ class SLQ:
                     break
                 alpha, J_new, ok, x_new, u_new = self._line_search(f, cost_fn, x0, x, u, J, d)
                 accept = running & ok
+                failed = self._after_line_search(running, ok)
                 status = torch.where(
-                    running & ~ok, torch.full_like(status, int(Status.LINE_SEARCH_FAILED)), status
+                    failed, torch.full_like(status, int(Status.LINE_SEARCH_FAILED)), status
                 )
                 a = torch.where(accept, alpha, torch.zeros_like(alpha))
                 u = torch.where(accept[:, None, None], u_new, u)
                 x = torch.where(accept[:, None, None], x_new, x)
+                if o.rtol > 0:  # relative cost change after an accepted step
+                    flat = accept & ((J - J_new).abs() <= o.rtol * J.abs())
+                    status = torch.where(
+                        flat, torch.full_like(status, int(Status.CONVERGED)), status
+                    )
                 J = torch.where(accept, J_new, J)
                 step = a
                 iterations = iterations + accept.to(torch.int64)
@@ -238,6 +250,13 @@ class SLQ:
         if logger is not None:
             logger.log_result(result, problem)
         return result.squeeze_batch() if unbatched else result
+
+    def _begin(self, x0: Tensor) -> None:
+        """Per-solve state of subclasses (e.g. iLQR's regularisation); none for SLQ."""
+
+    def _after_line_search(self, running: Tensor, ok: Tensor) -> Tensor:
+        """Elements whose failed line search ends their solve (all of them for SLQ)."""
+        return running & ~ok
 
     def _line_search(self, f, cost_fn, x0, x, u, J, d) -> tuple[Tensor, ...]:
         """Step sizes ``(B,)``, new costs, success flags and the chosen trajectories."""

@@ -1,0 +1,185 @@
+"""iLQR (and its second-order-dynamics sibling DDP) on the shared LQ kernel.
+
+Background: Li & Todorov (2004), Tassa, Erez & Todorov (2012), and Section III of
+Lieskovsky et al. (2025) (``shared/papers/continuous-time-ilqr-2025.md``) whose
+discrete counterparts these are:
+
+* backward pass: the LQ subproblem in deviation coordinates with the second-order cost
+  expansion (``l_xx, l_uu, l_ux, l_x, l_u``) and linearised dynamics, solved by
+  :func:`torchslq.riccati_backward` with a Levenberg-Marquardt term ``mu I`` on ``Quu``
+  (per element, adapted: increased on a failed factorisation or line search,
+  decreased on success, within ``[mu_min, mu_max]``); optionally the cost Hessian's
+  eigenvalues are clipped from below (``lambda := max(lambda, hessian_floor)``);
+* forward pass: ``u = ū + α k + K (x - x̄)`` for a set of ``α`` at once (one batched
+  rollout), accepted by Armijo on the expected improvement
+  ``ΔV(α) = α k'Q_u + α²/2 k'Q_uu k`` (eqs. 14-15 of the paper, discrete form);
+* stopping: norm of the gradient of ``J(U)`` (costate pass) below ``tol`` or relative
+  cost change below ``rtol``.
+
+The solve loop (batching, per-element masks and status, history, logging) is SLQ's.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from ..costs.general import project_psd
+from ..dynamics.linearize import linearize
+from ..lq.riccati import riccati_backward
+from .line_search import TrialRecorder, armijo_search
+from .rollout import costate_gradient, rollout_closed_loop
+from .slq import SLQ
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..problem import Problem
+
+__all__ = ["ILQR"]
+
+
+class ILQR(SLQ):
+    """Iterative LQR for general costs (any cost with ``quadratize``).
+
+    Args:
+        max_iter, tol: iteration limit and gradient-norm tolerance.
+        rtol: stop also when ``|J_k - J_{k+1}| <= rtol |J_k|`` after an accepted step
+            (0 disables).
+        mu_init, mu_min, mu_max, mu_factor: Levenberg-Marquardt regularisation on ``Quu``
+            (Tassa et al. 2012 schedule, per element). An element whose ``mu`` exceeds
+            ``mu_max`` stops with status ``line_search_failed``.
+        hessian_floor: when set, the eigenvalues of every stage cost Hessian (the joint
+            ``(n+m)`` block) and of the terminal Hessian are clipped to at least this
+            value (the paper uses ``sqrt(eps)``); None leaves them as they are.
+        armijo_c1, armijo_beta, max_backtracks: line search on the expected improvement.
+        progress, linearize_method: as for :class:`torchslq.SLQ`.
+    """
+
+    name = "ilqr"
+
+    def __init__(
+        self,
+        max_iter: int = 100,
+        tol: float = 1e-6,
+        mu_init: float = 0.0,
+        mu_min: float = 1e-6,
+        mu_max: float = 1e10,
+        mu_factor: float = 2.0,
+        hessian_floor: float | None = None,
+        **kwargs: Any,
+    ):
+        kwargs.setdefault("line_search", "armijo")
+        kwargs.setdefault("rollout", "closed_loop")
+        super().__init__(max_iter=max_iter, tol=tol, **kwargs)
+        self.options.rtol = float(self.options.rtol)
+        if self.options.rollout != "closed_loop" or self.options.line_search != "armijo":
+            raise ValueError("ILQR uses rollout='closed_loop' and line_search='armijo'")
+        if not (0 <= mu_min <= mu_max) or mu_init < 0 or mu_factor <= 1:
+            raise ValueError("need 0 <= mu_min <= mu_max, mu_init >= 0 and mu_factor > 1")
+        if self.options.rtol < 0:
+            raise ValueError(f"rtol must be >= 0, got {self.options.rtol!r}")
+        self.mu_init, self.mu_min, self.mu_max, self.mu_factor = mu_init, mu_min, mu_max, mu_factor
+        self.hessian_floor = hessian_floor
+
+    # -------------------------------------------------------------- per-solve state
+    def _begin(self, x0: Tensor) -> None:
+        Bsz = x0.shape[0]
+        self._mu = torch.full((Bsz,), float(self.mu_init), dtype=x0.dtype, device=x0.device)
+        self._delta = torch.ones_like(self._mu)
+
+    def _expansion(self, problem: Problem, x: Tensor, u: Tensor):
+        e = problem.cost.quadratize(x, u)
+        if self.hessian_floor is None:
+            return e
+        n, m, T = problem.state_dim, problem.control_dim, problem.horizon
+        lux = e.lux if e.lux is not None else e.luu.new_zeros(*e.luu.shape[:-1], n)
+        lxx = e.lxx.expand(x.shape[0], *e.lxx.shape[1:])
+        luu = e.luu.expand(x.shape[0], T, m, m)
+        lux = lux.expand(x.shape[0], T, m, n)
+        H = torch.cat([torch.cat([lxx[:, :T], lux.mT], -1), torch.cat([lux, luu], -1)], -2)
+        H = project_psd(H, self.hessian_floor)
+        lxxT = project_psd(lxx[:, T], self.hessian_floor)
+        e.lxx = torch.cat([H[..., :n, :n], lxxT.unsqueeze(1)], 1)
+        e.luu, e.lux = H[..., n:, n:], H[..., n:, :n]
+        return e
+
+    # -------------------------------------------------------------- backward pass
+    def direction(self, problem: Problem, x: Tensor, u: Tensor) -> dict[str, Tensor]:
+        """Backward pass at ``(x, u)`` with per-element regularisation ``mu``.
+
+        Elements whose ``Quu + mu I`` is not positive definite get a larger ``mu`` and
+        the pass is repeated for the batch (at most a few times per iteration); those
+        still failing are reported in ``failed``.
+        """
+        T = problem.horizon
+        A, B = linearize(problem.transition, x[:, :T], u, method=self.options.linearize_method)
+        e = self._expansion(problem, x, u)
+        grad, _ = costate_gradient(A, B, e.lx, e.lu)
+        mu = getattr(self, "_mu", None)
+        if mu is None or mu.shape[0] != x.shape[0]:
+            self._begin(x[:, 0])
+        for _ in range(8):
+            fac = riccati_backward(A, B, e.lxx, e.luu, e.lx, e.lu, e.lux, reg=self._mu)
+            if not bool(fac.failed.any()):
+                break
+            self._increase_mu(fac.failed)
+        k = fac.k
+        # k'Quu k = |L'k|^2 with L the Cholesky factor of the (regularised) Quu
+        Lk = (fac.chol.mT @ k.unsqueeze(-1))[..., 0]
+        curv = Lk.pow(2).sum(dim=(-1, -2))
+        return {
+            "du": k,  # feedforward direction: the line search adds alpha * k
+            "K": fac.K,
+            "k": k,
+            "grad": grad,
+            "slope": -curv,  # k'Qu = -k'Quu k
+            "curvature": curv,
+            "failed": fac.failed,
+            "dx": torch.zeros_like(x),
+        }
+
+    # -------------------------------------------------------------- regularisation
+    def _increase_mu(self, mask: Tensor) -> None:
+        f = self.mu_factor
+        delta = torch.maximum(torch.full_like(self._delta, f), self._delta * f)
+        mu = torch.maximum(torch.full_like(self._mu, self.mu_min), self._mu * delta)
+        self._delta = torch.where(mask, delta, self._delta)
+        self._mu = torch.where(mask, mu, self._mu)
+
+    def _decrease_mu(self, mask: Tensor) -> None:
+        f = self.mu_factor
+        delta = torch.minimum(torch.full_like(self._delta, 1.0 / f), self._delta / f)
+        mu = self._mu * delta
+        mu = torch.where(mu < self.mu_min, torch.zeros_like(mu), mu)
+        self._delta = torch.where(mask, delta, self._delta)
+        self._mu = torch.where(mask, mu, self._mu)
+
+    def _after_line_search(self, running: Tensor, ok: Tensor) -> Tensor:
+        """Adapt ``mu``; returns the elements that failed for good (``mu > mu_max``)."""
+        self._decrease_mu(running & ok)
+        self._increase_mu(running & ~ok)
+        return running & ~ok & (self._mu > self.mu_max)
+
+    # -------------------------------------------------------------- forward pass
+    def _line_search(self, f, cost_fn, x0, x, u, J, d) -> tuple[Tensor, ...]:
+        o = self.options
+        trials = TrialRecorder()
+
+        def evaluate(alphas: Tensor) -> Tensor:
+            Na = alphas.shape[0]
+            xc, uc = rollout_closed_loop(f, x0.expand(Na, *x0.shape), x, u, d["K"], d["k"], alphas)
+            trials.record(alphas, xc, uc)
+            return cost_fn(xc, uc)
+
+        alpha, J_new, ok = armijo_search(
+            evaluate,
+            J,
+            d["slope"],
+            curvature=d["curvature"],
+            c1=o.armijo_c1,
+            beta=o.armijo_beta,
+            max_backtracks=o.max_backtracks,
+        )
+        x_new, u_new = trials.select(alpha)
+        return alpha, J_new, ok, x_new, u_new
