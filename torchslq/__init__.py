@@ -12,13 +12,14 @@ from .dynamics import (
 from .logging import TensorBoardLogger
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
 from .problem import Problem
-from .solvers import ILQR, SLQ, GradientMethod, SolverResult
+from .solvers import DDP, ILQR, SLQ, GradientMethod, SolverResult
 from .status import Status, status_names
 
 __version__ = "0.1.0"
 
 __all__ = [
     "ContinuousDynamics",
+    "DDP",
     "Cost",
     "CostExpansion",
     "DiscretizedDynamics",

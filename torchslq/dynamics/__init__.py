@@ -2,7 +2,7 @@
 
 from .base import ContinuousDynamics, Dynamics, state_control_dims
 from .discretize import DiscretizedDynamics, discretize
-from .linearize import LearnedDynamics, as_transition, linearize
+from .linearize import LearnedDynamics, as_transition, dynamics_vhp, linearize
 
 __all__ = [
     "ContinuousDynamics",
@@ -11,6 +11,7 @@ __all__ = [
     "LearnedDynamics",
     "as_transition",
     "discretize",
+    "dynamics_vhp",
     "linearize",
     "state_control_dims",
 ]

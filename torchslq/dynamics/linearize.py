@@ -15,7 +15,7 @@ from torch.func import jacfwd, jacrev, vjp, vmap
 
 from .base import Dynamics, state_control_dims
 
-__all__ = ["linearize", "LearnedDynamics", "as_transition"]
+__all__ = ["linearize", "dynamics_vhp", "LearnedDynamics", "as_transition"]
 
 _METHODS = ("auto", "vjp", "jacrev", "jacfwd")
 
@@ -134,3 +134,34 @@ def linearize(
         )
     del n, m
     return A.reshape(*lead, n_out, x.shape[-1]), B.reshape(*lead, n_out, u.shape[-1])
+
+
+def dynamics_vhp(
+    dynamics: Callable, x: Tensor, u: Tensor, s: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Second-order dynamics terms ``s' f_xx``, ``s' f_uu``, ``s' f_ux`` (the DDP terms).
+
+    The Hessian of ``s · f(x, u)`` for every row, by ``n + m`` forward-mode products of
+    its gradient (forward-over-reverse, ``vmap`` over the basis): the ``n x n x n``
+    second-derivative tensor of ``f`` is never formed.
+
+    Args:
+        dynamics: as for :func:`linearize`; x ``(..., n)``, u ``(..., m)``, s ``(..., n)``
+            (leading dims shared; rows independent).
+
+    Returns:
+        ``(Hxx (..., n, n), Huu (..., m, m), Hux (..., m, n))``, detached.
+    """
+    f = as_transition(dynamics)
+    n, m = x.shape[-1], u.shape[-1]
+    x, u, s = x.detach(), u.detach(), s.detach()
+    with torch.no_grad():
+        g = torch.func.grad(lambda a, b: (s * f(a, b)).sum(), argnums=(0, 1))
+        basis = torch.eye(n + m, dtype=x.dtype, device=x.device)
+        shape = (n + m, *([1] * (x.ndim - 1)))
+        ex = basis[:, :n].reshape(*shape, n).expand(n + m, *x.shape)
+        eu = basis[:, n:].reshape(*shape, m).expand(n + m, *u.shape)
+        cols_x, cols_u = vmap(lambda dx, du: torch.func.jvp(g, (x, u), (dx, du))[1])(ex, eu)
+    Hx = cols_x.movedim(0, -1)  # (..., n, n+m): rows of [Hxx | Hxu]
+    Hu = cols_u.movedim(0, -1)  # (..., m, n+m): rows of [Hux | Huu]
+    return Hx[..., :n], Hu[..., n:], Hu[..., :n]

@@ -27,10 +27,13 @@ per element by ``cholesky_ex`` and never stops the batch.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor
+
+StageHook = Callable[[int, Tensor], Tensor]
 
 __all__ = [
     "RiccatiFactors",
@@ -160,7 +163,11 @@ def homogeneous_cost(
 
 
 def riccati_homogeneous(
-    F: Tensor, H: Tensor, VhT: Tensor, reg: Tensor | float | None = None
+    F: Tensor,
+    H: Tensor,
+    VhT: Tensor,
+    reg: Tensor | float | None = None,
+    stage_hook: StageHook | None = None,
 ) -> RiccatiFactors:
     """Backward Riccati pass in homogeneous form (see the module docstring).
 
@@ -172,6 +179,11 @@ def riccati_homogeneous(
             the value update then uses the regularisation-consistent form of
             Tassa et al. (2012), ``V = Qxx + K'Quu K + K'Qux + Qux'K`` with the
             unregularised ``Quu``.
+
+        stage_hook: optional ``hook(t, Vh_next) -> (B, m+n, m+n)``, a term added to the
+            ``[u; x]`` block of the stage Hessian at step ``t`` that may depend on the
+            value function of step ``t+1`` (DDP's ``V_x · f_zz`` second-order dynamics
+            terms); ``None`` for the plain LQ recursion.
 
     The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B).
     """
@@ -193,6 +205,8 @@ def riccati_homogeneous(
     for t in range(T - 1, -1, -1):
         Ft = F[..., t, :, :]
         M = H[..., t, :, :] + Ft.mT @ (Vh @ Ft)
+        if stage_hook is not None:
+            M = M + torch.nn.functional.pad(stage_hook(t, Vh), (0, 1, 0, 1))
         Quu = M[..., :m, :m]
         Qu_xh = M[..., :m, m:]
         if reg is None:
@@ -254,6 +268,7 @@ def riccati_backward(
     S: Tensor | None = None,
     c: Tensor | None = None,
     reg: Tensor | float | None = None,
+    stage_hook: StageHook | None = None,
 ) -> RiccatiFactors:
     """Backward Riccati pass of the LQ problem solved by :func:`torchslq.lqr_solve`.
 
@@ -261,7 +276,8 @@ def riccati_backward(
     ``A (B,T,n,n)``, ``B (B,T,n,m)``, ``Q (B,T+1,n,n)``, ``R (B,T,m,m)``, ``q (B,T+1,n)``,
     ``r (B,T,m)``, ``S (B,T,m,n)``, ``c (B,T,n)``; a missing or size-1 time dim
     broadcasts over the horizon ``T = A.shape[-3]``. ``reg`` adds ``reg * I`` to every
-    ``Quu`` (scalar or ``(B,)``). No input validation: this is the inner-loop entry point.
+    ``Quu`` (scalar or ``(B,)``); ``stage_hook`` is passed to :func:`riccati_homogeneous`.
+    No input validation: this is the inner-loop entry point.
     """
     T = A.shape[-3]
     F = homogeneous_dynamics(A, B, with_time(c, 1, T))
@@ -272,7 +288,7 @@ def riccati_backward(
         with_time(r, 1, T),
         with_time(S, 2, T),
     )
-    return riccati_homogeneous(F, H, VhT, reg)
+    return riccati_homogeneous(F, H, VhT, reg, stage_hook)
 
 
 def rollout_linear(

@@ -1,5 +1,6 @@
 """Solvers and their shared pieces (rollout, costate gradient, line search, result)."""
 
+from .ddp import DDP
 from .gradient import GradientMethod
 from .ilqr import ILQR
 from .line_search import armijo_search, exact_search
@@ -8,6 +9,7 @@ from .rollout import costate_gradient, rollout, rollout_closed_loop
 from .slq import SLQ, SLQOptions
 
 __all__ = [
+    "DDP",
     "GradientMethod",
     "ILQR",
     "SLQ",

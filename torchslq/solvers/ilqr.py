@@ -28,7 +28,7 @@ from torch import Tensor
 
 from ..costs.general import project_psd
 from ..dynamics.linearize import linearize
-from ..lq.riccati import riccati_backward
+from ..lq.riccati import StageHook, riccati_backward
 from .line_search import TrialRecorder, armijo_search
 from .rollout import costate_gradient, rollout_closed_loop
 from .slq import SLQ
@@ -115,12 +115,15 @@ class ILQR(SLQ):
         T = problem.horizon
         A, B = linearize(problem.transition, x[:, :T], u, method=self.options.linearize_method)
         e = self._expansion(problem, x, u)
-        grad, _ = costate_gradient(A, B, e.lx, e.lu)
+        grad, lam = costate_gradient(A, B, e.lx, e.lu)
+        hook = self._second_order(problem, x, u, lam, e)
         mu = getattr(self, "_mu", None)
         if mu is None or mu.shape[0] != x.shape[0]:
             self._begin(x[:, 0])
         for _ in range(8):
-            fac = riccati_backward(A, B, e.lxx, e.luu, e.lx, e.lu, e.lux, reg=self._mu)
+            fac = riccati_backward(
+                A, B, e.lxx, e.luu, e.lx, e.lu, e.lux, reg=self._mu, stage_hook=hook
+            )
             if not bool(fac.failed.any()):
                 break
             self._increase_mu(fac.failed)
@@ -139,11 +142,18 @@ class ILQR(SLQ):
             "dx": torch.zeros_like(x),
         }
 
+    def _second_order(
+        self, problem: Problem, x: Tensor, u: Tensor, lam: Tensor, e
+    ) -> StageHook | None:
+        """Dynamics second-order terms: none for iLQR (see :class:`torchslq.DDP`)."""
+        return None
+
     # -------------------------------------------------------------- regularisation
     def _increase_mu(self, mask: Tensor) -> None:
         f = self.mu_factor
         delta = torch.maximum(torch.full_like(self._delta, f), self._delta * f)
-        mu = torch.maximum(torch.full_like(self._mu, self.mu_min), self._mu * delta)
+        floor = self.mu_min if self.mu_min > 0 else 1e-6  # a zero mu cannot grow by scaling
+        mu = torch.maximum(torch.full_like(self._mu, floor), self._mu * delta)
         self._delta = torch.where(mask, delta, self._delta)
         self._mu = torch.where(mask, mu, self._mu)
 

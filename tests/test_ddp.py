@@ -1,0 +1,140 @@
+"""DDP: second-order dynamics terms (vector-Hessian products) in the backward pass."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchslq as ts
+from torchslq.dynamics import dynamics_vhp
+from torchslq.tasks import pendulum_swingup
+
+torch.set_num_threads(1)
+F64 = torch.float64
+T = 25
+
+
+@pytest.fixture(scope="module")
+def near_optimum():
+    problem, x0 = pendulum_swingup(batch=3, horizon=T, seed=1)
+    ref = ts.ILQR(progress=False, max_iter=200, tol=1e-10).solve(problem, x0)
+    g = torch.Generator().manual_seed(0)
+    u = ref.u + 0.03 * torch.randn(ref.u.shape, generator=g, dtype=F64)
+    return problem, x0, ref, u
+
+
+def _dense_newton(problem, x0, u, b):
+    def J(U):
+        return problem.total_cost(x0[b : b + 1], U.reshape(1, T, -1))[0]
+
+    U = u[b].reshape(-1)
+    H = torch.func.hessian(J)(U)
+    g = torch.func.grad(J)(U)
+    return -torch.linalg.solve(H, g), torch.linalg.eigvalsh(H).min()
+
+
+def _open_loop_direction(problem, x, u, d):
+    A, B = ts.linearize(problem.transition, x[:, :T], u)
+    return ts.rollout_linear(A, B, d["K"], d["k"], torch.zeros_like(x[:, 0]))[1]
+
+
+def test_dynamics_vhp_matches_autograd_hessian():
+    problem, _ = pendulum_swingup(batch=2, horizon=T)
+    f = problem.transition
+    g = torch.Generator().manual_seed(1)
+    x = torch.randn(2, 4, 2, generator=g, dtype=F64)
+    u = torch.randn(2, 4, 1, generator=g, dtype=F64)
+    s = torch.randn(2, 4, 2, generator=g, dtype=F64)
+    Hxx, Huu, Hux = dynamics_vhp(f, x, u, s)
+    for b in range(2):
+        for t in range(4):
+
+            def sf(z, b=b, t=t):
+                return (s[b, t] * f(z[:2].reshape(1, 1, 2), z[2:].reshape(1, 1, 1))[0, 0]).sum()
+
+            H = torch.autograd.functional.hessian(sf, torch.cat([x[b, t], u[b, t]]))
+            torch.testing.assert_close(Hxx[b, t], H[:2, :2], rtol=1e-10, atol=1e-12)
+            torch.testing.assert_close(Huu[b, t], H[2:, 2:], rtol=1e-10, atol=1e-12)
+            torch.testing.assert_close(Hux[b, t], H[2:, :2], rtol=1e-10, atol=1e-12)
+
+
+def test_costate_ddp_step_is_the_newton_step(near_optimum):
+    """With lam-weighted terms and no regularisation the LQ step is -H^-1 g of J(U)."""
+    problem, x0, _, u = near_optimum
+    x = problem.rollout(x0, u)
+    solver = ts.DDP(second_order="costate", mu_init=0.0, mu_min=0.0, progress=False)
+    solver._begin(x0)
+    d = solver.direction(problem, x, u)
+    du = _open_loop_direction(problem, x, u, d)
+    checked = 0
+    for b in range(x0.shape[0]):
+        newton, min_eig = _dense_newton(problem, x0, u, b)
+        if min_eig <= 0 or bool(d["failed"][b]):
+            continue
+        checked += 1
+        torch.testing.assert_close(du[b].reshape(-1), newton, rtol=1e-8, atol=1e-10)
+    assert checked >= 1
+
+
+def test_value_ddp_tensor_and_stepwise_hooks_agree(near_optimum):
+    problem, x0, _, u = near_optimum
+    x = problem.rollout(x0, u)
+    dirs = []
+    for limit in (None, 2**30):
+        solver = ts.DDP(mu_init=0.0, progress=False, vhp_memory_limit=limit)
+        solver._begin(x0)
+        dirs.append(solver.direction(problem, x, u))
+    torch.testing.assert_close(dirs[0]["K"], dirs[1]["K"], rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(dirs[0]["k"], dirs[1]["k"], rtol=1e-10, atol=1e-12)
+
+
+def test_ddp_differs_from_ilqr_away_from_optimum(near_optimum):
+    """The second-order terms change the step (else the DDP code path would be dead)."""
+    problem, x0, _, u = near_optimum
+    x = problem.rollout(x0, u)
+    ks = []
+    for solver in (ts.ILQR(mu_init=0.0, progress=False), ts.DDP(mu_init=0.0, progress=False)):
+        solver._begin(x0)
+        ks.append(solver.direction(problem, x, u)["k"])
+    assert (ks[0] - ks[1]).abs().max() > 1e-6
+
+
+@pytest.mark.parametrize("mode", ["value", "costate"])
+def test_ddp_converges_quadratically(near_optimum, mode):
+    """Near the optimum the gradient-norm ratios g_{k+1}/g_k^2 stay bounded while
+    g_k -> 0 (quadratic convergence); iLQR's ratios g_{k+1}/g_k do not go to 0."""
+    problem, x0, ref, u = near_optimum
+    res = ts.DDP(second_order=mode, progress=False, max_iter=50, tol=1e-11).solve(problem, x0, u)
+    assert bool(res.converged.all())
+    torch.testing.assert_close(res.u, ref.u, rtol=1e-6, atol=1e-7)
+    for b in range(x0.shape[0]):
+        g = res.history["grad_norm"][b, : int(res.iterations[b]) + 1]
+        steps = res.history["step"][b, 1 : int(res.iterations[b]) + 1]
+        # look at the full-step tail with g below 1e-2
+        tail = [
+            i
+            for i in range(1, g.numel())
+            if g[i - 1] < 1e-2 and steps[i - 1] == 1.0 and g[i] > 1e-13
+        ]
+        assert tail, g
+        for i in tail:
+            assert g[i] <= 50.0 * g[i - 1] ** 2, (b, g.tolist())
+    # the same test fails for iLQR (Gauss-Newton: linear rate), so it tells them apart
+    il = ts.ILQR(progress=False, max_iter=200, tol=1e-11).solve(problem, x0, u)
+    g = il.history["grad_norm"][0, : int(il.iterations[0]) + 1]
+    assert any(g[i] > 50.0 * g[i - 1] ** 2 for i in range(1, g.numel()) if g[i - 1] < 1e-4)
+
+
+def test_ddp_batch_equals_singles(near_optimum):
+    problem, x0, _, u = near_optimum
+    solver = ts.DDP(progress=False, max_iter=30)
+    batch = solver.solve(problem, x0, u)
+    for b in range(x0.shape[0]):
+        single = solver.solve(problem, x0[b], u[b])
+        torch.testing.assert_close(single.u, batch.u[b], rtol=1e-9, atol=1e-11)
+        assert int(single.iterations) == int(batch.iterations[b])
+
+
+def test_ddp_option_validation():
+    with pytest.raises(ValueError, match="second_order"):
+        ts.DDP(second_order="hessian")

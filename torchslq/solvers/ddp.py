@@ -1,0 +1,116 @@
+"""DDP: iLQR plus the second-order dynamics terms in the backward pass.
+
+``Q_xx = l_xx + f_x' V'_xx f_x + V'_x · f_xx`` (likewise ``Q_uu``, ``Q_ux``): the last
+term is a vector-Hessian product of the dynamics computed with ``torch.func``
+(:func:`torchslq.dynamics.dynamics_vhp`, forward-over-reverse, never the full
+``n x n x n`` tensor). Two choices of the vector ``V'_x``:
+
+* ``second_order="value"`` (classic DDP, Mayne 1966 / Tassa et al. 2012): the gradient
+  ``v_{t+1}`` of the local value-function model, produced during the backward pass
+  itself, so the product is taken step by step inside the Riccati loop (through the
+  kernel's ``stage_hook``); ``T`` small autodiff calls per iteration;
+* ``second_order="costate"``: the costates ``lam_{t+1}`` of the nominal trajectory
+  (eq. 8 of Sideris & Bobrow), known before the backward pass, so all steps are done in
+  one batched call. This is Newton's method on ``J(U)``; both variants coincide at a
+  stationary point (``v = lam`` there) and converge quadratically nearby.
+
+The regularisation, line search and loop are :class:`torchslq.ILQR`'s; an indefinite
+``Quu`` (more likely with the second-order terms) raises ``mu`` for that element.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from ..dynamics.linearize import dynamics_vhp
+from ..lq.riccati import StageHook
+from .ilqr import ILQR
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..problem import Problem
+
+__all__ = ["DDP"]
+
+_MODES = ("value", "costate")
+
+
+class DDP(ILQR):
+    """Differential dynamic programming (iLQR + dynamics second derivatives).
+
+    Args:
+        second_order: ``"value"`` (default, classic DDP) or ``"costate"`` (batched over
+            time; see the module docstring).
+        vhp_memory_limit: for ``"value"``: when the ``n`` per-output Hessians of all
+            steps (``B T n (n+m)^2`` numbers) fit in this many bytes, they are computed
+            in one batched call per iteration and contracted with ``v_{t+1}`` in the
+            Riccati loop; otherwise (or with None) one vector-Hessian product is taken per
+            step inside the loop. Same result, the first is much faster for small ``n``.
+        **kwargs: as for :class:`torchslq.ILQR`.
+    """
+
+    name = "ddp"
+
+    def __init__(
+        self,
+        *args: Any,
+        second_order: str = "value",
+        vhp_memory_limit: int | None = 256 * 2**20,
+        **kwargs: Any,
+    ):
+        super().__init__(*args, **kwargs)
+        self.vhp_memory_limit = vhp_memory_limit
+        if second_order not in _MODES:
+            raise ValueError(f"second_order must be one of {_MODES}, got {second_order!r}")
+        self.second_order = second_order
+
+    def _second_order(
+        self, problem: Problem, x: Tensor, u: Tensor, lam: Tensor, e
+    ) -> StageHook | None:
+        f = problem.transition
+        n, T = problem.state_dim, problem.horizon
+        if self.second_order == "costate":
+            Hxx, Huu, Hux = dynamics_vhp(f, x[:, :T], u, lam[:, 1:])
+            Bsz = x.shape[0]
+            e.lxx = e.lxx.expand(Bsz, *e.lxx.shape[1:]).clone()
+            e.lxx[:, :T] += Hxx
+            e.luu = e.luu.expand(Bsz, *e.luu.shape[1:]) + Huu
+            e.lux = Hux if e.lux is None else e.lux.expand_as(Hux) + Hux
+            return None
+
+        if self.vhp_memory_limit is not None:
+            Bsz, m = x.shape[0], problem.control_dim
+            need = Bsz * T * n * (n + m) ** 2 * x.element_size()
+            if need <= self.vhp_memory_limit:
+                return self._tensor_hook(f, x[:, :T], u, n)
+
+        def hook(t: int, Vh_next: Tensor) -> Tensor:
+            s = Vh_next[..., :n, n].unsqueeze(-2)  # v_{t+1}, (B, 1, n)
+            Hxx, Huu, Hux = dynamics_vhp(f, x[:, t : t + 1], u[:, t : t + 1], s)
+            return _block(Hxx, Huu, Hux)[:, 0]  # [u; x] ordering, (B, m+n, m+n)
+
+        return hook
+
+    @staticmethod
+    def _tensor_hook(f, x: Tensor, u: Tensor, n: int) -> StageHook:
+        """All ``n`` output Hessians for every step in one batched call, contracted with
+        ``v_{t+1}`` inside the Riccati loop (same result as the step-by-step VHP)."""
+        basis = torch.eye(n, dtype=x.dtype, device=x.device)
+        basis = basis.reshape(n, *([1] * (x.ndim - 1)), n).expand(n, *x.shape)
+        Hxx, Huu, Hux = torch.vmap(lambda s: dynamics_vhp(f, x, u, s))(basis)
+        Hz = _block(Hxx, Huu, Hux)  # (n, B, T, m+n, m+n)
+
+        def hook(t: int, Vh_next: Tensor) -> Tensor:
+            s = Vh_next[..., :n, n]  # (B, n)
+            return torch.einsum("bi,ibjk->bjk", s, Hz[:, :, t])
+
+        return hook
+
+
+def _block(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor:
+    """``[[Huu, Hux], [Hux', Hxx]]``: the Hessian in the kernel's ``[u; x]`` ordering."""
+    top = torch.cat([Huu, Hux], dim=-1)
+    bottom = torch.cat([Hux.mT, Hxx], dim=-1)
+    return torch.cat([top, bottom], dim=-2)
