@@ -33,6 +33,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .boxqp import box_qp
+
 StageHook = Callable[[int, Tensor], Tensor]
 
 __all__ = [
@@ -59,12 +61,19 @@ class RiccatiFactors:
         Kk: ``(B, T, m, n+1)``, ``[K_t, k_t]`` side by side (what the rollout uses).
         Vh: ``(B, T+1, n+1, n+1)``, homogeneous value matrices (``Vh[..., n, n]`` is
             twice the constant term of the cost-to-go).
+        clamped: with control bounds only (else None): ``(B, T, m)`` bool, the controls
+            clamped by the box QP of each step (their feedback rows are zero; ``chol``
+            then holds the factor of the free block, identity on clamped rows/columns).
+        dV: with control bounds only (else None): ``(B, 2)``, the expected-improvement
+            terms ``[sum_t k_t'Q_u,t, sum_t k_t'(Q_uu,t + reg) k_t]`` of the step.
     """
 
     Kk: Tensor
     Vh: Tensor
     chol: Tensor
     failed: Tensor
+    clamped: Tensor | None = None
+    dV: Tensor | None = None
 
     @property
     def K(self) -> Tensor:
@@ -91,6 +100,26 @@ def with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
     if t.ndim == tail_ndim:
         t = t.unsqueeze(0)
     return t.expand(*t.shape[: -tail_ndim - 1], steps, *t.shape[-tail_ndim:])
+
+
+def cholesky(A: Tensor) -> tuple[Tensor, Tensor]:
+    """``torch.linalg.cholesky_ex`` with a closed form for ``1 x 1`` matrices.
+
+    Batched LAPACK factorisations run one small call per matrix; for a single control
+    (``m = 1``, the common case) a square root over the batch is far cheaper. ``info`` is
+    non-zero where the matrix is not positive definite (or not finite), as with LAPACK.
+    """
+    if A.shape[-1] == 1:
+        info = (~(A[..., 0, 0] > 0)).to(torch.int32)
+        return A.clamp_min(0).sqrt(), info
+    return torch.linalg.cholesky_ex(A)
+
+
+def chol_solve(rhs: Tensor, L: Tensor) -> Tensor:
+    """``(L L')^{-1} rhs`` (``torch.cholesky_solve``), with the ``1 x 1`` case in closed form."""
+    if L.shape[-1] == 1:
+        return rhs / (L * L)
+    return torch.cholesky_solve(rhs, L)
 
 
 def _sym(X: Tensor) -> Tensor:
@@ -168,6 +197,7 @@ def riccati_homogeneous(
     VhT: Tensor,
     reg: Tensor | float | None = None,
     stage_hook: StageHook | None = None,
+    u_bounds: tuple[Tensor, Tensor] | None = None,
 ) -> RiccatiFactors:
     """Backward Riccati pass in homogeneous form (see the module docstring).
 
@@ -184,6 +214,11 @@ def riccati_homogeneous(
             ``[u; x]`` block of the stage Hessian at step ``t`` that may depend on the
             value function of step ``t+1`` (DDP's ``V_x · f_zz`` second-order dynamics
             terms); ``None`` for the plain LQ recursion.
+        u_bounds: optional ``(lower, upper)`` bounds on the control ``u_t`` of this LQ
+            problem (in deviation coordinates: bounds on ``δu_t``), each broadcastable
+            to ``(B, T, m)``, infinite entries allowed, and containing 0 for the
+            expected-improvement terms to be meaningful. See
+            :func:`_riccati_box` (control-limited DDP, Tassa et al. 2014).
 
     The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B).
     """
@@ -193,6 +228,8 @@ def riccati_homogeneous(
     batch = torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2])
     if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
         batch = torch.broadcast_shapes(batch, reg.shape)
+    if u_bounds is not None:
+        return _riccati_box(F, H, VhT, reg, stage_hook, u_bounds, batch)
     Vh = VhT.expand(*batch, n + 1, n + 1)
     eye_m = torch.eye(m, dtype=F.dtype, device=F.device)
     if reg is not None:
@@ -210,12 +247,12 @@ def riccati_homogeneous(
         Quu = M[..., :m, :m]
         Qu_xh = M[..., :m, m:]
         if reg is None:
-            L, info = torch.linalg.cholesky_ex(Quu)
-            Kk = -torch.cholesky_solve(Qu_xh, L)
+            L, info = cholesky(Quu)
+            Kk = -chol_solve(Qu_xh, L)
             Vh = M[..., m:, m:] + Qu_xh.mT @ Kk
         else:
-            L, info = torch.linalg.cholesky_ex(Quu + reg_eye)
-            Kk = -torch.cholesky_solve(Qu_xh, L)
+            L, info = cholesky(Quu + reg_eye)
+            Kk = -chol_solve(Qu_xh, L)
             KtQuu = Kk.mT @ Quu
             cross = Kk.mT @ Qu_xh
             Vh = M[..., m:, m:] + KtQuu @ Kk + cross + cross.mT
@@ -232,6 +269,104 @@ def riccati_homogeneous(
         Vh=torch.stack(Vhs, dim=-3),
         chol=torch.stack([L.expand(*batch, m, m) for L in Ls], dim=-3),
         failed=failed.expand(batch),
+    )
+
+
+def _riccati_box(
+    F: Tensor,
+    H: Tensor,
+    VhT: Tensor,
+    reg: Tensor | float | None,
+    stage_hook: StageHook | None,
+    u_bounds: tuple[Tensor, Tensor],
+    batch: torch.Size,
+) -> RiccatiFactors:
+    """Control-limited backward pass (Tassa, Mansard & Todorov 2014, Section III).
+
+    At each step the feedforward term solves the box QP
+    ``k_t = argmin 1/2 k'(Q_uu + reg I)k + k'Q_u`` s.t. ``lower_t <= k <= upper_t``
+    (:func:`torchslq.lq.box_qp`, warm-started from ``k_{t+1}`` projected into the box);
+    the feedback rows of the clamped controls are zero and the free rows are
+    ``K_f = -(Q_uu + reg I)_ff^{-1} Q_ux,f`` from the box QP's free-block factor; the
+    value update is the general form ``Vh = Q_zz + Kk'Q_uu Kk + Kk'Q_uz + Q_uz'Kk`` with
+    ``Kk = [K, k]`` (which is exact for any gains, so also with ``reg``). A step whose
+    free block is not positive definite is reported in ``failed``.
+
+    A host synchronisation every box-QP iteration (every third on an accelerator) ends
+    the QP once every element has converged (projected Newton typically needs 1-3
+    iterations from the warm start); this is the one place where the kernel's time
+    loop synchronises, and only with bounds.
+    """
+    T = F.shape[-3]
+    n = F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    lower, upper = (
+        with_time(b.reshape(1) if b.ndim == 0 else b, 1, T).to(F.dtype) for b in u_bounds
+    )
+    batch = torch.broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
+    lower = lower.expand(*batch, T, m)
+    upper = upper.expand(*batch, T, m)
+    Vh = VhT.expand(*batch, n + 1, n + 1)
+    eye_m = torch.eye(m, dtype=F.dtype, device=F.device)
+    reg_eye = None
+    if reg is not None:
+        reg_t = torch.as_tensor(reg, dtype=F.dtype, device=F.device)
+        reg_eye = reg_t.reshape(*reg_t.shape, 1, 1) * eye_m
+    eps = torch.finfo(F.dtype).eps
+    tol = max(1e-10, 100 * eps)
+    check_every = 1 if F.device.type == "cpu" else 3  # a host sync is free on the CPU
+    Vhs: list[Tensor] = [Vh] * (T + 1)
+    Kks: list[Tensor] = [Vh] * T
+    Ls: list[Tensor] = [Vh] * T
+    clamps: list[Tensor] = [Vh] * T
+    oks: list[Tensor] = []
+    slope = Vh.new_zeros(batch)
+    curv = Vh.new_zeros(batch)
+    k = Vh.new_zeros(*batch, m)
+    for t in range(T - 1, -1, -1):
+        Ft = F[..., t, :, :]
+        M = H[..., t, :, :] + Ft.mT @ (Vh @ Ft)
+        if stage_hook is not None:
+            M = M + torch.nn.functional.pad(stage_hook(t, Vh), (0, 1, 0, 1))
+        M = M.expand(*batch, m + n + 1, m + n + 1)
+        Quu = M[..., :m, :m]
+        Qu_xh = M[..., :m, m:]
+        Quu_r = Quu if reg_eye is None else Quu + reg_eye
+        qu = Qu_xh[..., -1]
+        qp = box_qp(
+            Quu_r,
+            qu,
+            lower[..., t, :],
+            upper[..., t, :],
+            x0=k,
+            tol=tol * (1.0 + qu.abs().amax(-1)),
+            check_every=check_every,
+        )
+        k, L = qp.x, qp.chol
+        free = ~qp.clamped
+        rhs = torch.where(free.unsqueeze(-1), Qu_xh[..., :n], torch.zeros_like(Qu_xh[..., :n]))
+        Kk = torch.cat([-torch.cholesky_solve(rhs, L), k.unsqueeze(-1)], dim=-1)
+        KtQuu = Kk.mT @ Quu
+        cross = Kk.mT @ Qu_xh
+        Vh = _sym(M[..., m:, m:] + KtQuu @ Kk + cross + cross.mT)
+        slope = slope + (k * qu).sum(-1)
+        curv = curv + (k * (Quu_r @ k.unsqueeze(-1))[..., 0]).sum(-1)
+        Vhs[t], Kks[t], Ls[t], clamps[t] = Vh, Kk, L, qp.clamped
+        oks.append(qp.success)
+    failed = (
+        ~torch.stack(oks, dim=-1).all(dim=-1) if T > 0 else Vh.new_zeros(batch, dtype=torch.bool)
+    )
+    return RiccatiFactors(
+        Kk=torch.stack(Kks, dim=-3) if T > 0 else Vh.new_zeros(*batch, 0, m, n + 1),
+        Vh=torch.stack(Vhs, dim=-3),
+        chol=torch.stack(Ls, dim=-3) if T > 0 else Vh.new_zeros(*batch, 0, m, m),
+        failed=failed,
+        clamped=(
+            torch.stack(clamps, dim=-2)
+            if T > 0
+            else torch.zeros(*batch, 0, m, dtype=torch.bool, device=F.device)
+        ),
+        dV=torch.stack([slope, curv], dim=-1),
     )
 
 
@@ -269,6 +404,7 @@ def riccati_backward(
     c: Tensor | None = None,
     reg: Tensor | float | None = None,
     stage_hook: StageHook | None = None,
+    u_bounds: tuple[Tensor, Tensor] | None = None,
 ) -> RiccatiFactors:
     """Backward Riccati pass of the LQ problem solved by :func:`torchslq.lqr_solve`.
 
@@ -276,8 +412,9 @@ def riccati_backward(
     ``A (B,T,n,n)``, ``B (B,T,n,m)``, ``Q (B,T+1,n,n)``, ``R (B,T,m,m)``, ``q (B,T+1,n)``,
     ``r (B,T,m)``, ``S (B,T,m,n)``, ``c (B,T,n)``; a missing or size-1 time dim
     broadcasts over the horizon ``T = A.shape[-3]``. ``reg`` adds ``reg * I`` to every
-    ``Quu`` (scalar or ``(B,)``); ``stage_hook`` is passed to :func:`riccati_homogeneous`.
-    No input validation: this is the inner-loop entry point.
+    ``Quu`` (scalar or ``(B,)``); ``stage_hook`` and ``u_bounds`` (box bounds
+    ``(lower, upper)`` on ``u_t``, each broadcastable to ``(B, T, m)``) are passed to
+    :func:`riccati_homogeneous`. No input validation: this is the inner-loop entry point.
     """
     T = A.shape[-3]
     F = homogeneous_dynamics(A, B, with_time(c, 1, T))
@@ -288,7 +425,7 @@ def riccati_backward(
         with_time(r, 1, T),
         with_time(S, 2, T),
     )
-    return riccati_homogeneous(F, H, VhT, reg, stage_hook)
+    return riccati_homogeneous(F, H, VhT, reg, stage_hook, u_bounds)
 
 
 def rollout_linear(

@@ -23,6 +23,7 @@ from torch.autograd.function import once_differentiable
 
 from ..status import Status
 from .riccati import (
+    chol_solve,
     homogeneous_cost,
     homogeneous_dynamics,
     riccati_homogeneous,
@@ -138,7 +139,7 @@ def lq_adjoint_solve(
         BA = F[..., t, :n, : m + n]
         g = BA.mT @ v  # [B'v; A'v]
         qu = gu[..., t, :].unsqueeze(-1) + g[..., :m, :]
-        k = -torch.cholesky_solve(qu, chol[..., t, :, :])
+        k = -chol_solve(qu, chol[..., t, :, :])
         v = gx[..., t, :].unsqueeze(-1) + g[..., m:, :] + K[..., t, :, :].mT @ qu
         ks[t], vs[t] = k, v
     vs[T] = gx[..., T, :].unsqueeze(-1)
