@@ -1,5 +1,6 @@
 """The batched LQ (Riccati) kernel shared by every solver."""
 
+from .boxqp import BoxQPResult, box_qp
 from .riccati import (
     RiccatiFactors,
     homogeneous_cost,
@@ -12,8 +13,10 @@ from .riccati import (
 from .solve import LQRSolution, lq_adjoint_solve, lq_objective, lqr_solve
 
 __all__ = [
+    "BoxQPResult",
     "LQRSolution",
     "RiccatiFactors",
+    "box_qp",
     "homogeneous_cost",
     "homogeneous_dynamics",
     "lq_adjoint_solve",

@@ -16,6 +16,15 @@ discrete counterparts these are:
 * stopping: norm of the gradient of ``J(U)`` (costate pass) below ``tol`` or relative
   cost change below ``rtol``.
 
+Control bounds (``u_min``, ``u_max``): control-limited DDP of Tassa, Mansard & Todorov
+(2014). The backward pass solves, per step, the box QP for the feedforward term within
+the bounds on the deviation ``δu = u - ū`` (:func:`torchslq.lq.box_qp`, inside the
+kernel via its ``u_bounds`` argument), with the clamped controls' feedback rows set to
+zero; the line-search rollout clamps ``u`` into the box; the expected improvement is
+``α k'Q_u + α²/2 k'Q_uu k`` with the box-QP ``k``; the stopping test uses the norm of the
+projected gradient ``u - clip(u - ∇J)`` (reported as ``grad_norm``), and
+``SolverResult.active_bounds`` marks the controls at a bound.
+
 The solve loop (batching, per-element masks and status, history, logging) is SLQ's.
 """
 
@@ -36,7 +45,19 @@ from .slq import SLQ
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
 
-__all__ = ["ILQR"]
+__all__ = ["ILQR", "active_bounds"]
+
+
+def active_bounds(u: Tensor, lo: Tensor, hi: Tensor, rtol: float | None = None) -> Tensor:
+    """``int8`` tensor shaped like ``u``: ``-1`` where ``u`` is at ``lo``, ``+1`` at ``hi``
+    (within ``rtol (1 + |bound|)``, default ``sqrt(eps)`` of the dtype), ``0`` elsewhere."""
+    if rtol is None:
+        rtol = torch.finfo(u.dtype).eps ** 0.5
+    at_lo = torch.isfinite(lo) & ((u - lo).abs() <= rtol * (1 + lo.abs()))
+    at_hi = torch.isfinite(hi) & ((u - hi).abs() <= rtol * (1 + hi.abs()))
+    out = torch.zeros(u.shape, dtype=torch.int8, device=u.device)
+    out = torch.where(at_lo, torch.full_like(out, -1), out)
+    return torch.where(at_hi & ~at_lo, torch.ones_like(out), out)
 
 
 class ILQR(SLQ):
@@ -53,6 +74,10 @@ class ILQR(SLQ):
             ``(n+m)`` block) and of the terminal Hessian are clipped to at least this
             value (the paper uses ``sqrt(eps)``); None leaves them as they are.
         armijo_c1, armijo_beta, max_backtracks: line search on the expected improvement.
+        u_min, u_max: optional control bounds, a float or a tensor of shape ``(m,)``,
+            ``(T, m)`` or ``(B, T, m)`` (``-inf``/``+inf`` entries allowed; None: no
+            bound on that side). ``u_init`` is clamped into the box. When every bound is
+            infinite the solve is exactly the unconstrained one.
         progress, linearize_method: as for :class:`torchslq.SLQ`.
     """
 
@@ -67,6 +92,8 @@ class ILQR(SLQ):
         mu_max: float = 1e10,
         mu_factor: float = 2.0,
         hessian_floor: float | None = None,
+        u_min: float | Tensor | None = None,
+        u_max: float | Tensor | None = None,
         **kwargs: Any,
     ):
         kwargs.setdefault("line_search", "armijo")
@@ -81,6 +108,68 @@ class ILQR(SLQ):
             raise ValueError(f"rtol must be >= 0, got {self.options.rtol!r}")
         self.mu_init, self.mu_min, self.mu_max, self.mu_factor = mu_init, mu_min, mu_max, mu_factor
         self.hessian_floor = hessian_floor
+        self.u_min, self.u_max = u_min, u_max
+        self._lo: Tensor | None = None
+        self._hi: Tensor | None = None
+
+    # -------------------------------------------------------------- control bounds
+    def _resolve_bounds(self, problem: Problem, x0: Tensor) -> tuple[Tensor, Tensor]:
+        """``u_min``/``u_max`` as ``(B, T, m)`` tensors on ``x0``'s device and dtype."""
+        Bsz, T, m = x0.shape[0], problem.horizon, problem.control_dim
+        out = []
+        for name, val, fill in (
+            ("u_min", self.u_min, -float("inf")),
+            ("u_max", self.u_max, float("inf")),
+        ):
+            if val is None:
+                out.append(x0.new_full((Bsz, T, m), fill))
+                continue
+            b = torch.as_tensor(val, dtype=x0.dtype, device=x0.device)
+            ok = (
+                b.ndim == 0
+                or (b.ndim == 1 and b.shape == (m,))
+                or (b.ndim == 2 and b.shape == (T, m))
+                or (b.ndim == 3 and b.shape[1:] == (T, m) and b.shape[0] in (1, Bsz))
+            )
+            if not ok:
+                raise ValueError(
+                    f"{name} must be a float or a tensor of shape ({m},), ({T}, {m}) or "
+                    f"({Bsz}, {T}, {m}), got {tuple(b.shape)}"
+                )
+            if bool(torch.isnan(b).any()):
+                raise ValueError(f"{name} contains NaN")
+            out.append(b.expand(Bsz, T, m))
+        lo, hi = out
+        if bool((lo > hi).any()):
+            raise ValueError("u_min must be <= u_max everywhere")
+        if bool((lo == float("inf")).any()) or bool((hi == -float("inf")).any()):
+            raise ValueError("u_min cannot be +inf and u_max cannot be -inf")
+        return lo, hi
+
+    def solve(
+        self,
+        problem: Problem,
+        x0: Tensor,
+        u_init: Tensor | None = None,
+        logger: Any = None,
+    ):
+        """As :meth:`torchslq.SLQ.solve`; with ``u_min``/``u_max`` the solve is
+        control-limited and the result carries ``active_bounds``."""
+        if self.u_min is None and self.u_max is None:
+            return super().solve(problem, x0, u_init, logger)
+        x0b, u, unbatched = problem.check_inputs(x0, u_init)
+        lo, hi = self._resolve_bounds(problem, x0b)
+        u = torch.minimum(torch.maximum(u, lo), hi)
+        bounded = not (bool(torch.isinf(lo).all()) and bool(torch.isinf(hi).all()))
+        self._lo, self._hi = (lo, hi) if bounded else (None, None)
+        try:
+            result = super().solve(problem, x0, u, logger)
+        finally:
+            self._lo = self._hi = None
+        if unbatched:
+            lo, hi = lo[0], hi[0]
+        result.active_bounds = active_bounds(result.u, lo, hi)
+        return result
 
     # -------------------------------------------------------------- per-solve state
     def _begin(self, x0: Tensor) -> None:
@@ -120,26 +209,43 @@ class ILQR(SLQ):
         mu = getattr(self, "_mu", None)
         if mu is None or mu.shape[0] != x.shape[0]:
             self._begin(x[:, 0])
+        lo, hi = getattr(self, "_lo", None), getattr(self, "_hi", None)
+        u_bounds = None if lo is None else (lo - u, hi - u)  # bounds on δu at ū = u
         for _ in range(8):
             fac = riccati_backward(
-                A, B, e.lxx, e.luu, e.lx, e.lu, e.lux, reg=self._mu, stage_hook=hook
+                A,
+                B,
+                e.lxx,
+                e.luu,
+                e.lx,
+                e.lu,
+                e.lux,
+                reg=self._mu,
+                stage_hook=hook,
+                u_bounds=u_bounds,
             )
             if not bool(fac.failed.any()):
                 break
             self._increase_mu(fac.failed)
         k = fac.k
-        # k'Quu k = |L'k|^2 with L the Cholesky factor of the (regularised) Quu
-        Lk = (fac.chol.mT @ k.unsqueeze(-1))[..., 0]
-        curv = Lk.pow(2).sum(dim=(-1, -2))
+        if fac.dV is None:
+            # k'Quu k = |L'k|^2 with L the Cholesky factor of the (regularised) Quu
+            Lk = (fac.chol.mT @ k.unsqueeze(-1))[..., 0]
+            curv = Lk.pow(2).sum(dim=(-1, -2))
+            slope = -curv  # k'Qu = -k'Quu k
+        else:
+            slope, curv = fac.dV[..., 0], fac.dV[..., 1]
+            grad = u - torch.minimum(torch.maximum(u - grad, lo), hi)  # projected gradient
         return {
             "du": k,  # feedforward direction: the line search adds alpha * k
             "K": fac.K,
             "k": k,
             "grad": grad,
-            "slope": -curv,  # k'Qu = -k'Quu k
+            "slope": slope,
             "curvature": curv,
             "failed": fac.failed,
             "dx": torch.zeros_like(x),
+            **({} if fac.clamped is None else {"clamped": fac.clamped}),
         }
 
     def _second_order(
@@ -178,7 +284,9 @@ class ILQR(SLQ):
 
         def evaluate(alphas: Tensor) -> Tensor:
             Na = alphas.shape[0]
-            xc, uc = rollout_closed_loop(f, x0.expand(Na, *x0.shape), x, u, d["K"], d["k"], alphas)
+            xc, uc = rollout_closed_loop(
+                f, x0.expand(Na, *x0.shape), x, u, d["K"], d["k"], alphas, self._lo, self._hi
+            )
             trials.record(alphas, xc, uc)
             return cost_fn(xc, uc)
 

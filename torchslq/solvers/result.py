@@ -32,6 +32,9 @@ class SolverResult:
             iteration 0 and for finished elements) and ``"time"`` (``(iters+1,)``
             seconds since the start).
         options: the solver's options, for the record.
+        active_bounds: for control-limited solves (iLQR/DDP with ``u_min``/``u_max``),
+            ``(B, T, m)`` int8: ``-1`` where ``u`` is at its lower bound, ``+1`` at its
+            upper bound, ``0`` elsewhere; None for unconstrained solves.
 
     Results of an unbatched solve (``x0`` of shape ``(n,)``) drop the batch dim.
     """
@@ -47,6 +50,7 @@ class SolverResult:
     k: Tensor
     history: dict[str, Tensor] = field(default_factory=dict)
     options: dict = field(default_factory=dict)
+    active_bounds: Tensor | None = None
 
     def status_names(self) -> list[str]:
         return status_names(self.status)
@@ -86,4 +90,5 @@ class SolverResult:
             k=sq(self.k),
             history=hist,
             options=self.options,
+            active_bounds=None if self.active_bounds is None else sq(self.active_bounds),
         )

@@ -32,12 +32,17 @@ def rollout_closed_loop(
     K: Tensor,
     k: Tensor,
     alpha: Tensor,
+    u_min: Tensor | None = None,
+    u_max: Tensor | None = None,
 ) -> tuple[Tensor, Tensor]:
     """Feedback rollout ``u_t = u_nom_t + alpha k_t + K_t (x_t - x_nom_t)``.
 
     Args:
         x0: ``(..., B, n)``; x_nom ``(B, T+1, n)``; u_nom ``(B, T, m)``; K ``(B, T, m, n)``;
         k ``(B, T, m)``; alpha ``(..., B)`` step sizes (leading dims: candidate steps).
+        u_min, u_max: optional control bounds ``(B, T, m)`` (or broadcastable, with a
+            time dim); the control is clamped into ``[u_min, u_max]`` before it is
+            applied (control-limited iLQR/DDP).
 
     Returns:
         ``x (..., B, T+1, n)`` and ``u (..., B, T, m)``.
@@ -48,6 +53,10 @@ def rollout_closed_loop(
     for t in range(u_nom.shape[-2]):
         dx = xt[..., 0, :] - x_nom[..., t, :]
         ut = u_nom[..., t, :] + a * k[..., t, :] + (K[..., t, :, :] @ dx.unsqueeze(-1))[..., 0]
+        if u_min is not None:
+            ut = torch.maximum(ut, u_min[..., t, :])
+        if u_max is not None:
+            ut = torch.minimum(ut, u_max[..., t, :])
         ut = ut.unsqueeze(-2)
         xt = f(xt, ut)
         xs.append(xt)
