@@ -239,9 +239,12 @@ def riccati_homogeneous(
     Kks: list[Tensor] = [Vh] * T
     Ls: list[Tensor] = [Vh] * T
     infos: list[Tensor] = []
+    # time-major contiguous copies of F and F': batched matmuls of tiny matrices with
+    # strided operands measured 1.8-2.5x slower (B = 1024, T = 100) than contiguous ones
+    Fs = F.expand(*batch, *F.shape[-3:]).movedim(-3, 0).contiguous()
+    FsT = Fs.mT.contiguous()
     for t in range(T - 1, -1, -1):
-        Ft = F[..., t, :, :]
-        M = H[..., t, :, :] + Ft.mT @ (Vh @ Ft)
+        M = H[..., t, :, :] + FsT[t] @ (Vh @ Fs[t])
         if stage_hook is not None:
             M = M + torch.nn.functional.pad(stage_hook(t, Vh), (0, 1, 0, 1))
         Quu = M[..., :m, :m]
@@ -345,7 +348,7 @@ def _riccati_box(
         k, L = qp.x, qp.chol
         free = ~qp.clamped
         rhs = torch.where(free.unsqueeze(-1), Qu_xh[..., :n], torch.zeros_like(Qu_xh[..., :n]))
-        Kk = torch.cat([-torch.cholesky_solve(rhs, L), k.unsqueeze(-1)], dim=-1)
+        Kk = torch.cat([-chol_solve(rhs, L), k.unsqueeze(-1)], dim=-1)
         KtQuu = Kk.mT @ Quu
         cross = Kk.mT @ Qu_xh
         Vh = _sym(M[..., m:, m:] + KtQuu @ Kk + cross + cross.mT)
