@@ -23,7 +23,8 @@ passes the Armijo test: the current point is optimal to working precision), the
 relative improvement is at most ``min_rel_improve``, or the free block is not positive
 definite (``success = False``). Stopped elements are frozen by masks; the loop over
 iterations checks for "all stopped" only every ``check_every`` iterations (one host
-synchronisation per check). Bounds may be infinite.
+synchronisation per check). Bounds may be infinite. A single variable (``m = 1``) is
+solved in closed form (``clip(-g/h)``, no loop).
 """
 
 from __future__ import annotations
@@ -72,6 +73,25 @@ def _free_factor(H: Tensor, free: Tensor, eye: Tensor) -> tuple[Tensor, Tensor]:
     return torch.linalg.cholesky_ex(torch.where(both, H, eye))
 
 
+def _box_qp_scalar(H: Tensor, g: Tensor, lower: Tensor, upper: Tensor, x0: Tensor) -> BoxQPResult:
+    """``m = 1`` in closed form: the projected Newton point ``clip(-g/h)`` is the
+    solution (what the iteration reaches in one step), with no loop and no host sync.
+    A non-positive ``h`` fails unless the start is clamped (as in the iteration)."""
+    h = H[..., 0]  # (..., 1)
+    pos = h > 0
+    grad0 = g + h * x0
+    start_clamped = _clamped_set(x0, grad0, lower, upper)
+    newton = -g / torch.where(pos, h, torch.ones_like(h))
+    x = torch.where(pos, torch.minimum(torch.maximum(newton, lower), upper), x0)
+    grad = g + h * x
+    clamped = _clamped_set(x, grad, lower, upper)
+    free = ~clamped
+    chol = torch.where(free & pos, h.clamp_min(0).sqrt(), torch.ones_like(h)).unsqueeze(-1)
+    success = ((pos | start_clamped) & torch.isfinite(x))[..., 0]
+    iterations = (pos & (x != x0))[..., 0].to(torch.int64)
+    return BoxQPResult(x=x, clamped=clamped, chol=chol, success=success, iterations=iterations)
+
+
 def box_qp(
     H: Tensor,
     g: Tensor,
@@ -116,6 +136,8 @@ def box_qp(
     eye = torch.eye(m, dtype=H.dtype, device=H.device)
     x = g.new_zeros(()).expand(*batch, m) if x0 is None else x0.expand(*batch, m)
     x = torch.minimum(torch.maximum(x, lower), upper)
+    if m == 1:
+        return _box_qp_scalar(H, g, lower, upper, x)
     value = _value(H, g, x)
     active = torch.ones(batch, dtype=torch.bool, device=H.device)
     success = torch.ones_like(active)
