@@ -380,13 +380,6 @@ def _row(res, j):
     return r
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="ILQR.direction retries the backward pass (up to 8 times) while ANY element's "
-    "factorisation fails, including frozen NON_FINITE ones: one NaN element makes every "
-    "iteration of the whole batch run 8 Riccati passes",
-)
 def test_nan_element_does_not_slow_the_others(monkeypatch):
     """DESIGN.md: a failed element never stops, slows or poisons the others."""
     import torchslq.solvers.ilqr as ilqr_mod
@@ -500,13 +493,6 @@ def test_mu_adapts_for_indefinite_control_hessian():
     assert float(rb.u[1].abs().min()) > 0.3 and float(rb.u[3].abs().min()) > 0.3
 
 
-@pytest.mark.xfail(
-    strict=True,
-    raises=AssertionError,
-    reason="mu_max is only checked after a failed line search; the factorisation retries "
-    "in ILQR.direction raise mu past mu_max without stopping the element, contrary to the "
-    "docstring ('An element whose mu exceeds mu_max stops with status line_search_failed')",
-)
 def test_mu_max_stops_an_element_that_needs_more():
     """Element 1 needs ``mu > 0.03`` at its first backward pass (its last-step Quu is
     about -0.037 at u = 0); with ``mu_max = 1e-3`` it should stop, the others not."""

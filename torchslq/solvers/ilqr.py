@@ -68,8 +68,10 @@ class ILQR(SLQ):
         rtol: stop also when ``|J_k - J_{k+1}| <= rtol |J_k|`` after an accepted step
             (0 disables).
         mu_init, mu_min, mu_max, mu_factor: Levenberg-Marquardt regularisation on ``Quu``
-            (Tassa et al. 2012 schedule, per element). An element whose ``mu`` exceeds
-            ``mu_max`` stops with status ``line_search_failed``.
+            (Tassa et al. 2012 schedule, per element). An element whose ``mu`` would have
+            to exceed ``mu_max`` stops: with status ``not_positive_definite`` when
+            ``Quu + mu I`` cannot be factorised, ``line_search_failed`` when its line
+            searches keep failing.
         hessian_floor: when set, the eigenvalues of every stage cost Hessian (the joint
             ``(n+m)`` block) and of the terminal Hessian are clipped to at least this
             value (the paper uses ``sqrt(eps)``); None leaves them as they are.
@@ -206,6 +208,8 @@ class ILQR(SLQ):
         e = self._expansion(problem, x, u)
         grad, lam = costate_gradient(A, B, e.lx, e.lu)
         hook = self._second_order(problem, x, u, lam, e)
+        if getattr(self, "_running", None) is None or self._running.shape[0] != x.shape[0]:
+            self._running = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
         mu = getattr(self, "_mu", None)
         if mu is None or mu.shape[0] != x.shape[0]:
             self._begin(x[:, 0])
@@ -224,9 +228,15 @@ class ILQR(SLQ):
                 stage_hook=hook,
                 u_bounds=u_bounds,
             )
-            if not bool(fac.failed.any()):
+            # retry only elements still iterating whose mu may still grow: a frozen
+            # (e.g. non-finite) element must not make the others repeat their pass
+            retry = fac.failed & self._running & (self._mu <= self.mu_max)
+            if not bool(retry.any()):
                 break
-            self._increase_mu(fac.failed)
+            self._increase_mu(retry)
+        # an element that needed mu > mu_max to factorise stops (status
+        # not_positive_definite, set by the solve loop from ``failed``)
+        failed = fac.failed | (self._mu > self.mu_max)
         k = fac.k
         if fac.dV is None:
             # k'Quu k = |L'k|^2 with L the Cholesky factor of the (regularised) Quu
@@ -243,7 +253,7 @@ class ILQR(SLQ):
             "grad": grad,
             "slope": slope,
             "curvature": curv,
-            "failed": fac.failed,
+            "failed": failed,
             "dx": torch.zeros_like(x),
             **({} if fac.clamped is None else {"clamped": fac.clamped}),
         }

@@ -170,6 +170,7 @@ class SLQ:
             bar = progress_bar(o.max_iter, enabled=o.progress, desc="SLQ")
             for it in range(o.max_iter + 1):
                 running = status == Status.RUNNING
+                self._running = running  # read by subclasses' direction() (e.g. iLQR retries)
                 d = self.direction(problem, x, u)
                 gn = d["grad"].flatten(1).norm(dim=1)
                 grad_norm = torch.where(running, gn, grad_norm)
@@ -186,8 +187,15 @@ class SLQ:
                 status = torch.where(
                     running & done, torch.full_like(status, int(Status.CONVERGED)), status
                 )
-                bad = running & ~done & (d["failed"] | ~torch.isfinite(d["slope"]))
-                status = torch.where(bad, torch.full_like(status, int(Status.NON_FINITE)), status)
+                stuck = running & ~done
+                not_pd = stuck & d["failed"]
+                non_finite = stuck & ~torch.isfinite(d["slope"])
+                status = torch.where(
+                    not_pd, torch.full_like(status, int(Status.NOT_POSITIVE_DEFINITE)), status
+                )
+                status = torch.where(
+                    non_finite, torch.full_like(status, int(Status.NON_FINITE)), status
+                )
                 running = status == Status.RUNNING
                 hist_cost.append(J)
                 hist_grad.append(grad_norm)
