@@ -142,7 +142,7 @@ def dynamics_vhp(
     """Second-order dynamics terms ``s' f_xx``, ``s' f_uu``, ``s' f_ux`` (the DDP terms).
 
     The Hessian of ``s · f(x, u)`` for every row, by ``n + m`` forward-mode products of
-    its gradient (forward-over-reverse, ``vmap`` over the basis): the ``n x n x n``
+    its gradient (reverse-over-reverse, ``vmap`` over the basis): the ``n x n x n``
     second-derivative tensor of ``f`` is never formed.
 
     Args:
@@ -161,7 +161,8 @@ def dynamics_vhp(
         shape = (n + m, *([1] * (x.ndim - 1)))
         ex = basis[:, :n].reshape(*shape, n).expand(n + m, *x.shape)
         eu = basis[:, n:].reshape(*shape, m).expand(n + m, *u.shape)
-        cols_x, cols_u = vmap(lambda dx, du: torch.func.jvp(g, (x, u), (dx, du))[1])(ex, eu)
+        _, pull = vjp(g, x, u)  # reverse-over-reverse: the Hessian is symmetric
+        cols_x, cols_u = vmap(lambda dx, du: pull((dx, du)))(ex, eu)
     Hx = cols_x.movedim(0, -1)  # (..., n, n+m): rows of [Hxx | Hxu]
     Hu = cols_u.movedim(0, -1)  # (..., m, n+m): rows of [Hux | Huu]
     return Hx[..., :n], Hu[..., n:], Hu[..., :n]

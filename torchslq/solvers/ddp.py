@@ -2,7 +2,7 @@
 
 ``Q_xx = l_xx + f_x' V'_xx f_x + V'_x · f_xx`` (likewise ``Q_uu``, ``Q_ux``): the last
 term is a vector-Hessian product of the dynamics computed with ``torch.func``
-(:func:`torchslq.dynamics.dynamics_vhp`, forward-over-reverse, never the full
+(:func:`torchslq.dynamics.dynamics_vhp`, reverse-over-reverse, never the full
 ``n x n x n`` tensor). Two choices of the vector ``V'_x``:
 
 * ``second_order="value"`` (classic DDP, Mayne 1966 / Tassa et al. 2012): the gradient
