@@ -51,7 +51,7 @@ still timed but marked. Times are wall times of one solve (torchslq: the batched
 looped peers: the whole loop, model construction excluded). A peer configuration whose
 loop passes ``--cap`` seconds is stopped and its time extrapolated linearly from the
 instances solved (marked ``extrapolated``); mpc.pytorch (batched) is skipped at B when
-its time at the previous B, scaled by the batch ratio, exceeds the cap (marked
+its B = 64 time scaled by B / 64 exceeds the cap (it always runs for B <= 64) (marked
 ``extrapolated`` too). Ratios are ``t_peer / t_torchslq`` from the same run
 (> 1: torchslq faster).
 
@@ -86,6 +86,7 @@ from torchslq.tasks import cartpole_swingup  # noqa: E402
 DT, T_CP, MC, MP, L, G = 0.05, 50, 1.0, 0.1, 0.5, 9.81
 XREF = np.array([0.0, math.pi, 0.0, 0.0])
 RTOL = 1e-6
+SAVE = lambda: None  # noqa: E731  (set by main: writes the results so far)
 MPC_EPS = 1e-4  # mpc.pytorch: stop when max_b ||du_b|| < MPC_EPS
 VERBOSE = int(os.environ.get("PEERS_MPC_VERBOSE", "-1"))
 TH_STOP = 1e-12  # crocoddyl: stop when the expected improvement |d1 + d2/2| < TH_STOP
@@ -419,6 +420,7 @@ def record(rows, problem_name, B, name, u, t, Jref, problem, x0, **extra):
         **extra,
     }
     rows.append(row)
+    SAVE()
     flag = "" if nm == solved else f"  MISMATCH ({nm}/{solved})"
     ext = " (extrapolated)" if row.get("extrapolated") else ""
     print(
@@ -431,6 +433,7 @@ def record(rows, problem_name, B, name, u, t, Jref, problem, x0, **extra):
 
 def note(rows, problem_name, B, name, text):
     rows.append({"problem": problem_name, "B": B, "solver": name, "note": text})
+    SAVE()
     print(f"  {problem_name:9s} B={B:<4d} {name:30s} NOT RUN: {text}", flush=True)
 
 
@@ -483,7 +486,7 @@ def bench_cartpole(args, rows):
             name = f"mpc.pytorch {method}" + (" (torch.func)" if method == "ANALYTIC" else "")
             if "mpc" not in args.peers:
                 continue
-            if method in mpc_prev:
+            if method in mpc_prev and B > 64:  # batched: always run it up to B = 64
                 Bp, tp = mpc_prev[method]
                 est = tp * B / Bp
                 if est > args.cap:
@@ -660,19 +663,25 @@ def main(argv=None) -> int:
     for mk in torchslq_solvers(3).values():
         mk().solve(p, x)
     rows: list[dict] = []
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+
+    def save():  # after every configuration, so a stopped run keeps what it measured
+        meta["load_end"] = load()
+        rat = ratios(rows)
+        (out / "peers.json").write_text(
+            json.dumps({"meta": meta, "rows": rows, "ratios": rat}, indent=1, default=float)
+        )
+        (out / "peers.md").write_text(markdown(meta, rows, rat))
+
+    global SAVE
+    SAVE = save
     probs = args.problems.split(",")
     if "unicycle" in probs:
         bench_unicycle(args, rows)
     if "cartpole" in probs:
         bench_cartpole(args, rows)
-    meta["load_end"] = load()
-    rat = ratios(rows)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "peers.json").write_text(
-        json.dumps({"meta": meta, "rows": rows, "ratios": rat}, indent=1, default=float)
-    )
-    (out / "peers.md").write_text(markdown(meta, rows, rat))
+    save()
     print(f"wrote {out / 'peers.json'} and {out / 'peers.md'}")
     return 0
 
