@@ -29,8 +29,8 @@ bench: $(STAMP)
 	# mpc declares numpy<2 but runs on numpy 2: install it without its pins, the rest normally
 	$(PY) -m pip install -q --no-deps mpc
 	$(PY) -m pip install -q scipy crocoddyl casadi
-	$(PY) benchmarks/lq_kernel.py --quick
-	$(PY) benchmarks/slq.py --quick
+	$(PY) benchmarks/lq_kernel.py
+	$(PY) benchmarks/slq.py
 	$(PY) benchmarks/peers.py
 
 clean:
