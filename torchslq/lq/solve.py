@@ -70,8 +70,9 @@ class LQRSolution:
 class _LQRFunction(torch.autograd.Function):
     """(F, H, VhT, x0) -> (x, u) with the implicit-KKT backward pass.
 
-    All inputs arrive expanded to the full batch so gradients have their shapes;
-    autograd then sums them back through the expand/cat that built F and H.
+    Inputs have one flat batch dim, of size ``B`` or 1 (shared data, not copied); the
+    backward pass sums the gradient of shared inputs over the batch, and autograd maps
+    the gradients back through the ``cat`` that built ``F`` and ``H``.
     """
 
     @staticmethod
@@ -79,6 +80,8 @@ class _LQRFunction(torch.autograd.Function):
         fac = riccati_homogeneous(F, H, VhT)
         x, u = rollout_homogeneous(F, fac.Kk, x0)
         ctx.save_for_backward(F, fac.Kk, fac.Vh, fac.chol, x, u)
+        ctx.H_like = torch.empty(H.shape[0], 0)  # only the batch size is needed
+        ctx.VhT_like = torch.empty(VhT.shape[0], 0)
         ctx.mark_non_differentiable(fac.Kk, fac.Vh, fac.chol, fac.failed)
         return x, u, fac.Kk, fac.Vh, fac.chol, fac.failed
 
@@ -109,7 +112,19 @@ class _LQRFunction(torch.autograd.Function):
         gF = dlam_next.unsqueeze(-1) * z.unsqueeze(-2) + lam_next.unsqueeze(-1) * dz.unsqueeze(-2)
         gx0 = dlam[..., 0, :]
         del m
-        return gF, gH, gVhT, gx0
+        return _sum_to(gF, F), _sum_to(gH, ctx.H_like), _sum_to(gVhT, ctx.VhT_like), gx0
+
+
+def _flat_batch(t: Tensor, batch: torch.Size, nb: int, tail: int) -> Tensor:
+    """One flat batch dim: size 1 for data shared by the whole batch (not copied B
+    times; the backward pass sums its gradient), else ``nb``."""
+    if t.shape[:-tail].numel() == 1:
+        return t.reshape(1, *t.shape[-tail:])
+    return t.expand(*batch, *t.shape[-tail:]).reshape(nb, *t.shape[-tail:])
+
+
+def _sum_to(g: Tensor, like: Tensor) -> Tensor:
+    return g.sum(0, keepdim=True) if like.shape[0] == 1 and g.shape[0] != 1 else g
 
 
 def _homog(x: Tensor) -> Tensor:
@@ -296,9 +311,9 @@ def lqr_solve(
     batch = torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
     # one flat batch dim for the kernel
     nb = int(torch.Size(batch).numel())
-    Ff = F.expand(*batch, *F.shape[-3:]).reshape(nb, *F.shape[-3:])
-    Hf = H.expand(*batch, *H.shape[-3:]).reshape(nb, *H.shape[-3:])
-    VhTf = VhT.expand(*batch, *VhT.shape[-2:]).reshape(nb, *VhT.shape[-2:])
+    Ff = _flat_batch(F, batch, nb, 3)
+    Hf = _flat_batch(H, batch, nb, 3)
+    VhTf = _flat_batch(VhT, batch, nb, 2)
     x0f = x0.expand(*batch, n).reshape(nb, n)
     x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f)
 
