@@ -128,3 +128,26 @@ def test_float32_solve_runs(tmp_path):
     assert res.x.dtype == torch.float32
     assert bool(torch.isfinite(res.cost).all())
     assert bool(res.converged.all())
+
+
+@pytest.mark.parametrize("solver", ["ilqr", "ddp"])
+def test_cli_solve_with_ilqr_and_ddp(tmp_path, capsys, solver):
+    rc = main(
+        [
+            "solve",
+            "cartpole",
+            "--solver",
+            solver,
+            "--batch",
+            "2",
+            "--max-iter",
+            "80",
+            "--logdir",
+            str(tmp_path),
+            "--no-progress",
+        ]
+    )
+    out = capsys.readouterr().out
+    assert rc == 0
+    assert f"solver: {solver} " in out
+    assert "swung up (final angle within 0.1 rad of upright): 2/2" in out

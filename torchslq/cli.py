@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-SOLVERS = ("slq",)
+SOLVERS = ("slq", "ilqr", "ddp")
 REPRODUCTIONS = ("sideris-table1", "sideris-hopper")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
@@ -39,16 +39,13 @@ def _device(name: str) -> torch.device:
 
 
 def _make_solver(name: str, args: argparse.Namespace):
-    from .solvers import SLQ
+    from .solvers import DDP, ILQR, SLQ
 
+    common = {"max_iter": args.max_iter, "tol": args.tol, "progress": not args.no_progress}
     if name == "slq":
-        return SLQ(
-            max_iter=args.max_iter,
-            tol=args.tol,
-            line_search=args.line_search,
-            rollout=args.rollout,
-            progress=not args.no_progress,
-        )
+        return SLQ(line_search=args.line_search, rollout=args.rollout, **common)
+    if name in ("ilqr", "ddp"):  # closed-loop rollout and Armijo on the expected improvement
+        return (ILQR if name == "ilqr" else DDP)(**common)
     raise ValueError(f"unknown solver {name!r}; choose from {', '.join(SOLVERS)}")
 
 
@@ -84,9 +81,11 @@ def _run(system: str, args: argparse.Namespace, title: str) -> int:
     ).savefig(conv_png, dpi=110)
 
     print(f"# {title}")
-    print(
-        f"solver: {args.solver} ({args.line_search} line search, {args.rollout} rollout), device {device}, {args.dtype}"
-    )
+    if args.solver == "slq":
+        how = f"{args.line_search} line search, {args.rollout} rollout"
+    else:
+        how = "closed-loop rollout, Armijo on the expected improvement"
+    print(f"solver: {args.solver} ({how}), device {device}, {args.dtype}")
     print(result.summary())
     if system in ("pendulum", "cartpole"):
         ok = swingup_success(result.x, angle_index=0 if system == "pendulum" else 1)
