@@ -78,12 +78,17 @@ class _LQRFunction(torch.autograd.Function):
     @staticmethod
     def forward(ctx, F, H, VhT, x0):  # noqa: D401
         fac = riccati_homogeneous(F, H, VhT)
-        x, u = rollout_homogeneous(F, fac.Kk, x0)
-        ctx.save_for_backward(F, fac.Kk, fac.Vh, fac.chol, x, u)
+        nb = x0.shape[0]  # the data may all be shared (batch 1) while x0 is not
+        Kk = fac.Kk.expand(nb, *fac.Kk.shape[1:])
+        Vh = fac.Vh.expand(nb, *fac.Vh.shape[1:])
+        chol = fac.chol.expand(nb, *fac.chol.shape[1:])
+        failed = fac.failed.expand(nb)
+        x, u = rollout_homogeneous(F, Kk, x0)
+        ctx.save_for_backward(F, Kk, Vh, chol, x, u)
         ctx.H_like = torch.empty(H.shape[0], 0)  # only the batch size is needed
         ctx.VhT_like = torch.empty(VhT.shape[0], 0)
-        ctx.mark_non_differentiable(fac.Kk, fac.Vh, fac.chol, fac.failed)
-        return x, u, fac.Kk, fac.Vh, fac.chol, fac.failed
+        ctx.mark_non_differentiable(Kk, Vh, chol, failed)
+        return x, u, Kk, Vh, chol, failed
 
     @staticmethod
     @once_differentiable
