@@ -231,7 +231,7 @@ class SLQ:
                 step = a
                 iterations = iterations + accept.to(torch.int64)
                 bar.update(1)
-                bar.set_postfix(running=n_running)
+                bar.set_postfix(running=n_running, refresh=False)
             bar.close()
             status = torch.where(
                 status == Status.RUNNING, torch.full_like(status, int(Status.MAX_ITER)), status
