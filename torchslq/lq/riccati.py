@@ -135,13 +135,12 @@ def homogeneous_dynamics(A: Tensor, B: Tensor, c: Tensor | None = None) -> Tenso
     if c is None:
         c = A.new_zeros(()).expand(*A.shape[:-1])
     lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2], c.shape[:-1])
-    # one allocation filled block by block (nested cats copied every block twice)
-    F = A.new_zeros(*lead, n + 1, m + n + 1)
-    F[..., :n, :m] = B
-    F[..., :n, m : m + n] = A
-    F[..., :n, -1] = c
-    F[..., n, -1] = 1.0
-    return F
+    top = torch.cat(
+        [B.expand(*lead, n, m), A.expand(*lead, n, n), c.expand(*lead, n).unsqueeze(-1)], dim=-1
+    )
+    bottom = A.new_zeros(*lead, 1, m + n + 1)
+    bottom[..., 0, -1] = 1.0
+    return torch.cat([top, bottom], dim=-2)
 
 
 def homogeneous_cost(
@@ -171,21 +170,24 @@ def homogeneous_cost(
     lead = torch.broadcast_shapes(
         Qs.shape[:-2], R.shape[:-2], qs.shape[:-1], r.shape[:-1], S.shape[:-2]
     )
-    H = Q.new_zeros(*lead, m + n + 1, m + n + 1)
-    H[..., :m, :m] = R
-    H[..., :m, m : m + n] = S
-    H[..., m : m + n, :m] = S.mT
-    H[..., m : m + n, m : m + n] = Qs
-    H[..., :m, -1] = r
-    H[..., -1, :m] = r
-    H[..., m : m + n, -1] = qs
-    H[..., -1, m : m + n] = qs
+    Qs, R, S = Qs.expand(*lead, n, n), R.expand(*lead, m, m), S.expand(*lead, m, n)
+    qs, r = qs.expand(*lead, n).unsqueeze(-1), r.expand(*lead, m).unsqueeze(-1)
+    corner = Q.new_zeros(*lead, 1, 1)
+    H = torch.cat(
+        [
+            torch.cat([R, S, r], dim=-1),
+            torch.cat([S.mT, Qs, qs], dim=-1),
+            torch.cat([r.mT, qs.mT, corner], dim=-1),
+        ],
+        dim=-2,
+    )
     QT, qT = Q[..., T, :, :], q[..., T, :]
     lead_T = torch.broadcast_shapes(QT.shape[:-2], qT.shape[:-1])
-    VhT = Q.new_zeros(*lead_T, n + 1, n + 1)
-    VhT[..., :n, :n] = QT
-    VhT[..., :n, n] = qT
-    VhT[..., n, :n] = qT
+    QT, qT = QT.expand(*lead_T, n, n), qT.expand(*lead_T, n).unsqueeze(-1)
+    VhT = torch.cat(
+        [torch.cat([QT, qT], dim=-1), torch.cat([qT.mT, Q.new_zeros(*lead_T, 1, 1)], dim=-1)],
+        dim=-2,
+    )
     return H, VhT
 
 
