@@ -158,7 +158,7 @@ class SLQ:
             J = cost_fn(x, u)
             status = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=x0.device)
             finite0 = torch.isfinite(J) & torch.isfinite(x).flatten(1).all(1)
-            status = torch.where(finite0, status, torch.full_like(status, int(Status.NON_FINITE)))
+            status = status.masked_fill(~finite0, int(Status.NON_FINITE))
             iterations = torch.zeros(Bsz, dtype=torch.int64, device=x0.device)
             step = torch.zeros_like(J)
             hist_cost, hist_grad, hist_step, hist_time = [], [], [], []
@@ -184,18 +184,12 @@ class SLQ:
                     "either": small_grad | small_step,
                     "both": small_grad & small_step,
                 }[o.stop]
-                status = torch.where(
-                    running & done, torch.full_like(status, int(Status.CONVERGED)), status
-                )
+                status = status.masked_fill(running & done, int(Status.CONVERGED))
                 stuck = running & ~done
                 not_pd = stuck & d["failed"]
                 non_finite = stuck & ~torch.isfinite(d["slope"])
-                status = torch.where(
-                    not_pd, torch.full_like(status, int(Status.NOT_POSITIVE_DEFINITE)), status
-                )
-                status = torch.where(
-                    non_finite, torch.full_like(status, int(Status.NON_FINITE)), status
-                )
+                status = status.masked_fill(not_pd, int(Status.NOT_POSITIVE_DEFINITE))
+                status = status.masked_fill(non_finite, int(Status.NON_FINITE))
                 running = status == Status.RUNNING
                 hist_cost.append(J)
                 hist_grad.append(grad_norm)
@@ -216,26 +210,20 @@ class SLQ:
                 alpha, J_new, ok, x_new, u_new = self._line_search(f, cost_fn, x0, x, u, J, d)
                 accept = running & ok
                 failed = self._after_line_search(running, ok)
-                status = torch.where(
-                    failed, torch.full_like(status, int(Status.LINE_SEARCH_FAILED)), status
-                )
+                status = status.masked_fill(failed, int(Status.LINE_SEARCH_FAILED))
                 a = torch.where(accept, alpha, torch.zeros_like(alpha))
                 u = torch.where(accept[:, None, None], u_new, u)
                 x = torch.where(accept[:, None, None], x_new, x)
                 if o.rtol > 0:  # relative cost change after an accepted step
                     flat = accept & ((J - J_new).abs() <= o.rtol * J.abs())
-                    status = torch.where(
-                        flat, torch.full_like(status, int(Status.CONVERGED)), status
-                    )
+                    status = status.masked_fill(flat, int(Status.CONVERGED))
                 J = torch.where(accept, J_new, J)
                 step = a
                 iterations = iterations + accept.to(torch.int64)
                 bar.update(1)
                 bar.set_postfix(running=n_running, refresh=False)
             bar.close()
-            status = torch.where(
-                status == Status.RUNNING, torch.full_like(status, int(Status.MAX_ITER)), status
-            )
+            status = status.masked_fill(status == Status.RUNNING, int(Status.MAX_ITER))
 
         result = SolverResult(
             x=x,
