@@ -66,6 +66,8 @@ class GradientMethod(SLQ):
             raise ValueError(f"search_range must be one of {_SEARCH_RANGES}, got {search_range!r}")
         if not growth >= 1:
             raise ValueError(f"growth must be >= 1, got {growth!r}")
+        if self.options.compact:
+            raise ValueError("compact=True is not supported by GradientMethod")
         self.search_range = search_range
         self.growth = float(growth)
         self._prev_alpha: Tensor | None = None

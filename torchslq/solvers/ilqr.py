@@ -84,6 +84,7 @@ class ILQR(SLQ):
     """
 
     name = "ilqr"
+    _per_element_state = ("_mu", "_delta", "_lo", "_hi")
 
     def __init__(
         self,

@@ -38,6 +38,17 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = ["SLQ", "SLQOptions"]
 
+
+def _take(t: Tensor, idx: Tensor | None) -> Tensor:
+    """Rows ``idx`` of ``t`` (all of it for None)."""
+    return t if idx is None else t.index_select(0, idx)
+
+
+def _put(full: Tensor, idx: Tensor | None, part: Tensor) -> Tensor:
+    """``full`` with rows ``idx`` replaced by ``part`` (``part`` itself for None)."""
+    return part if idx is None else full.index_copy(0, idx, part)
+
+
 _LINE_SEARCHES = ("exact", "armijo")
 _ROLLOUTS = ("open_loop", "closed_loop")
 _STOPS = ("grad", "step", "either", "both")
@@ -59,6 +70,7 @@ class SLQOptions:
     max_backtracks: int = 20
     linearize_method: str = "auto"
     progress: bool = True
+    compact: bool = False
 
 
 class SLQ:
@@ -82,6 +94,12 @@ class SLQ:
         armijo_c1, armijo_beta, max_backtracks: Armijo constants.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: show a tqdm bar when a solve takes longer than a second.
+        compact: compute each iteration only on the elements still running (finished
+            ones cost nothing more). Only for problems without per-element tensors:
+            the dynamics and cost are then called on a sub-batch, so a parameter shaped
+            ``(B, 1)`` (registered or captured in a closure) would no longer line up.
+            ``solve`` refuses it when a registered tensor of the problem (2-D or more)
+            leads with the batch size. Off by default.
     """
 
     name = "slq"
@@ -150,6 +168,14 @@ class SLQ:
         cost_fn = problem.cost
         Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
         step_tol = o.tol if o.step_tol is None else o.step_tol
+        if o.compact and Bsz > 1:
+            for name, t in list(problem.named_parameters()) + list(problem.named_buffers()):
+                # per-element data lead with the batch dim: (B, 1), (B, T, n, n), ...
+                if t.ndim >= 2 and t.shape[0] == Bsz and tuple(t.shape) != (Bsz, Bsz):
+                    raise ValueError(
+                        f"compact=True needs batch-shared problem data, but {name!r} has shape "
+                        f"{tuple(t.shape)} (batch size {Bsz}); use compact=False"
+                    )
         self._begin(x0)
         t_start = time.perf_counter()
 
@@ -170,27 +196,36 @@ class SLQ:
             bar = progress_bar(o.max_iter, enabled=o.progress, desc="SLQ")
             for it in range(o.max_iter + 1):
                 running = status == Status.RUNNING
-                self._running = running  # read by subclasses' direction() (e.g. iLQR retries)
-                d = self.direction(problem, x, u)
+                # working set: every element, or (compact=True) only the running ones
+                idx = running.nonzero().squeeze(1) if o.compact else None  # one host sync
+                if idx is not None and idx.numel() == Bsz:
+                    idx = None
+                if idx is not None and idx.numel() == 0:
+                    break
+                self._select(idx)
+                xs, us, Js, x0s = (_take(t, idx) for t in (x, u, J, x0))
+                run = _take(running, idx)
+                self._running = run  # read by subclasses' direction() (e.g. iLQR retries)
+                d = self.direction(problem, xs, us)
                 gn = d["grad"].flatten(1).norm(dim=1)
-                grad_norm = torch.where(running, gn, grad_norm)
-                K = torch.where(running[:, None, None, None], d["K"], K)
-                k = torch.where(running[:, None, None], d["k"], k)
+                grad_norm = _put(grad_norm, idx, torch.where(run, gn, _take(grad_norm, idx)))
+                K = _put(K, idx, torch.where(run[:, None, None, None], d["K"], _take(K, idx)))
+                k = _put(k, idx, torch.where(run[:, None, None], d["k"], _take(k, idx)))
                 small_grad = gn < o.tol
-                small_step = d["du"].flatten(1).norm(dim=1) < step_tol * u.flatten(1).norm(dim=1)
+                small_step = d["du"].flatten(1).norm(dim=1) < step_tol * us.flatten(1).norm(dim=1)
                 done = {
                     "grad": small_grad,
                     "step": small_step,
                     "either": small_grad | small_step,
                     "both": small_grad & small_step,
                 }[o.stop]
-                status = status.masked_fill(running & done, int(Status.CONVERGED))
-                stuck = running & ~done
-                not_pd = stuck & d["failed"]
-                non_finite = stuck & ~torch.isfinite(d["slope"])
-                status = status.masked_fill(not_pd, int(Status.NOT_POSITIVE_DEFINITE))
-                status = status.masked_fill(non_finite, int(Status.NON_FINITE))
-                running = status == Status.RUNNING
+                st = _take(status, idx)
+                st = st.masked_fill(run & done, int(Status.CONVERGED))
+                stuck = run & ~done
+                st = st.masked_fill(stuck & d["failed"], int(Status.NOT_POSITIVE_DEFINITE))
+                st = st.masked_fill(stuck & ~torch.isfinite(d["slope"]), int(Status.NON_FINITE))
+                status = _put(status, idx, st)
+                run = st == Status.RUNNING
                 hist_cost.append(J)
                 hist_grad.append(grad_norm)
                 hist_step.append(step)
@@ -204,22 +239,27 @@ class SLQ:
                         status=status,
                         wall_time=hist_time[-1],
                     )
-                n_running = int(running.sum())  # the one host sync per iteration
+                n_running = int(run.sum())  # the host sync that ends the solve
                 if n_running == 0 or it == o.max_iter:
+                    self._scatter(idx)
                     break
-                alpha, J_new, ok, x_new, u_new = self._line_search(f, cost_fn, x0, x, u, J, d)
-                accept = running & ok
-                failed = self._after_line_search(running, ok)
-                status = status.masked_fill(failed, int(Status.LINE_SEARCH_FAILED))
+                alpha, J_new, ok, x_new, u_new = self._line_search(f, cost_fn, x0s, xs, us, Js, d)
+                accept = run & ok
+                st = st.masked_fill(
+                    self._after_line_search(run, ok), int(Status.LINE_SEARCH_FAILED)
+                )
                 a = torch.where(accept, alpha, torch.zeros_like(alpha))
-                u = torch.where(accept[:, None, None], u_new, u)
-                x = torch.where(accept[:, None, None], x_new, x)
+                u = _put(u, idx, torch.where(accept[:, None, None], u_new, us))
+                x = _put(x, idx, torch.where(accept[:, None, None], x_new, xs))
                 if o.rtol > 0:  # relative cost change after an accepted step
-                    flat = accept & ((J - J_new).abs() <= o.rtol * J.abs())
-                    status = status.masked_fill(flat, int(Status.CONVERGED))
-                J = torch.where(accept, J_new, J)
-                step = a
-                iterations = iterations + accept.to(torch.int64)
+                    st = st.masked_fill(
+                        accept & ((Js - J_new).abs() <= o.rtol * Js.abs()), int(Status.CONVERGED)
+                    )
+                status = _put(status, idx, st)
+                J = _put(J, idx, torch.where(accept, J_new, Js))
+                step = _put(torch.zeros_like(step), idx, a)
+                iterations = _put(iterations, idx, _take(iterations, idx) + accept.to(torch.int64))
+                self._scatter(idx)
                 bar.update(1)
                 bar.set_postfix(running=n_running, refresh=False)
             bar.close()
@@ -249,6 +289,25 @@ class SLQ:
 
     def _begin(self, x0: Tensor) -> None:
         """Per-solve state of subclasses (e.g. iLQR's regularisation); none for SLQ."""
+
+    # names of per-element solver state (tensors with a leading batch dim) that the
+    # compacted loop narrows to the working set and writes back; see ILQR
+    _per_element_state: tuple[str, ...] = ()
+
+    def _select(self, idx: Tensor | None) -> None:
+        self._full_state = {}
+        if idx is None:
+            return
+        for name in self._per_element_state:
+            v = getattr(self, name, None)
+            if torch.is_tensor(v) and v.ndim > 0 and v.shape[0] > 1:
+                self._full_state[name] = v
+                setattr(self, name, v.index_select(0, idx))
+
+    def _scatter(self, idx: Tensor | None) -> None:
+        for name, full in getattr(self, "_full_state", {}).items():
+            setattr(self, name, full.index_copy(0, idx, getattr(self, name)))
+        self._full_state = {}
 
     def _after_line_search(self, running: Tensor, ok: Tensor) -> Tensor:
         """Elements whose failed line search ends their solve (all of them for SLQ)."""

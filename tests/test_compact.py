@@ -1,0 +1,62 @@
+"""compact=True: iterations computed only on the running elements give the same results."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchslq as ts
+from torchslq.systems import DragVehicle
+from torchslq.tasks import cartpole_swingup, pendulum_swingup
+
+torch.set_num_threads(1)
+
+
+def _same(a, b):
+    for name in ("x", "u", "cost", "grad_norm", "iterations", "status", "K", "k"):
+        torch.testing.assert_close(
+            getattr(a, name), getattr(b, name), rtol=0, atol=0, equal_nan=True, msg=name
+        )
+    for name in ("cost", "grad_norm", "step"):
+        torch.testing.assert_close(a.history[name], b.history[name], rtol=0, atol=0, equal_nan=True)
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda **kw: ts.SLQ(rollout="closed_loop", max_iter=60, progress=False, **kw),
+        lambda **kw: ts.SLQ(line_search="armijo", max_iter=40, progress=False, **kw),
+        lambda **kw: ts.ILQR(max_iter=60, progress=False, **kw),
+        lambda **kw: ts.ILQR(max_iter=60, progress=False, u_min=-4.0, u_max=4.0, **kw),
+        lambda **kw: ts.DDP(max_iter=40, progress=False, **kw),
+    ],
+)
+def test_compact_equals_full_batch(make):
+    problem, x0 = pendulum_swingup(batch=6, horizon=30, seed=4)
+    full = make().solve(problem, x0)
+    comp = make(compact=True).solve(problem, x0)
+    # the elements finish at different iterations, so the working set really shrinks
+    assert len(set(full.iterations.tolist())) > 1
+    _same(full, comp)
+    if full.active_bounds is not None:
+        assert torch.equal(full.active_bounds, comp.active_bounds)
+
+
+def test_compact_with_a_failing_element():
+    problem, x0 = cartpole_swingup(batch=4, seed=1)
+    x0 = x0.clone()
+    x0[2, 0] = 1e200  # its cost overflows to inf: non-finite from the start, frozen
+    full = ts.ILQR(max_iter=30, progress=False).solve(problem, x0)
+    comp = ts.ILQR(max_iter=30, progress=False, compact=True).solve(problem, x0)
+    assert full.status_names()[2] == "non_finite"
+    _same(full, comp)
+
+
+def test_compact_refuses_per_element_problem_tensors():
+    beta = torch.tensor([[0.1], [0.5]], dtype=torch.float64)
+    cost = ts.QuadraticCost(torch.eye(2, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
+    problem = ts.Problem(DragVehicle(beta=beta), cost, 10)
+    with pytest.raises(ValueError, match="compact"):
+        ts.SLQ(compact=True, progress=False).solve(problem, torch.zeros(2, 2, dtype=torch.float64))
+    with pytest.raises(ValueError, match="compact"):
+        ts.GradientMethod(compact=True)
