@@ -38,10 +38,15 @@ def _device(name: str) -> torch.device:
     return dev
 
 
-def _make_solver(name: str, args: argparse.Namespace):
+def _make_solver(name: str, args: argparse.Namespace, compact: bool = False):
     from .solvers import DDP, ILQR, SLQ
 
-    common = {"max_iter": args.max_iter, "tol": args.tol, "progress": not args.no_progress}
+    common = {
+        "max_iter": args.max_iter,
+        "tol": args.tol,
+        "progress": not args.no_progress,
+        "compact": compact,
+    }
     if name == "slq":
         return SLQ(line_search=args.line_search, rollout=args.rollout, **common)
     if name in ("ilqr", "ddp"):  # closed-loop rollout and Armijo on the expected improvement
@@ -58,7 +63,9 @@ def _run(system: str, args: argparse.Namespace, title: str) -> int:
         return _fail(f"unknown system {system!r}; choose from {', '.join(TASKS)}")
     try:
         device = _device(args.device)
-        solver = _make_solver(args.solver, args)
+        # the pendulum and cart-pole tasks share their parameters across the batch, so
+        # finished problems can leave the working set (the paper tasks are per-element)
+        solver = _make_solver(args.solver, args, compact=system in ("pendulum", "cartpole"))
     except ValueError as err:
         return _fail(str(err))
     if args.batch < 1:
