@@ -631,6 +631,44 @@ HOPPER_COLUMNS = (
 )
 
 
+def _batched_and_single(
+    tag,
+    key,
+    label,
+    columns,
+    values,
+    solve,
+    rows_of,
+    *,
+    line_searches,
+    max_iter,
+    tol,
+    one_by_one,
+    progress,
+    log,
+):
+    """For each line search: solve all ``values`` as one batch (and, with ``one_by_one``,
+    each alone), tabulate, and yield ``(line_search, batched result, markdown section)``."""
+    for ls in line_searches:
+        _, res, wall = solve(values, line_search=ls, max_iter=max_iter, tol=tol, progress=progress)
+        log(f"[{tag}] {ls}: batch of {len(values)} solved in {wall:.1f} s")
+        rows = rows_of(values, res)
+        agree = ""
+        if one_by_one:
+            _, solo, wall1 = solve(
+                values, line_search=ls, max_iter=max_iter, tol=tol, one_by_one=True
+            )
+            log(f"[{tag}] {ls}: one by one solved in {wall1:.1f} s")
+            agree = _agreement(rows, rows_of(values, solo), key, label)
+            agree += f" Wall time {wall:.1f} s batched, {wall1:.1f} s one by one."
+        cols = [c for c in columns if one_by_one or c != "one_by_one"]
+        table = format_table(rows, cols)
+        log(f"\nline search: {ls}\n{table}\n{agree}")
+        section = f"### SLQ, line search `{ls}` (max_iter {max_iter}, tol {tol:g})\n\n"
+        section += table + "\n\n" + (agree + "\n" if agree else "")
+        yield ls, res, section
+
+
 def table1_report(
     *,
     line_searches: Sequence[str] = ("armijo", "exact"),
@@ -658,25 +696,22 @@ def table1_report(
     sections = []
     slq_hist: dict[str, Tensor] = {}
     first = None
-    for ls in line_searches:
-        _, res, wall = solve_drag_vehicle(
-            betas, line_search=ls, max_iter=max_iter, tol=tol, progress=progress
-        )
-        log(f"[table1] {ls}: batch of {len(betas)} solved in {wall:.1f} s")
-        rows = table1_rows(betas, res)
-        agree = ""
-        if one_by_one:
-            _, solo, wall1 = solve_drag_vehicle(
-                betas, line_search=ls, max_iter=max_iter, tol=tol, one_by_one=True
-            )
-            log(f"[table1] {ls}: one by one solved in {wall1:.1f} s")
-            agree = _agreement(rows, table1_rows(betas, solo), "beta", "beta")
-            agree += f" Wall time {wall:.1f} s batched, {wall1:.1f} s one by one."
-        cols = [c for c in TABLE1_COLUMNS if one_by_one or c != "one_by_one"]
-        table = format_table(rows, cols)
-        log(f"\nline search: {ls}\n{table}\n{agree}")
-        sections.append(f"### SLQ, line search `{ls}` (max_iter {max_iter}, tol {tol:g})\n\n")
-        sections[-1] += table + "\n\n" + (agree + "\n" if agree else "")
+    for ls, res, section in _batched_and_single(
+        "table1",
+        "beta",
+        "beta",
+        TABLE1_COLUMNS,
+        betas,
+        solve_drag_vehicle,
+        table1_rows,
+        line_searches=line_searches,
+        max_iter=max_iter,
+        tol=tol,
+        one_by_one=one_by_one,
+        progress=progress,
+        log=log,
+    ):
+        sections.append(section)
         if first is None:
             first = res
         if 0.1 in betas:
@@ -764,25 +799,22 @@ def hopper_report(
     ys = [float(y) for y in y_targets]
     out = None if out_dir is None else Path(out_dir)
     sections, figs = [], []
-    for ls in line_searches:
-        _, res, wall = solve_hopper(
-            ys, line_search=ls, max_iter=max_iter, tol=tol, progress=progress
-        )
-        log(f"[hopper] {ls}: batch of {len(ys)} solved in {wall:.1f} s")
-        rows = hopper_rows(ys, res)
-        agree = ""
-        if one_by_one:
-            _, solo, wall1 = solve_hopper(
-                ys, line_search=ls, max_iter=max_iter, tol=tol, one_by_one=True
-            )
-            log(f"[hopper] {ls}: one by one solved in {wall1:.1f} s")
-            agree = _agreement(rows, hopper_rows(ys, solo), "y_target", "y°")
-            agree += f" Wall time {wall:.1f} s batched, {wall1:.1f} s one by one."
-        cols = [c for c in HOPPER_COLUMNS if one_by_one or c != "one_by_one"]
-        table = format_table(rows, cols)
-        log(f"\nline search: {ls}\n{table}\n{agree}")
-        sections.append(f"### SLQ, line search `{ls}` (max_iter {max_iter}, tol {tol:g})\n\n")
-        sections[-1] += table + "\n\n" + (agree + "\n" if agree else "")
+    for ls, res, section in _batched_and_single(
+        "hopper",
+        "y_target",
+        "y°",
+        HOPPER_COLUMNS,
+        ys,
+        solve_hopper,
+        hopper_rows,
+        line_searches=line_searches,
+        max_iter=max_iter,
+        tol=tol,
+        one_by_one=one_by_one,
+        progress=progress,
+        log=log,
+    ):
+        sections.append(section)
         if out is not None:
             figs.append(plot_hopper(res, ys, out / f"fig3_hopper_{ls}.png"))
     for f in figs:
