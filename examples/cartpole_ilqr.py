@@ -21,7 +21,6 @@ success rate = final angle within 0.1 rad of upright) is printed.
 from __future__ import annotations
 
 import argparse
-import inspect
 import time
 from pathlib import Path
 
@@ -38,13 +37,13 @@ LABELS = ["s [m]", "theta [rad]", "s_dot [m/s]", "theta_dot [rad/s]"]
 
 def solvers(max_iter: int, tol: float) -> dict:
     out = {
-        "ilqr": ILQR(max_iter=max_iter, tol=tol),
-        "slq_closed_loop": SLQ(max_iter=max_iter, tol=tol, rollout="closed_loop"),
-        "ddp": DDP(max_iter=max_iter, tol=tol),
+        "ilqr": ILQR(max_iter=max_iter, tol=tol, compact=True),
+        "slq_closed_loop": SLQ(max_iter=max_iter, tol=tol, rollout="closed_loop", compact=True),
+        "ddp": DDP(max_iter=max_iter, tol=tol, compact=True),
     }
-    if "u_max" in inspect.signature(ILQR.__init__).parameters:
-        out[f"ilqr_umax{U_MAX:g}"] = ILQR(max_iter=max_iter, tol=tol, u_min=-U_MAX, u_max=U_MAX)
-    # else: TODO: add the control-limited run once ILQR takes u_min/u_max.
+    out[f"ilqr_umax{U_MAX:g}"] = ILQR(
+        max_iter=max_iter, tol=tol, u_min=-U_MAX, u_max=U_MAX, compact=True
+    )
     return out
 
 
