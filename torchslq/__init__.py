@@ -11,6 +11,7 @@ from .dynamics import (
 )
 from .logging import TensorBoardLogger
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
+from .mpc import MPC, MPCOutput
 from .problem import Problem
 from .solvers import DDP, ILQR, SLQ, GradientMethod, SolverResult
 from .status import Status, status_names
@@ -28,6 +29,8 @@ __all__ = [
     "Dynamics",
     "LQRSolution",
     "LearnedDynamics",
+    "MPC",
+    "MPCOutput",
     "Problem",
     "QuadraticCost",
     "SLQ",

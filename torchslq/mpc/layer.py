@@ -1,0 +1,297 @@
+"""``torchslq.MPC``: a differentiable model-predictive-control layer (``nn.Module``).
+
+The forward pass solves a batch of optimal control problems with any torchslq solver
+(iLQR by default) *without* autograd; the backward pass differentiates the solution:
+
+* ``backward="implicit"`` (default): through the KKT conditions at the solution with the
+  exact Hessian of the Lagrangian (cost Hessians + costate-weighted dynamics second
+  derivatives), one LQ solve on the shared kernel (:mod:`torchslq.mpc.implicit`);
+* ``backward="implicit_gn"``: the same without the dynamics second derivatives (the
+  Gauss-Newton Hessian, what mpc.pytorch differentiates): an approximation whenever
+  the dynamics are nonlinear and the costates are not zero;
+* ``backward="unroll"``: backpropagation through differentiable Newton iterations
+  (:mod:`torchslq.mpc.unroll`), for comparison only.
+
+Gradients reach ``x0`` and every tensor that requires grad inside the dynamics and the
+cost (module parameters, weights, references, goals). Elements that did not converge
+are never silently detached: their status is in the output and ``unconverged``
+chooses ``"warn"`` (default: keep the implicit gradient at the returned point and
+warn), ``"raise"`` or ``"zero"`` (their gradient is zero).
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from ..problem import Problem
+from ..solvers.ilqr import ILQR
+from ..solvers.result import SolverResult
+from ..status import Status, status_names
+from .implicit import implicit_solution
+from .unroll import unrolled_solve
+
+__all__ = ["MPC", "MPCOutput"]
+
+_BACKWARDS = ("implicit", "implicit_gn", "unroll")
+_UNCONVERGED = ("warn", "raise", "zero")
+_WARM = (True, False, "shift", "reuse")
+
+
+class MPCOutput(tuple):
+    """``(x, u)`` of an :class:`MPC` solve; unpacks as a pair.
+
+    Attributes:
+        x: ``(B, T+1, n)`` states; u: ``(B, T, m)`` controls (differentiable).
+        action: ``u[..., 0, :]``, the first control (what receding-horizon control applies).
+        status: ``(B,)`` int64 :class:`torchslq.Status` of each solve.
+        converged: ``(B,)`` bool.
+        result: the solver's :class:`torchslq.SolverResult` (detached).
+    """
+
+    x: Tensor
+    u: Tensor
+    status: Tensor
+    converged: Tensor
+    result: SolverResult
+
+    def __new__(cls, x: Tensor, u: Tensor, status: Tensor, result: SolverResult):
+        out = super().__new__(cls, (x, u))
+        out.x, out.u, out.status, out.result = x, u, status, result
+        out.converged = status == Status.CONVERGED
+        return out
+
+    @property
+    def action(self) -> Tensor:
+        return self.u[..., 0, :]
+
+    def __reduce__(self):  # pickling a tuple subclass with attributes
+        return (MPCOutput, (self.x, self.u, self.status, self.result))
+
+
+class MPC(nn.Module):
+    """Differentiable MPC layer: ``forward(x0) -> (x, u)`` solved for the whole batch.
+
+    Args:
+        dynamics: a :class:`torchslq.Dynamics` (analytic or learned ``nn.Module``).
+        cost: :class:`torchslq.QuadraticCost` or :class:`torchslq.Cost`.
+        horizon: number of steps ``T``.
+        solver: any torchslq solver (``ILQR``, ``DDP``, ``SLQ``; default
+            ``ILQR(max_iter=200, tol=1e-8, progress=False)``). Implicit gradients are
+            exact only at a converged solution: keep ``tol`` tight.
+        u_min, u_max: control bounds (float, ``(m,)``, ``(T, m)`` or ``(B, T, m)``);
+            need an :class:`torchslq.ILQR`/:class:`torchslq.DDP` solver. Bounds active
+            at the solution are held fixed in the backward pass (zero sensitivity).
+        backward: ``"implicit"`` | ``"implicit_gn"`` | ``"unroll"`` (module docstring).
+        warm_start: ``True``/``"shift"``: the next solve of a batch of the same size
+            starts from the previous solution shifted by one step (receding horizon,
+            last control repeated); ``"reuse"``: from the previous solution as is (the
+            same problems re-solved while their parameters are learned); ``False``: from
+            zeros (or ``u_init``). :meth:`reset` forgets the stored solution.
+        unconverged: what to do when gradients are needed and some element did not
+            converge: ``"warn"``, ``"raise"`` or ``"zero"``.
+        unroll_iters: iterations for ``backward="unroll"`` (default: the solver's
+            ``max_iter``).
+
+    Example::
+
+        mpc = MPC(discretize(Pendulum(), 0.05), QuadraticCost(Q, R, Qf, x_ref=goal), 40)
+        x, u = mpc(x0)            # (B, 41, 2), (B, 40, 1)
+        loss(x, u).backward()     # gradients w.r.t. x0, goal, pendulum parameters
+        a = mpc.step(x_now)       # receding horizon: first action, warm started
+    """
+
+    def __init__(
+        self,
+        dynamics: nn.Module,
+        cost: nn.Module,
+        horizon: int,
+        solver: Any = None,
+        u_min: float | Tensor | None = None,
+        u_max: float | Tensor | None = None,
+        backward: str = "implicit",
+        warm_start: bool | str = True,
+        unconverged: str = "warn",
+        unroll_iters: int | None = None,
+    ):
+        super().__init__()
+        self.problem = Problem(dynamics, cost, horizon)
+        if backward not in _BACKWARDS:
+            raise ValueError(f"backward must be one of {_BACKWARDS}, got {backward!r}")
+        if warm_start not in _WARM:
+            raise ValueError(
+                f"warm_start must be True, False, 'shift' or 'reuse', got {warm_start!r}"
+            )
+        if unconverged not in _UNCONVERGED:
+            raise ValueError(f"unconverged must be one of {_UNCONVERGED}, got {unconverged!r}")
+        if solver is None:
+            solver = ILQR(max_iter=200, tol=1e-8, progress=False)
+        if not callable(getattr(solver, "solve", None)):
+            raise TypeError(f"solver must have a solve(problem, x0, u_init) method, got {solver!r}")
+        if (u_min is not None or u_max is not None) and not isinstance(solver, ILQR):
+            raise ValueError(
+                f"control bounds need an ILQR or DDP solver, got {type(solver).__name__}"
+            )
+        if unroll_iters is not None and (not isinstance(unroll_iters, int) or unroll_iters < 1):
+            raise ValueError(f"unroll_iters must be a positive int, got {unroll_iters!r}")
+        if u_min is not None or u_max is not None:
+            solver = copy.copy(solver)
+            solver.u_min, solver.u_max = u_min, u_max
+        self.solver = solver
+        self.u_min, self.u_max = u_min, u_max
+        self.backward_mode = backward
+        self.warm_start = "shift" if warm_start is True else warm_start
+        self.unconverged = unconverged
+        self.unroll_iters = unroll_iters
+        self._u_warm: Tensor | None = None
+        self.last_result: SolverResult | None = None
+
+    @property
+    def dynamics(self) -> nn.Module:
+        return self.problem.dynamics
+
+    @property
+    def cost(self) -> nn.Module:
+        return self.problem.cost
+
+    @property
+    def horizon(self) -> int:
+        return self.problem.horizon
+
+    def reset(self) -> None:
+        """Forget the stored warm start."""
+        self._u_warm = None
+
+    def _initial_guess(self, Bsz: int, u_init: Tensor | None) -> Tensor | None:
+        if u_init is not None:
+            return u_init.detach()
+        w = self._u_warm
+        if self.warm_start is False or w is None or w.shape[0] != Bsz:
+            return None
+        return w
+
+    def _store_warm_start(self, u: Tensor) -> None:
+        if self.warm_start is False:
+            return
+        u = u.detach()
+        if self.warm_start == "shift":
+            u = torch.cat([u[:, 1:], u[:, -1:]], dim=1)
+        self._u_warm = u
+
+    def _needs_grad(self, x0: Tensor) -> bool:
+        if not torch.is_grad_enabled():
+            return False
+        if x0.requires_grad:
+            return True
+        tensors = list(self.problem.parameters()) + list(self.problem.buffers())
+        return any(t.requires_grad for t in tensors) or self._has_hidden_graph()
+
+    def _has_hidden_graph(self) -> bool:
+        # tensors held as plain attributes (not parameters/buffers) of the cost/dynamics
+        for mod in self.problem.modules():
+            for v in vars(mod).values():
+                if torch.is_tensor(v) and v.requires_grad:
+                    return True
+        return False
+
+    def forward(self, x0: Tensor, u_init: Tensor | None = None) -> MPCOutput:
+        """Solve from ``x0`` ``(B, n)`` (or ``(n,)``); returns :class:`MPCOutput` ``(x, u)``.
+
+        Args:
+            x0: initial states; may require grad.
+            u_init: optional ``(B, T, m)`` / ``(T, m)`` initial guess (overrides the
+                warm start).
+        """
+        if not torch.is_tensor(x0) or not x0.is_floating_point():
+            raise TypeError("x0 must be a floating-point tensor of shape (B, n) or (n,)")
+        n = self.problem.state_dim
+        if x0.ndim not in (1, 2) or x0.shape[-1] != n:
+            raise ValueError(f"x0 must have shape (B, {n}) or ({n},), got {tuple(x0.shape)}")
+        unbatched = x0.ndim == 1
+        x0b = x0.reshape(-1, n)
+        Bsz = x0b.shape[0]
+        guess = self._initial_guess(Bsz, u_init)
+        with torch.no_grad():
+            result = self.solver.solve(self.problem, x0b.detach(), guess)
+        self.last_result = result
+        self._store_warm_start(result.u)
+        x, u, status = result.x, result.u, result.status
+        if self._needs_grad(x0b):
+            x, u, status = self._attach_gradients(x0b, result, guess)
+        if unbatched:
+            x, u, status = x[0], u[0], status[0]
+            result = result.squeeze_batch()
+        return MPCOutput(x, u, status, result)
+
+    def step(self, x: Tensor) -> Tensor:
+        """Receding-horizon control: solve from the current state(s) ``x`` and return the
+        first action ``(B, m)`` (or ``(m,)``); the next call is warm started."""
+        return self.forward(x).action
+
+    # ------------------------------------------------------------------ gradients
+    def _attach_gradients(self, x0: Tensor, result: SolverResult, guess: Tensor | None):
+        status = result.status.clone()
+        bad = status != Status.CONVERGED
+        if bool(bad.any()):
+            names = sorted(set(status_names(status[bad])))
+            msg = (
+                f"MPC: {int(bad.sum())} of {status.numel()} solves did not converge "
+                f"({', '.join(names)}); their implicit gradients are taken at a "
+                "non-stationary point"
+            )
+            if self.unconverged == "raise":
+                raise RuntimeError(msg + " (unconverged='raise')")
+            if self.unconverged == "warn":
+                warnings.warn(
+                    msg + " (use unconverged='zero' or 'raise' to change this)",
+                    RuntimeWarning,
+                    stacklevel=3,
+                )
+        if self.backward_mode == "unroll":
+            lo, hi = self._bounds(x0)
+            iters = self.unroll_iters or getattr(self.solver.options, "max_iter", 100)
+            u0 = result.u.new_zeros(result.u.shape) if guess is None else guess
+            x, u, _ = unrolled_solve(
+                self.problem,
+                x0,
+                u0.expand(result.u.shape),
+                max_iter=iters,
+                tol=getattr(self.solver.options, "tol", 1e-8),
+                u_min=lo,
+                u_max=hi,
+            )
+        else:
+            active = None
+            if result.active_bounds is not None:
+                active = result.active_bounds != 0
+            hessian = "exact" if self.backward_mode == "implicit" else "gn"
+            x, u, lq_status = implicit_solution(
+                self.problem, x0, result.x, result.u, hessian=hessian, active=active
+            )
+            not_pd = lq_status != Status.CONVERGED
+            if bool(not_pd.any()):
+                status = torch.where(not_pd & ~bad, lq_status, status)
+                msg = (
+                    f"MPC: the Hessian of the Lagrangian is not positive definite for "
+                    f"{int(not_pd.sum())} solves (not a strict local minimum)"
+                )
+                if self.unconverged == "raise":
+                    raise RuntimeError(msg)
+                if self.unconverged == "warn":
+                    warnings.warn(msg, RuntimeWarning, stacklevel=3)
+                bad = bad | not_pd
+        if self.unconverged == "zero" and bool(bad.any()):
+            keep = (~bad).view(-1, 1, 1)
+            x = torch.where(keep, x, x.detach())
+            u = torch.where(keep, u, u.detach())
+        return x, u, status
+
+    def _bounds(self, x0: Tensor) -> tuple[Tensor | None, Tensor | None]:
+        if self.u_min is None and self.u_max is None:
+            return None, None
+        lo, hi = self.solver._resolve_bounds(self.problem, x0)
+        return lo, hi
