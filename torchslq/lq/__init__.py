@@ -1,6 +1,7 @@
 """The batched LQ (Riccati) kernel shared by every solver."""
 
 from .boxqp import BoxQPResult, box_qp
+from .dare import dare, dare_gain, dare_residual
 from .riccati import (
     RiccatiFactors,
     homogeneous_cost,
@@ -17,6 +18,9 @@ __all__ = [
     "LQRSolution",
     "RiccatiFactors",
     "box_qp",
+    "dare",
+    "dare_gain",
+    "dare_residual",
     "homogeneous_cost",
     "homogeneous_dynamics",
     "lq_adjoint_solve",

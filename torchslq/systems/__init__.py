@@ -1,7 +1,8 @@
 """A small zoo of example systems with analytic Jacobians.
 
 Continuous time (discretise with :func:`torchslq.discretize`): :class:`Pendulum`,
-:class:`CartPole`. Discrete time, in the Euler form of Sideris & Bobrow (2005):
+:class:`CartPole`, :class:`PendulumCartTrain` (GoPRONTO 2022, Section V).
+Discrete time, in the Euler form of Sideris & Bobrow (2005):
 :class:`DragVehicle` (Section 4.1) and :class:`Hopper` (Section 4.2).
 
 All parameters may be per-element tensors broadcasting against ``x[..., 0]`` (e.g.
@@ -12,5 +13,6 @@ from .cartpole import CartPole
 from .drag_vehicle import DragVehicle
 from .hopper import Hopper
 from .pendulum import Pendulum
+from .pendulum_cart_train import PendulumCartTrain
 
-__all__ = ["CartPole", "DragVehicle", "Hopper", "Pendulum"]
+__all__ = ["CartPole", "DragVehicle", "Hopper", "Pendulum", "PendulumCartTrain"]
