@@ -12,7 +12,8 @@ All parameters may be per-element tensors broadcasting against ``x[..., 0]`` (e.
 from .cartpole import CartPole
 from .drag_vehicle import DragVehicle
 from .hopper import Hopper
+from .mass_chain import MassChain
 from .pendulum import Pendulum
 from .pendulum_cart_train import PendulumCartTrain
 
-__all__ = ["CartPole", "DragVehicle", "Hopper", "Pendulum", "PendulumCartTrain"]
+__all__ = ["CartPole", "DragVehicle", "Hopper", "MassChain", "Pendulum", "PendulumCartTrain"]

@@ -1,0 +1,93 @@
+"""Chain of point masses joined by nonlinear (cubic, hardening) springs, one force each."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+from ..dynamics import ContinuousDynamics
+from ._common import get_param, set_param
+
+__all__ = ["MassChain"]
+
+
+class MassChain(ContinuousDynamics):
+    r"""``N`` equal masses in a line, the first tied to a wall, all pushed by their own force.
+
+    State ``x = [p_1..p_N, v_1..v_N]`` (displacements from the spring rest positions, m,
+    and velocities, m/s), control ``u = [F_1..F_N]`` (N). Spring ``i`` joins mass
+    ``i - 1`` (``p_0 = 0``, the wall) and mass ``i``; its extension is
+    ``e_i = p_i - p_{i-1}`` and its tension ``s(e) = k e + k3 e^3`` (``k3 > 0``: hardening).
+    With viscous damping ``c`` on every mass (``s_{N+1} = 0``: the last mass is free)::
+
+        m a_i = s(e_{i+1}) - s(e_i) - c v_i + F_i
+
+    ``n = 2N``, ``m = N``; the default ``N = 4`` gives ``n + m = 12``, the size used to
+    compare differentiable MPC solvers. Analytic Jacobians (tridiagonal position block).
+
+    Args:
+        n_masses: ``N`` (default 4).
+        mass: ``m`` (kg), default 1.
+        k: linear stiffness (N/m), default 1.
+        k3: cubic stiffness (N/m^3), default 1.
+        damping: ``c`` (N s/m), default 0.1.
+
+    Parameters are numbers or tensors broadcasting against ``x[..., 0]`` (e.g. ``(B, 1)``
+    for ``x (B, T, n)``); ``nn.Parameter``s stay learnable.
+    """
+
+    def __init__(self, n_masses: int = 4, mass=1.0, k=1.0, k3=1.0, damping=0.1):
+        super().__init__()
+        if not isinstance(n_masses, int) or n_masses < 1:
+            raise ValueError(f"n_masses must be a positive int, got {n_masses!r}")
+        self.n_masses = n_masses
+        self.state_dim = 2 * n_masses
+        self.control_dim = n_masses
+        set_param(self, "mass", mass, positive=True)
+        set_param(self, "k", k)
+        set_param(self, "k3", k3)
+        set_param(self, "damping", damping, nonneg=True)
+
+    def _params(self, x: Tensor):
+        out = []
+        for name in ("mass", "k", "k3", "damping"):
+            p = get_param(self, name, x)
+            out.append(p.unsqueeze(-1) if isinstance(p, Tensor) else p)
+        return out  # tensors broadcast against (..., N)
+
+    def _extensions(self, p: Tensor) -> Tensor:
+        return p - torch.cat([torch.zeros_like(p[..., :1]), p[..., :-1]], dim=-1)
+
+    def forward(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> Tensor:
+        N = self.n_masses
+        m, k, k3, c = self._params(x)
+        p, v = x[..., :N], x[..., N:]
+        e = self._extensions(p)
+        s = k * e + k3 * e**3
+        s_next = torch.cat([s[..., 1:], torch.zeros_like(s[..., :1])], dim=-1)
+        a = (s_next - s - c * v + u) / m
+        v, a = torch.broadcast_tensors(v, a)
+        return torch.cat([v, a], dim=-1)
+
+    def jacobians(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        N = self.n_masses
+        m, k, k3, c = self._params(x)
+        p = x[..., :N]
+        e = self._extensions(p)
+        ds = (k + 3.0 * k3 * e**2) / m  # s'(e_i) / m, (..., N)
+        ds_next = torch.cat([ds[..., 1:], torch.zeros_like(ds[..., :1])], dim=-1)
+        off = ds[..., 1:]
+        Ap = torch.diag_embed(-(ds + ds_next))
+        if N > 1:
+            Ap = Ap + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
+        lead = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], Ap.shape[:-2])
+        ones = x.new_ones(*lead, N)
+        Av = torch.diag_embed(-c * ones / m)
+        eye = torch.diag_embed(ones)
+        zero = torch.zeros_like(eye)
+        A = torch.cat(
+            [torch.cat([zero, eye], dim=-1), torch.cat([Ap.expand(*lead, N, N), Av], dim=-1)],
+            dim=-2,
+        )
+        B = torch.cat([zero, torch.diag_embed(ones / m)], dim=-2)
+        return A, B
