@@ -19,7 +19,7 @@ from torchslq.paper.gopronto import (
     theta_reference,
     upright_linearization,
 )
-from torchslq.systems import PendulumCartTrain
+from torchslq.systems import PendulumCartTrain, PendulumCartTrainRK4
 
 DT = torch.float64
 
@@ -112,6 +112,31 @@ def test_discrete_jacobians_match_autodiff_and_finite_differences():
     torch.testing.assert_close(A[..., 5], fd, rtol=1e-7, atol=1e-8)
 
 
+@pytest.mark.parametrize("coupling", ["paper", "spring"])
+@pytest.mark.parametrize("N", [1, 2, 5, 11])
+def test_banded_rk4_jacobians_match_dense_chain_and_autodiff(N, coupling):
+    """PendulumCartTrainRK4 (banded chain) == discretize(...) (dense chain) == autodiff;
+    N = 11 exceeds the band (carts i-2..i+2): the band must hold every nonzero."""
+    train = PendulumCartTrain(N, coupling=coupling)
+    fast = PendulumCartTrainRK4(train, 0.05)
+    dense = torchslq.discretize(train, 0.05, "rk4")
+    g = torch.Generator().manual_seed(10 + N)
+    x = torch.randn(2, 3, 4 * N, dtype=DT, generator=g)
+    u = torch.randn(2, 3, N, dtype=DT, generator=g) * 3
+    torch.testing.assert_close(fast(x, u), dense(x, u), rtol=0, atol=0)
+    A, B = fast.jacobians(x, u)
+    Ad, Bd = dense.jacobians(x, u)
+    Aa, Ba = torchslq.linearize(lambda a, b: dense(a, b), x, u)
+    torch.testing.assert_close(A, Ad, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(B, Bd, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(A, Aa, rtol=1e-11, atol=1e-12)
+    torch.testing.assert_close(B, Ba, rtol=1e-11, atol=1e-12)
+    if N == 11:
+        Ar = A.reshape(2, 3, N, 4, N, 4)
+        assert Ar[:, :, 5, :, 3].abs().min() == 0 and Ar[:, :, 5, 1, 3, 2].abs().min() > 0
+        assert Ar[:, :, 5, :, :3].abs().max() == 0 and Ar[:, :, 5, :, 8:].abs().max() == 0
+
+
 def test_per_element_parameters_broadcast():
     N = 2
     Mp = torch.tensor([[0.2], [0.5], [1.0]], dtype=DT)
@@ -121,12 +146,16 @@ def test_per_element_parameters_broadcast():
     u = torch.randn(3, 7, N, dtype=DT, generator=g)
     out = f(x, u)
     A, B = f.jacobians(x, u)
+    Ad, Bd = PendulumCartTrainRK4(f, 0.05).jacobians(x, u)
     for b in range(3):
         fb = PendulumCartTrain(N, Mp=float(Mp[b, 0]))
         torch.testing.assert_close(out[b], fb(x[b], u[b]))
         Ab, Bb = fb.jacobians(x[b], u[b])
         torch.testing.assert_close(A[b], Ab)
         torch.testing.assert_close(B[b], Bb)
+        Adb, Bdb = torchslq.discretize(fb, 0.05).jacobians(x[b], u[b])
+        torch.testing.assert_close(Ad[b], Adb)
+        torch.testing.assert_close(Bd[b], Bdb)
 
 
 @pytest.mark.parametrize("coupling", ["paper", "spring"])

@@ -32,10 +32,10 @@ import torch
 from torch import Tensor
 
 from ..costs import QuadraticCost
-from ..dynamics import DiscretizedDynamics, discretize, linearize
+from ..dynamics import DiscretizedDynamics, linearize
 from ..lq.dare import dare
 from ..problem import Problem
-from ..systems import PendulumCartTrain
+from ..systems import PendulumCartTrain, PendulumCartTrainRK4
 
 __all__ = [
     "PAPER_FIG7",
@@ -121,9 +121,13 @@ def theta_reference(t: Tensor, amplitude_rad: Tensor | float, T: float = HORIZON
 def pendulum_train_dynamics(
     n_carts: int, dt: float = DT, coupling: str = "paper", **params
 ) -> DiscretizedDynamics:
-    """RK4 discretisation (step ``dt``) of the Table I pendulum train with ``n_carts``."""
+    """RK4 discretisation (step ``dt``) of the Table I pendulum train with ``n_carts``.
+
+    A :class:`PendulumCartTrainRK4`: the map of ``discretize(train, dt, "rk4")`` with
+    Jacobians chained through the block-tridiagonal structure (same values, faster).
+    """
     p = {**PAPER_TABLE1_PARAMS, **params}
-    return discretize(PendulumCartTrain(n_carts, coupling=coupling, **p), dt, "rk4")
+    return PendulumCartTrainRK4(PendulumCartTrain(n_carts, coupling=coupling, **p), dt)
 
 
 def upright_linearization(

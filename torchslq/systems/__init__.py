@@ -14,6 +14,14 @@ from .drag_vehicle import DragVehicle
 from .hopper import Hopper
 from .mass_chain import MassChain
 from .pendulum import Pendulum
-from .pendulum_cart_train import PendulumCartTrain
+from .pendulum_cart_train import PendulumCartTrain, PendulumCartTrainRK4
 
-__all__ = ["CartPole", "DragVehicle", "Hopper", "MassChain", "Pendulum", "PendulumCartTrain"]
+__all__ = [
+    "CartPole",
+    "DragVehicle",
+    "Hopper",
+    "MassChain",
+    "Pendulum",
+    "PendulumCartTrain",
+    "PendulumCartTrainRK4",
+]
