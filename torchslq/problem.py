@@ -59,6 +59,18 @@ class Problem(nn.Module):
         """``J(U)`` ``(..., B)`` of open-loop controls (rollout + cost)."""
         return self.cost(self.rollout(x0, u), u)
 
+    def per_element_tensor(self, batch_size: int) -> str | None:
+        """Name of a registered tensor holding per-element data for a batch of
+        ``batch_size`` (2-D or more, leading with the batch size: ``(B, 1)``,
+        ``(B, T, n, n)``, ...), or None when all problem data are batch-shared (so the
+        problem can be solved on any sub-batch, e.g. by ``compact=True``)."""
+        if batch_size <= 1:
+            return None
+        for name, t in list(self.named_parameters()) + list(self.named_buffers()):
+            if t.ndim >= 2 and t.shape[0] == batch_size and tuple(t.shape) != (batch_size,) * 2:
+                return name
+        return None
+
     def check_inputs(self, x0: Tensor, u_init: Tensor | None) -> tuple[Tensor, Tensor, bool]:
         """Validate and batch ``x0`` ``(B, n)`` or ``(n,)`` and ``u_init``; returns
         ``(x0 (B,n), u (B,T,m), unbatched)``."""

@@ -29,8 +29,10 @@ import torch
 from torch import Tensor, nn
 
 from ..problem import Problem
+from ..solvers.gradient import GradientMethod
 from ..solvers.ilqr import ILQR
 from ..solvers.result import SolverResult
+from ..solvers.slq import SLQ
 from ..status import Status, status_names
 from .implicit import implicit_solution
 from .unroll import unrolled_solve
@@ -96,6 +98,11 @@ class MPC(nn.Module):
             converge: ``"warn"``, ``"raise"`` or ``"zero"``.
         unroll_iters: iterations for ``backward="unroll"`` (default: the solver's
             ``max_iter``).
+        compact: ``"auto"`` (default): when the problem data are batch-shared, the
+            forward solve iterates only on the elements still running (the solver's
+            ``compact=True``; same results, the batch does not wait for its slowest
+            member); ``True``/``False``: always / never (``True`` fails for per-element
+            problem tensors).
 
     Example::
 
@@ -117,6 +124,7 @@ class MPC(nn.Module):
         warm_start: bool | str = True,
         unconverged: str = "warn",
         unroll_iters: int | None = None,
+        compact: bool | str = "auto",
     ):
         super().__init__()
         self.problem = Problem(dynamics, cost, horizon)
@@ -136,12 +144,15 @@ class MPC(nn.Module):
             raise ValueError(
                 f"control bounds need an ILQR or DDP solver, got {type(solver).__name__}"
             )
+        if compact not in (True, False, "auto"):
+            raise ValueError(f"compact must be True, False or 'auto', got {compact!r}")
         if unroll_iters is not None and (not isinstance(unroll_iters, int) or unroll_iters < 1):
             raise ValueError(f"unroll_iters must be a positive int, got {unroll_iters!r}")
+        solver = copy.deepcopy(solver)  # the layer owns its solver's options
         if u_min is not None or u_max is not None:
-            solver = copy.copy(solver)
             solver.u_min, solver.u_max = u_min, u_max
         self.solver = solver
+        self.compact = compact
         self.u_min, self.u_max = u_min, u_max
         self.backward_mode = backward
         self.warm_start = "shift" if warm_start is True else warm_start
@@ -215,6 +226,11 @@ class MPC(nn.Module):
         x0b = x0.reshape(-1, n)
         Bsz = x0b.shape[0]
         guess = self._initial_guess(Bsz, u_init)
+        if self._supports_compact():
+            compact = self.compact
+            if compact == "auto":
+                compact = self.problem.per_element_tensor(Bsz) is None
+            self.solver.options.compact = compact
         with torch.no_grad():
             result = self.solver.solve(self.problem, x0b.detach(), guess)
         self.last_result = result
@@ -226,6 +242,9 @@ class MPC(nn.Module):
             x, u, status = x[0], u[0], status[0]
             result = result.squeeze_batch()
         return MPCOutput(x, u, status, result)
+
+    def _supports_compact(self) -> bool:
+        return isinstance(self.solver, SLQ) and not isinstance(self.solver, GradientMethod)
 
     def step(self, x: Tensor) -> Tensor:
         """Receding-horizon control: solve from the current state(s) ``x`` and return the

@@ -168,14 +168,15 @@ class SLQ:
         cost_fn = problem.cost
         Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
         step_tol = o.tol if o.step_tol is None else o.step_tol
-        if o.compact and Bsz > 1:
-            for name, t in list(problem.named_parameters()) + list(problem.named_buffers()):
-                # per-element data lead with the batch dim: (B, 1), (B, T, n, n), ...
-                if t.ndim >= 2 and t.shape[0] == Bsz and tuple(t.shape) != (Bsz, Bsz):
-                    raise ValueError(
-                        f"compact=True needs batch-shared problem data, but {name!r} has shape "
-                        f"{tuple(t.shape)} (batch size {Bsz}); use compact=False"
-                    )
+        if o.compact:
+            name = problem.per_element_tensor(Bsz)
+            if name is not None:
+                tensors = dict(problem.named_parameters()) | dict(problem.named_buffers())
+                shape = tuple(tensors[name].shape)
+                raise ValueError(
+                    f"compact=True needs batch-shared problem data, but {name!r} has shape "
+                    f"{shape} (batch size {Bsz}); use compact=False"
+                )
         self._begin(x0)
         t_start = time.perf_counter()
 
