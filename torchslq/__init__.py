@@ -13,7 +13,7 @@ from .logging import TensorBoardLogger
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
 from .mpc import MPC, MPCOutput
 from .problem import Problem
-from .solvers import DDP, ILQR, SLQ, GradientMethod, SolverResult
+from .solvers import DDP, ILQR, SLQ, GoPRONTO, GoPRONTOResult, GradientMethod, SolverResult
 from .status import Status, status_names
 
 __version__ = "0.1.0"
@@ -24,6 +24,8 @@ __all__ = [
     "Cost",
     "CostExpansion",
     "DiscretizedDynamics",
+    "GoPRONTO",
+    "GoPRONTOResult",
     "GradientMethod",
     "ILQR",
     "Dynamics",

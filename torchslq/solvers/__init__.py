@@ -1,6 +1,7 @@
 """Solvers and their shared pieces (rollout, costate gradient, line search, result)."""
 
 from .ddp import DDP
+from .gopronto import GoPRONTO, GoPRONTOResult
 from .gradient import GradientMethod
 from .ilqr import ILQR
 from .line_search import armijo_search, exact_search
@@ -10,6 +11,8 @@ from .slq import SLQ, SLQOptions
 
 __all__ = [
     "DDP",
+    "GoPRONTO",
+    "GoPRONTOResult",
     "GradientMethod",
     "ILQR",
     "SLQ",
