@@ -284,3 +284,22 @@ def test_problem_builder_encodes_the_paper_setup():
         Jb = sum(dx[k] @ Qn @ dx[k] + ub[k] @ Rn @ ub[k] for k in range(200))
         Jb += dx[200] @ Qfn @ dx[200]
         assert J[b].item() == pytest.approx(Jb, rel=1e-12)
+
+
+def test_diagonal_tracking_cost_equals_quadratic_cost():
+    """The fast cost of the builder has QuadraticCost's value and expansion, also on a
+    batch of line-search trials (extra leading dim)."""
+    N = 3
+    setup = pendulum_train_problem(N, [30.0, 70.0])
+    fast = setup.problem.cost
+    assert isinstance(fast, torchslq.QuadraticCost)
+    ref = torchslq.QuadraticCost(fast.Q, fast.R, fast.Qf, x_ref=fast.x_ref)
+    g = torch.Generator().manual_seed(9)
+    x = torch.randn(5, 2, 201, 4 * N, dtype=DT, generator=g)
+    u = torch.randn(5, 2, 200, N, dtype=DT, generator=g)
+    torch.testing.assert_close(fast(x, u), ref(x, u), rtol=1e-13, atol=0)
+    e1, e2 = fast.quadratize(x[0], u[0]), ref.quadratize(x[0], u[0])
+    for a, b in ((e1.lxx, e2.lxx), (e1.luu, e2.luu), (e1.lx, e2.lx), (e1.lu, e2.lu)):
+        torch.testing.assert_close(a, b, rtol=0, atol=0)
+    # bits of one element do not depend on the batch it is evaluated in
+    assert torch.equal(fast(x[:1, :1], u[:1, :1])[0, 0], fast(x, u)[0, 0])

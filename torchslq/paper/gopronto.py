@@ -25,8 +25,11 @@ the reference ``x_ref (B, T+1, 4N)`` differs per element.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+import time
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -38,10 +41,16 @@ from ..problem import Problem
 from ..systems import PendulumCartTrain, PendulumCartTrainRK4
 
 __all__ = [
+    "SOLVER_LABELS",
+    "first_below",
+    "make_solver",
+    "plot_grad_norms",
+    "run_solver",
     "PAPER_FIG7",
     "PAPER_TABLE1_PARAMS",
     "PAPER_TABLE2",
     "PAPER_TABLE3",
+    "DiagonalTrackingCost",
     "PendulumTrainSetup",
     "STAGE_WEIGHTS",
     "CONTROL_WEIGHT",
@@ -155,13 +164,54 @@ def terminal_weight(dynamics: DiscretizedDynamics, Q: Tensor, R: Tensor) -> Tens
     return dare(A, B, Q, R)
 
 
+class DiagonalTrackingCost(QuadraticCost):
+    """:class:`QuadraticCost` with constant diagonal ``Q (n, n)`` and ``R (m, m)`` and a
+    dense terminal ``Qf (n, n)``, evaluated without broadcasting the weights.
+
+    Same value and expansion as :class:`QuadraticCost` (checked in the tests); only
+    faster for the large trains: the parent multiplies ``Q (1, T+1, n, n)`` into every
+    trial of a batched line search, which ``torch.matmul`` broadcasts by materialising
+    ``Q`` per trial (gigabytes at ``N = 50``). Here the stage terms are elementwise
+    (``sum_i q_i dx_i^2``) and the terminal term a row-wise product, so every element
+    gets the same bits whatever batch it is evaluated in; :meth:`weights` is cached.
+    """
+
+    def __init__(self, Q: Tensor, R: Tensor, Qf: Tensor, x_ref: Tensor | None = None):
+        if Q.ndim != 2 or R.ndim != 2 or Qf.ndim != 2:
+            raise ValueError("DiagonalTrackingCost takes constant Q (n, n), R (m, m), Qf (n, n)")
+        for name, W in (("Q", Q), ("R", R)):
+            if bool((W - torch.diag(W.diagonal())).abs().max() > 0):
+                raise ValueError(f"{name} must be diagonal")
+        super().__init__(Q, R, Qf, x_ref=x_ref)
+        self._weights_cache: dict = {}
+
+    def weights(self, T: int) -> tuple[Tensor, Tensor]:
+        key = (T, self.Q.dtype, self.Q.device)
+        if key not in self._weights_cache:
+            self._weights_cache = {key: super().weights(T)}
+        return self._weights_cache[key]
+
+    def forward(self, x: Tensor, u: Tensor) -> Tensor:
+        """Cost ``(..., B)`` of ``x (..., B, T+1, n)``, ``u (..., B, T, m)``."""
+        T = self._check_traj(x, u)
+        xr, ur = self.references(T, x)
+        dx, du = x - xr, u - ur
+        q, r = self.Q.diagonal(), self.R.diagonal()
+        Js = (dx[..., :T, :] * dx[..., :T, :] * q).sum(-1).sum(-1)
+        Ju = (du * du * r).sum(-1).sum(-1)
+        dT = dx[..., T, :]
+        Jf = ((self.Qf * dT.unsqueeze(-2)).sum(-1) * dT).sum(-1)
+        return 0.5 * (Js + Ju + Jf)
+
+
 @dataclass
 class PendulumTrainSetup:
     """A batch of pendulum-train tracking problems (one per amplitude).
 
     Attributes:
-        problem: the :class:`torchslq.Problem` (RK4 dynamics, :class:`QuadraticCost`
-            with weights ``2Q, 2R, 2Qf`` so that its value is the paper's ``J``).
+        problem: the :class:`torchslq.Problem` (RK4 dynamics, a
+            :class:`DiagonalTrackingCost` (a :class:`QuadraticCost`) with weights
+            ``2Q, 2R, 2Qf`` so that its value is the paper's ``J``).
         x0: ``(B, 4N)`` initial states (zeros: at rest, upright).
         x_ref: ``(B, T+1, 4N)`` references (theta and theta_dot of every cart).
         times: ``(T+1,)`` sample times ``k * dt`` (s).
@@ -228,7 +278,7 @@ def pendulum_train_problem(
     x_ref[..., 0] = theta.unsqueeze(-1)
     x_ref[..., 1] = theta_dot.unsqueeze(-1)
     x_ref = x_ref.flatten(-2)
-    cost = QuadraticCost(2.0 * Q, 2.0 * R, 2.0 * Qf, x_ref=x_ref)
+    cost = DiagonalTrackingCost(2.0 * Q, 2.0 * R, 2.0 * Qf, x_ref=x_ref)
     problem = Problem(dyn, cost, steps)
     x0 = torch.zeros(Bsz, 4 * n_carts, dtype=dtype, device=device)
     eye_m = torch.eye(n_carts, dtype=dtype, device=device)
@@ -245,3 +295,144 @@ def pendulum_train_problem(
         R_reg=eye_m,
         Qf_reg=Qf,
     )
+
+
+# ---------------------------------------------------------------------------- experiments
+#: Solver names of the experiments: GoPRONTO variants, first-order PRONTO, and the
+#: open-loop costate gradient method (Section II-B).
+SOLVER_LABELS = {
+    "gopronto-gradient": "Gradient GoPRONTO",
+    "gopronto-conjugate": "Conjugate GoPRONTO",
+    "gopronto-heavy_ball": "Heavy-Ball GoPRONTO",
+    "gopronto-nesterov": "Nesterov's GoPRONTO",
+    "pronto": "First-order PRONTO",
+    "gradient-method": "Gradient Method",
+}
+
+
+def make_solver(
+    name: str,
+    setup: PendulumTrainSetup,
+    *,
+    max_iter: int,
+    tol: float,
+    step: Any = "armijo",
+    gamma_hb: float = 0.5,
+    **kwargs: Any,
+):
+    """A solver of :data:`SOLVER_LABELS` configured as in Section V (projection weights
+    ``Q_reg = Q, R_reg = I, Qf_reg = Qf``; Armijo unless ``step`` is a float)."""
+    import torchslq
+
+    if name.startswith("gopronto-"):
+        return torchslq.GoPRONTO(
+            variant=name.split("-", 1)[1],
+            step=step,
+            max_iter=max_iter,
+            tol=tol,
+            gamma_hb=gamma_hb,
+            Q_reg=setup.Q_reg,
+            R_reg=setup.R_reg,
+            Qf_reg=setup.Qf_reg,
+            progress=False,
+            **kwargs,
+        )
+    if name == "pronto":
+        if not hasattr(torchslq, "PRONTO"):
+            raise RuntimeError("torchslq.PRONTO is not available in this version")
+        return torchslq.PRONTO(order="first", max_iter=max_iter, tol=tol, progress=False, **kwargs)
+    if name == "gradient-method":
+        return torchslq.GradientMethod(
+            max_iter=max_iter, tol=tol, line_search="armijo", progress=False, **kwargs
+        )
+    raise ValueError(f"unknown solver {name!r}; expected one of {sorted(SOLVER_LABELS)}")
+
+
+def first_below(values: Sequence[float], threshold: float) -> int | None:
+    """First iteration index whose value is below ``threshold`` (None if never)."""
+    for k, v in enumerate(values):
+        if v == v and v < threshold:
+            return k
+    return None
+
+
+def run_solver(
+    name: str, setup: PendulumTrainSetup, *, max_iter: int, tol: float, **kwargs: Any
+) -> list[dict[str, Any]]:
+    """Solve every problem of ``setup`` (one batch) with solver ``name``.
+
+    Returns one record per batch element: label, amplitude, status, iterations, final
+    cost and gradient norm, the histories (``grad_norm``, ``cost``; finite floats or
+    None), wall time of the whole batched solve, seconds per iteration (whole batch,
+    from the solver's own ``history["time"]``) and, for GoPRONTO, the number of
+    projection-gain recomputations.
+    """
+    solver = make_solver(name, setup, max_iter=max_iter, tol=tol, **kwargs)
+    t0 = time.perf_counter()
+    res = solver.solve(setup.problem, setup.x0)
+    wall = time.perf_counter() - t0
+    htime = res.history.get("time")
+    n_it = int(res.iterations.max().item())
+    per_it = None
+    if htime is not None and htime.numel() > 1 and n_it > 0:
+        per_it = float(htime[n_it] - htime[0]) / n_it if htime.numel() > n_it else None
+    recomp = getattr(res, "recomputations", None)
+    out = []
+    names = res.status_names()
+    for b in range(setup.batch_size):
+        it = int(res.iterations[b])
+        gn = res.history["grad_norm"][b, : it + 1].tolist()
+        J = res.history["cost"][b, : it + 1].tolist()
+        out.append(
+            {
+                "solver": name,
+                "label": SOLVER_LABELS[name],
+                "n_carts": setup.n_carts,
+                "amplitude_deg": float(setup.amplitudes_deg[b]),
+                "status": names[b],
+                "iterations": it,
+                "cost": float(res.cost[b]),
+                "grad_norm": float(res.grad_norm[b]),
+                "grad_norm_history": [_finite(v) for v in gn],
+                "cost_history": [_finite(v) for v in J],
+                "wall_s": wall,
+                "s_per_iteration": per_it,
+                "recomputations": None if recomp is None else int(recomp[b]),
+                "max_abs_theta_deg": float(
+                    torch.rad2deg(res.x[b, :, 0::4].abs().max()) if res.x is not None else "nan"
+                ),
+            }
+        )
+    return out
+
+
+def _finite(v: float) -> float | None:
+    return v if math.isfinite(v) else None
+
+
+def plot_grad_norms(
+    runs: Sequence[Mapping[str, Any]], path: str | Path, *, title: str, max_k: int | None = None
+) -> Path:
+    """``||grad J||`` against iteration (log scale), one line per run (Figures 5-7)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for r in runs:
+        gn = [float("nan") if v is None else v for v in r["grad_norm_history"]]
+        if max_k is not None:
+            gn = gn[: max_k + 1]
+        ax.semilogy(range(len(gn)), gn, marker="." if len(gn) < 60 else None, label=r["label"])
+    ax.set_xlabel("iteration k")
+    ax.set_ylabel("||grad J(alpha_k, mu_k)||  (Gradient Method: ||grad_u J||)")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend()
+    ax.set_title(title, fontsize=10)
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path
