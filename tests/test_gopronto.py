@@ -9,6 +9,7 @@ import torch
 
 import torchslq
 from torchslq import Dynamics, GoPRONTO, GradientMethod, Problem, QuadraticCost
+from torchslq.costs.barrier import box_log_barrier
 from torchslq.solvers.gopronto import closed_loop_growth, curve_gradient, project
 from torchslq.solvers.rollout import rollout
 from torchslq.tasks import pendulum_swingup
@@ -190,3 +191,184 @@ def test_variants_on_pendulum_swingup(variant):
     # the returned trajectory is the projection of the returned curve
     x, u = project(prob.transition, x0, r.alpha, r.mu, r.K)
     assert torch.allclose(x, r.x, atol=1e-10) and torch.allclose(u, r.u, atol=1e-10)
+
+
+class SoftenedGrowth(Dynamics):
+    """Scalar ``x+ = a(x) x + 0.1 u``, ``a = 0.9 + 0.4 x^2/(1+x^2)``: stable near 0,
+    unstable near the target 2 (linearisation ~1.35)."""
+
+    state_dim, control_dim = 1, 1
+
+    def forward(self, x, u):
+        return (0.9 + 0.4 * x**2 / (1 + x**2)) * x + 0.1 * u
+
+
+def test_gain_recomputation_rule_and_counting():
+    T = 40
+    cost = QuadraticCost(
+        torch.eye(1, dtype=DT), 0.01 * torch.eye(1, dtype=DT), x_ref=torch.tensor([2.0], dtype=DT)
+    )
+    prob = Problem(SoftenedGrowth(), cost, T)
+    x0 = torch.tensor([[0.0], [0.1]], dtype=DT)
+    kw = dict(R_reg=1e4, max_iter=30, progress=False)  # weak gains: no margin to spare
+    never = GoPRONTO(recompute="never", **kw).solve(prob, x0)
+    auto = GoPRONTO(recompute="auto", stability_tol=20.0, **kw).solve(prob, x0)
+    always = GoPRONTO(recompute="always", **kw).solve(prob, x0)
+    # the gains computed about the start (x ~ 0) amplify more than stability_tol about
+    # the trajectory the solver moves to (an independent linearisation) ...
+    A, B = torchslq.linearize(prob.transition, never.x[:, :T], never.u)
+    assert bool((closed_loop_growth(A, B, never.K) > 20.0).all())
+    assert never.recomputations.tolist() == [0, 0]
+    # ... so "auto" recomputes them, a few times, not at every iteration
+    assert bool((auto.recomputations >= 1).all()) and bool((auto.recomputations <= 5).all())
+    for r in (never, auto, always):
+        assert torch.equal(r.recomputations, r.history["recompute"].sum(1))
+    assert torch.equal(always.recomputations, always.iterations)  # every step accepted
+    assert not bool(auto.history["recompute"][:, 0].any())  # the first gains are not counted
+    for r in (never, auto, always):
+        hist = r.history["cost"]
+        assert bool((hist[:, -1] < 0.6 * hist[:, 0]).all())
+
+
+def test_batch_equals_singles():
+    prob, x0 = pendulum_swingup(batch=3, horizon=30)
+    solver = GoPRONTO(variant="conjugate", max_iter=15, progress=False)
+    rb = solver.solve(prob, x0)
+    for i in range(3):
+        ri = solver.solve(prob, x0[i])  # unbatched in, unbatched out
+        assert ri.x.shape == (31, 2) and ri.K.shape == (30, 1, 2)
+        assert torch.allclose(ri.x, rb.x[i], atol=1e-9, rtol=1e-9)
+        assert torch.allclose(ri.u, rb.u[i], atol=1e-9, rtol=1e-9)
+        assert int(ri.iterations) == int(rb.iterations[i])
+        assert torch.allclose(ri.history["grad_norm"], rb.history["grad_norm"][i], rtol=1e-8)
+
+
+def test_barrier_keeps_inputs_inside_bounds():
+    prob, x0 = pendulum_swingup(batch=2, horizon=40)
+    free = GoPRONTO(max_iter=30, progress=False).solve(prob, x0)
+    u_max = 2.0
+    assert float(free.u.abs().max()) > 2 * u_max  # the bound is active
+    # an infeasible initial guess is clipped into the bounds (feasible start)
+    u_init = torch.full((40, 1), 5.0, dtype=DT)
+    r = GoPRONTO(max_iter=60, u_max=u_max, progress=False).solve(prob, x0, u_init=u_init)
+    assert float(r.u.abs().max()) < u_max
+    assert torch.allclose(
+        box_log_barrier(r.u, torch.tensor([u_max], dtype=DT)).isfinite().double(),
+        torch.ones(2, dtype=DT),
+    )
+    obj = r.history["objective"]
+    assert bool(torch.isfinite(obj).all())
+    assert bool((r.history["cost"][:, -1] < r.history["cost"][:, 0]).all())
+    w = r.history["barrier_weight"]
+    assert bool((w[:, 1:] <= w[:, :-1]).all()) and bool((w[:, -1] < w[:, 0]).all())
+    # bounds given per input as a tensor behave the same
+    r2 = GoPRONTO(max_iter=5, u_max=torch.tensor([u_max], dtype=DT), progress=False).solve(prob, x0)
+    assert float(r2.u.abs().max()) < u_max
+
+
+@pytest.mark.parametrize("variant", ["heavy_ball", "nesterov"])
+def test_constant_step_momentum(variant):
+    torch.manual_seed(0)
+    prob = Problem(TwoLink(), nonquadratic_cost(), 15)
+    x0 = 0.5 * torch.randn(2, 3, dtype=DT)
+    grad = GoPRONTO(step=0.02, max_iter=60, tol=1e-9, progress=False).solve(prob, x0)
+    mom = GoPRONTO(
+        variant=variant, step=0.02, gamma_hb=0.5, max_iter=60, tol=1e-9, progress=False
+    ).solve(prob, x0)
+    assert bool((mom.history["step"][:, 1:] == 0.02).all())  # constant step, every iteration
+    # momentum accelerates the constant-step gradient method (the paper's Figure 7)
+    assert bool((mom.grad_norm < 0.5 * grad.grad_norm).all())
+    assert bool((mom.cost <= grad.cost).all())
+
+
+def test_pronto_matches_ilqr_and_identity_weights_descend():
+    prob, x0 = pendulum_swingup(batch=2, horizon=40)
+    ref = torchslq.ILQR(max_iter=100, progress=False).solve(prob, x0)
+    assert ref.converged.all()
+    r = torchslq.PRONTO(max_iter=60, tol=1e-6, progress=False).solve(prob, x0)
+    assert r.converged.all(), r.status_names()
+    assert torch.allclose(r.cost, ref.cost, rtol=1e-8)
+    assert torch.equal(r.recomputations, r.iterations)  # gains at every iteration
+    ri = torchslq.PRONTO(weights="identity", max_iter=10, progress=False).solve(prob, x0)
+    hist = ri.history["cost"]
+    assert bool((hist[:, 1:] <= hist[:, :-1]).all()) and bool(
+        (hist[:, -1] < 0.5 * hist[:, 0]).all()
+    )
+
+
+def test_float32():
+    prob, x0 = pendulum_swingup(batch=2, horizon=30, dtype=torch.float32)
+    for solver in (
+        GoPRONTO(variant="nesterov", max_iter=20, progress=False),
+        torchslq.PRONTO(max_iter=5, progress=False),
+    ):
+        r = solver.solve(prob, x0)
+        assert r.x.dtype == torch.float32 and r.K.dtype == torch.float32
+        assert bool(torch.isfinite(r.x).all())
+        hist = r.history["cost"]
+        assert bool((hist[:, -1] < 0.2 * hist[:, 0]).all())
+
+
+def test_logger_receives_every_iteration():
+    class Recorder:
+        def __init__(self):
+            self.its, self.options, self.result = [], None, None
+
+        def log_options(self, name, options):
+            self.options = (name, options)
+
+        def log_iteration(self, it, **kw):
+            self.its.append((it, kw["cost"].clone(), kw["grad_norm"].clone()))
+
+        def log_result(self, result, problem=None):
+            self.result = result
+
+    prob, x0 = pendulum_swingup(batch=2, horizon=20)
+    log = Recorder()
+    r = GoPRONTO(max_iter=5, progress=False).solve(prob, x0, logger=log)
+    assert log.options[0] == "gopronto" and log.options[1]["variant"] == "gradient"
+    assert [i for i, *_ in log.its] == list(range(6))
+    assert torch.equal(torch.stack([c for _, c, _ in log.its], 1), r.history["cost"])
+    assert log.result is r
+
+
+def test_validation_errors():
+    with pytest.raises(ValueError, match="variant"):
+        GoPRONTO(variant="adam")
+    with pytest.raises(ValueError, match="step"):
+        GoPRONTO(step="wolfe")
+    with pytest.raises(ValueError, match="step"):
+        GoPRONTO(step=-1e-3)
+    with pytest.raises(TypeError, match="step"):
+        GoPRONTO(step=[0.1])
+    with pytest.raises(ValueError, match="tol"):
+        GoPRONTO(tol=0.0)
+    with pytest.raises(ValueError, match="gamma_hb"):
+        GoPRONTO(variant="heavy_ball", gamma_hb=1.0)
+    with pytest.raises(ValueError, match="max_iter"):
+        GoPRONTO(max_iter=-1)
+    with pytest.raises(ValueError, match="recompute"):
+        GoPRONTO(recompute="sometimes")
+    with pytest.raises(ValueError, match="u_max"):
+        GoPRONTO(u_max=-1.0)
+    with pytest.raises(ValueError, match="barrier_min"):
+        GoPRONTO(barrier_weight=1e-3, barrier_min=1e-2)
+    with pytest.raises(TypeError, match="R_reg"):
+        GoPRONTO(R_reg="identity")
+    with pytest.raises(TypeError, match="unknown option"):
+        GoPRONTO(gamma=0.1)
+    with pytest.raises(ValueError, match="order"):
+        torchslq.PRONTO(order="second")
+    with pytest.raises(ValueError, match="weights"):
+        torchslq.PRONTO(weights="newton")
+    with pytest.raises(TypeError, match="variant"):
+        torchslq.PRONTO(variant="nesterov")
+    prob, x0 = pendulum_swingup(batch=2, horizon=10)
+    with pytest.raises(ValueError, match="Q_reg"):
+        GoPRONTO(Q_reg=torch.eye(3, dtype=DT)).solve(prob, x0)
+    with pytest.raises(ValueError, match="u_max"):
+        GoPRONTO(u_max=torch.ones(2, dtype=DT)).solve(prob, x0)
+    with pytest.raises(ValueError, match="alpha_init"):
+        GoPRONTO().solve(prob, x0, alpha_init=torch.zeros(9, 2, dtype=DT))
+    with pytest.raises(ValueError, match="x0"):
+        GoPRONTO().solve(prob, torch.zeros(2, 3, dtype=DT))

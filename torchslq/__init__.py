@@ -13,7 +13,7 @@ from .logging import TensorBoardLogger
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
 from .mpc import MPC, MPCOutput
 from .problem import Problem
-from .solvers import DDP, ILQR, SLQ, GoPRONTO, GoPRONTOResult, GradientMethod, SolverResult
+from .solvers import DDP, ILQR, PRONTO, SLQ, GoPRONTO, GoPRONTOResult, GradientMethod, SolverResult
 from .status import Status, status_names
 
 __version__ = "0.1.0"
@@ -28,6 +28,7 @@ __all__ = [
     "GoPRONTOResult",
     "GradientMethod",
     "ILQR",
+    "PRONTO",
     "Dynamics",
     "LQRSolution",
     "LearnedDynamics",

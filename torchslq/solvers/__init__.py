@@ -5,6 +5,7 @@ from .gopronto import GoPRONTO, GoPRONTOResult
 from .gradient import GradientMethod
 from .ilqr import ILQR
 from .line_search import armijo_search, exact_search
+from .pronto import PRONTO
 from .result import SolverResult
 from .rollout import costate_gradient, rollout, rollout_closed_loop
 from .slq import SLQ, SLQOptions
@@ -15,6 +16,7 @@ __all__ = [
     "GoPRONTOResult",
     "GradientMethod",
     "ILQR",
+    "PRONTO",
     "SLQ",
     "SLQOptions",
     "SolverResult",

@@ -318,6 +318,7 @@ class GoPRONTO:
     """
 
     name = "gopronto"
+    _always_hessians = False  # PRONTO's direction needs them at every iteration
 
     def __init__(self, variant: str = "gradient", step: Any = "armijo", **kwargs: Any):
         bad = set(kwargs) - set(GoPRONTOOptions.__dataclass_fields__)
@@ -407,9 +408,11 @@ class GoPRONTO:
                 )
             return w
 
-        lxx = e.lxx.expand(*e.lxx.shape[:-3], T + 1, n, n) if e.lxx.shape[-3] == 1 else e.lxx
-        Qs = as_mat("Q_reg", o.Q_reg, n, lxx[..., :T, :, :])
-        Qf = as_mat("Qf_reg", o.Qf_reg, n, lxx[..., T, :, :])
+        lxx = e.lxx
+        if lxx is not None and lxx.shape[-3] == 1:
+            lxx = lxx.expand(*lxx.shape[:-3], T + 1, n, n)
+        Qs = as_mat("Q_reg", o.Q_reg, n, None if lxx is None else lxx[..., :T, :, :])
+        Qf = as_mat("Qf_reg", o.Qf_reg, n, None if lxx is None else lxx[..., T, :, :])
         if Qs.ndim == 2:
             Qs = Qs.expand(T, n, n)
         if Qf.ndim == 2:
@@ -440,17 +443,50 @@ class GoPRONTO:
         )
         return K, failed | ~torch.isfinite(K).flatten(1).all(1)
 
-    def _expand(self, problem: Problem, x: Tensor, u: Tensor, eps: Tensor, umax: Tensor | None):
+    def _expand(
+        self,
+        problem: Problem,
+        x: Tensor,
+        u: Tensor,
+        eps: Tensor,
+        umax: Tensor | None,
+        hessians: bool = False,
+    ):
         """Linearisation and cost expansion (with the barrier) at a trajectory."""
         T = problem.horizon
         A, B = linearize(problem.transition, x[:, :T], u, method=self.options.linearize_method)
-        e = problem.cost.quadratize(x, u)
+        return A, B, self._cost_expansion(problem, x, u, eps, umax, hessians)
+
+    def _needs_hessians(self) -> bool:
+        """Whether the gain LQ problem uses the cost's Hessians (a weight left None)."""
+        o = self.options
+        return o.Q_reg is None or o.R_reg is None or o.Qf_reg is None
+
+    def _cost_expansion(self, problem, x, u, eps, umax, hessians: bool) -> CostExpansion:
+        """Cost gradients ``lx, lu`` (+ barrier); Hessians too when ``hessians`` (else None).
+
+        The gradient alone (all the costate pass needs) comes from one reverse pass of
+        the cost, which for a general :class:`torchslq.Cost` is much cheaper than its
+        full :meth:`quadratize`.
+        """
+        if hessians:
+            e = problem.cost.quadratize(x, u)
+        else:
+            with torch.enable_grad():
+                xg = x.detach().requires_grad_(True)
+                ug = u.detach().requires_grad_(True)
+                lx, lu = torch.autograd.grad(
+                    problem.cost(xg, ug).sum(), (xg, ug), allow_unused=True
+                )
+            lx = torch.zeros_like(x) if lx is None else lx
+            lu = torch.zeros_like(u) if lu is None else lu
+            e = CostExpansion(lxx=None, luu=None, lux=None, lx=lx, lu=lu)
         if umax is not None:
             bg, bh = box_log_barrier_derivatives(u, umax)
             w = eps[:, None, None]
-            luu = e.luu + torch.diag_embed(w * bh)
+            luu = None if e.luu is None else e.luu + torch.diag_embed(w * bh)
             e = CostExpansion(lxx=e.lxx, luu=luu, lux=e.lux, lx=e.lx, lu=e.lu + w * bg)
-        return A, B, e
+        return e
 
     def _objective(self, cost_fn, x: Tensor, u: Tensor, eps: Tensor, umax: Tensor | None):
         """``(objective, cost)`` of trajectories ``(..., B, T+1, n)``; ``eps (B,)``."""
@@ -612,6 +648,7 @@ class GoPRONTO:
             fresh = torch.zeros(Bsz, dtype=torch.bool, device=dev)  # gains new, no step since
             computed = torch.zeros(Bsz, dtype=torch.bool, device=dev)
             recomputations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
+            thresh = torch.full((Bsz,), float(o.stability_tol), dtype=x0.dtype, device=dev)
             iterations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
             gamma_prev = torch.full((Bsz,), o.step0 / o.armijo_growth, dtype=x0.dtype, device=dev)
             step = torch.zeros_like(J)
@@ -637,22 +674,32 @@ class GoPRONTO:
             for it in range(o.max_iter + 1):
                 running = status == Status.RUNNING
                 s["running"] = running
-                A, Bm, e = self._expand(problem, x, u, s["eps"], umax)
+                A, Bm, e = self._expand(problem, x, u, s["eps"], umax, self._always_hessians)
                 # ---- projection gains: compute / recompute when they stop stabilising
                 flag = running & pending
                 if o.recompute == "always":
                     flag = running.clone()
                 elif o.recompute == "auto" and bool(computed.any()):
                     growth = closed_loop_growth(A, Bm, s["K"])
-                    flag = flag | (running & computed & ~(growth <= o.stability_tol))
+                    flag = flag | (running & computed & ~(growth <= thresh))
                 recomp = torch.zeros_like(flag)
                 if bool(flag.any()):
+                    if e.lxx is None and self._needs_hessians():
+                        e = self._cost_expansion(problem, x, u, s["eps"], umax, True)
                     Knew, failed = self.projection_gains(A, Bm, e)
                     upd = flag & ~failed
                     s["K"] = _where(upd, Knew, s["K"])
                     recomp = upd & computed
                     recomputations = recomputations + recomp.to(torch.int64)
                     computed = computed | upd
+                    if o.recompute == "auto":
+                        # fresh gains that themselves amplify more than stability_tol / 10
+                        # (short horizon, weak R_reg) raise the element's threshold, so
+                        # the test fires on a loss of stability, not every iteration
+                        g_new = closed_loop_growth(A, Bm, s["K"])
+                        thresh = torch.where(
+                            upd, torch.clamp(10.0 * g_new, min=o.stability_tol), thresh
+                        )
                     s["alpha"] = _where(flag, x[:, :T], s["alpha"])
                     s["mu"] = _where(flag, u, s["mu"])
                     s["restart"] = s["restart"] | flag
@@ -676,12 +723,14 @@ class GoPRONTO:
                         )
                         J, Jc = self._objective(cost_fn, x, u, s["eps"], umax)
                         s["J"] = J
-                        A, Bm, e = self._expand(problem, x, u, s["eps"], umax)
+                        e = self._cost_expansion(
+                            problem, x, u, s["eps"], umax, self._always_hessians
+                        )
                         g_a, g_m, _ = curve_gradient(A, Bm, e.lx, e.lu, s["K"])
                         g2 = _dot(g_a, g_a) + _dot(g_m, g_m)
                         s["restart"] = s["restart"] | inner
                         s["k_nest"] = torch.where(inner, 0, s["k_nest"])
-                s.update(g_a=g_a, g_m=g_m, g2=g2)
+                s.update(g_a=g_a, g_m=g_m, g2=g2, A=A, B=Bm, e=e, x=x, u=u)
                 gn = g2.sqrt()
                 grad_norm = torch.where(running, gn, grad_norm)
                 done = gn < o.tol
@@ -826,7 +875,7 @@ class GoPRONTO:
             lim = (1.0 - o.barrier_margin) * umax
             u = torch.maximum(torch.minimum(u, lim), -lim)
         xa = torch.cat([alpha, alpha[:, -1:]], dim=1)
-        A, B, e = self._expand(problem, xa, u, eps, umax)
+        A, B, e = self._expand(problem, xa, u, eps, umax, self._needs_hessians())
         K, failed = self.projection_gains(A, B, e)
         K = _where(failed, torch.zeros_like(K), K)
         x, uu = project(f, x0, alpha, u, K)
@@ -839,6 +888,11 @@ class GoPRONTO:
             x = _where(bad, x_ol, x)
             uu = _where(bad, u, uu)
         return alpha, u.clone(), x, uu, K
+
+    def _first_trial(self, gamma_prev: Tensor) -> Tensor:
+        """First Armijo trial per element: ``armijo_growth`` times the last accepted step
+        (``step0`` at the first iteration)."""
+        return self.options.armijo_growth * gamma_prev
 
     def _on_accept(self, s: dict, accept: Tensor, x: Tensor, u: Tensor) -> None:
         """Hook after an accepted step (PRONTO resets its curve to the trajectory)."""
@@ -873,7 +927,7 @@ class GoPRONTO:
             Jnew = torch.where(ok, Jt.gather(0, first.unsqueeze(0))[0], s["J"])
         else:
             # first trial: armijo_growth x the element's last accepted step (step0 at first)
-            scale = o.armijo_growth * gamma_prev
+            scale = self._first_trial(gamma_prev)
             scale = torch.where(
                 torch.isfinite(scale) & (scale > 0), scale, torch.full_like(scale, o.step0)
             )
