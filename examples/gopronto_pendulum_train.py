@@ -22,6 +22,7 @@ Usage (float64; every run is capped, the caps are written into the results)::
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import platform
 import time
@@ -39,12 +40,31 @@ from torchslq.paper.gopronto import (
 )
 
 OUT = Path(__file__).resolve().parents[1] / "benchmarks" / "results"
+#: projection-weight setting: "paper" (R_reg = I, Section V.1) or "R" (R_reg = R = 0.1 I)
+PROJECTION = {"mode": "paper"}
+
+
+def _problem(n_carts: int, amplitude_deg):
+    setup = pendulum_train_problem(n_carts, amplitude_deg)
+    if PROJECTION["mode"] == "R":
+        setup = dataclasses.replace(setup, R_reg=setup.R)
+    return setup
+
+
+def _suffix() -> str:
+    return "" if PROJECTION["mode"] == "paper" else "_rregR"
+
+
+def _cmd_flag() -> str:
+    return "" if PROJECTION["mode"] == "paper" else " --projection R"
+
 
 NOTE = (
     "Problem: Section V with the PAPER-NOTES readings (cos erratum, T = 10 s = 200 RK4 "
     "steps of 0.05 s, reference centred at T/2, ||x||_Q^2 = x'Qx), Table I parameters, "
     "spring term as printed (-ks w_{i+1} + ks w_{i-1}), Qf = DARE at the upright "
-    "equilibrium, projection weights Q_reg = Q, R_reg = I, Qf_reg = Qf, start x = 0, u = 0. "
+    "equilibrium, projection weights Q_reg = Q, R_reg = I (paper) or R_reg = R (files "
+    "*_rregR), Qf_reg = Qf, start x = 0, u = 0. "
     "Gradient norms: GoPRONTO and PRONTO report ||grad J(alpha, mu)||; the Gradient "
     "Method reports ||grad_u J|| of the open-loop reduced cost. Timings come from a "
     "shared 2-core machine with other jobs running: compare ratios within one run only."
@@ -98,8 +118,9 @@ def _curve_table(runs: list[dict], ks: list[int], thresholds: list[float]) -> st
 
 def _save(name: str, payload: dict, md: str) -> None:
     OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / f"gopronto_{name}.json").write_text(json.dumps(payload, indent=1))
-    (OUT / f"gopronto_{name}.md").write_text(md)
+    payload["projection"] = PROJECTION["mode"]
+    (OUT / f"gopronto_{name}{_suffix()}.json").write_text(json.dumps(payload, indent=1))
+    (OUT / f"gopronto_{name}{_suffix()}.md").write_text(md)
     print(md)
 
 
@@ -112,60 +133,60 @@ def _safe_run(name: str, setup, **kw) -> list[dict]:
 
 
 def fig5(max_iter: int, tol: float) -> None:
-    setup = pendulum_train_problem(2, 30.0)
+    setup = _problem(2, 30.0)
     runs = []
-    for name in ("gopronto-gradient", "gradient-method", "pronto"):
+    for name in ("gopronto-gradient", "gradient-method", "pronto", "pronto-identity"):
         runs += _safe_run(name, setup, max_iter=max_iter, tol=tol)
     plot_grad_norms(
         runs,
-        OUT / "gopronto_fig5.png",
+        OUT / f"gopronto_fig5{_suffix()}.png",
         title="Fig. 5 analogue: N = 2, +-30 deg, Armijo",
     )
     md = "\n\n".join(
         [
             "# GoPRONTO Figure 5 analogue (N = 2, +-30 deg, Armijo)",
             f"Command: `python examples/gopronto_pendulum_train.py --fig5 --max-iter "
-            f"{max_iter} --tol {tol:g}` (cap {max_iter} iterations, stop at ||grad|| < {tol:g}).",
+            f"{max_iter} --tol {tol:g}{_cmd_flag()}` (cap {max_iter} iterations, stop at ||grad|| < {tol:g}).",
             _curve_table(runs, [0, 1, 5, 10, 20, 50], [1e-3, 1e-6, 1e-8]),
             "Paper (Figure 5, read off the plot): Gradient GoPRONTO reaches ||grad J|| "
             "~1e-8 in about 50 iterations; the Gradient Method 'diverges after very few "
             "iterations' (its curve rises towards 1e14); first-order PRONTO converges more "
             "slowly than GoPRONTO.",
             NOTE,
-            "![fig5](gopronto_fig5.png)",
+            f"![fig5](gopronto_fig5{_suffix()}.png)",
         ]
     )
     _save("fig5", {"env": _env(), "max_iter": max_iter, "tol": tol, "runs": runs}, md)
 
 
 def fig6(max_iter: int, tol: float) -> None:
-    setup = pendulum_train_problem(2, 30.0)
+    setup = _problem(2, 30.0)
     runs = []
     for name in ("gopronto-gradient", "gopronto-conjugate"):
         runs += _safe_run(name, setup, max_iter=max_iter, tol=tol)
     plot_grad_norms(
         runs,
-        OUT / "gopronto_fig6.png",
+        OUT / f"gopronto_fig6{_suffix()}.png",
         title="Fig. 6 analogue: N = 2, +-30 deg, Armijo",
     )
     md = "\n\n".join(
         [
             "# GoPRONTO Figure 6 analogue (N = 2, +-30 deg, Armijo): Conjugate vs Gradient",
             f"Command: `python examples/gopronto_pendulum_train.py --fig6 --max-iter "
-            f"{max_iter} --tol {tol:g}`.",
+            f"{max_iter} --tol {tol:g}{_cmd_flag()}`.",
             _curve_table(runs, [0, 5, 10, 20, 35], [1e-3, 1e-6, 1e-8]),
             "Paper (Figure 6): Conjugate GoPRONTO reaches ~1e-8 in about 30-35 "
             "iterations, faster than Gradient GoPRONTO; restart test "
             "|g_k'g_{k-1}| > 0.7 ||g_{k-1}||^2.",
             NOTE,
-            "![fig6](gopronto_fig6.png)",
+            f"![fig6](gopronto_fig6{_suffix()}.png)",
         ]
     )
     _save("fig6", {"env": _env(), "max_iter": max_iter, "tol": tol, "runs": runs}, md)
 
 
 def fig7(iters: int, n_carts: int) -> None:
-    setup = pendulum_train_problem(n_carts, 30.0)
+    setup = _problem(n_carts, 30.0)
     runs = []
     step, ghb = PAPER_FIG7["step"], PAPER_FIG7["gamma_hb"]
     for name in ("gopronto-gradient", "gopronto-heavy_ball", "gopronto-nesterov"):
@@ -173,7 +194,7 @@ def fig7(iters: int, n_carts: int) -> None:
         print(f"[fig7] {name}: {runs[-1]['iterations']} iterations, {runs[-1]['wall_s']:.1f} s")
     plot_grad_norms(
         runs,
-        OUT / "gopronto_fig7.png",
+        OUT / f"gopronto_fig7{_suffix()}.png",
         title=f"Fig. 7 analogue: N = {n_carts}, constant step {step:g}, gamma_HB = {ghb}",
     )
     ks = [k for k in (0, 10, 50, 100, 150, 200) if k <= iters]
@@ -182,14 +203,14 @@ def fig7(iters: int, n_carts: int) -> None:
             f"# GoPRONTO Figure 7 analogue (N = {n_carts}, +-30 deg, constant step "
             f"{step:g}, gamma_HB = {ghb})",
             f"Command: `python examples/gopronto_pendulum_train.py --fig7 --fig7-iters "
-            f"{iters} --fig7-carts {n_carts}` ({iters} iterations each, tol 1e-9).",
+            f"{iters} --fig7-carts {n_carts}{_cmd_flag()}` ({iters} iterations each, tol 1e-9).",
             _curve_table(runs, ks, [1e-3, 1e-6, 1e-9]),
             "Paper (Figure 7, N = 50, 200 iterations): Heavy-Ball and Nesterov's GoPRONTO "
             "converge faster than Gradient GoPRONTO (the accelerated curves reach ~1e-9 "
             "within the 200 iterations, the gradient one stays orders of magnitude "
             "higher).",
             NOTE,
-            "![fig7](gopronto_fig7.png)",
+            f"![fig7](gopronto_fig7{_suffix()}.png)",
         ]
     )
     _save(
@@ -202,10 +223,18 @@ def fig7(iters: int, n_carts: int) -> None:
 def table2(max_iter: int, tol: float, ns: list[int]) -> None:
     runs = []
     for N in ns:
-        setup = pendulum_train_problem(N, [60.0, 80.0])
+        setup = _problem(N, [60.0, 80.0])
         rs = run_solver("gopronto-gradient", setup, max_iter=max_iter, tol=tol)
         runs += rs
         print(f"[table2] N={N}: " + ", ".join(f"{r['iterations']} ({r['status']})" for r in rs))
+    # merge with earlier runs of other N (each N can be run separately, e.g. N = 100 last)
+    prev = OUT / f"gopronto_table2{_suffix()}.json"
+    if prev.exists():
+        old = json.loads(prev.read_text())
+        if old.get("max_iter") == max_iter and old.get("tol") == tol:
+            runs = [r for r in old["runs"] if r["n_carts"] not in ns] + runs
+    runs.sort(key=lambda r: (r["n_carts"], r["amplitude_deg"]))
+    ns = sorted({r["n_carts"] for r in runs})
     lines = [
         "| N | amplitude | paper GoPRONTO iterations | ours: iterations (status) | "
         "ours: first k with grad < 1e-3 | ours: first k with ||grad||/||grad_0|| < 1e-6 | "
@@ -228,7 +257,7 @@ def table2(max_iter: int, tol: float, ns: list[int]) -> None:
             "# GoPRONTO Table II analogue (Gradient GoPRONTO, Armijo, start at rest)",
             f"Command: `python examples/gopronto_pendulum_train.py --table2 "
             f"--table2-max-iter {max_iter} --tol {tol:g} --table2-carts "
-            f"{' '.join(map(str, ns))}` (stop at ||grad|| < {tol:g}, cap {max_iter}).",
+            f"{' '.join(map(str, ns))}{_cmd_flag()}` (stop at ||grad|| < {tol:g}, cap {max_iter}).",
             "\n".join(lines),
             "The paper does not state its stopping tolerance for Table II.",
             NOTE,
@@ -251,8 +280,15 @@ def main() -> None:
     p.add_argument("--table2-max-iter", type=int, default=100)
     p.add_argument("--table2-carts", type=int, nargs="+", default=[3, 50, 100])
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument(
+        "--projection",
+        choices=["paper", "R"],
+        default="paper",
+        help="projection weight R_reg: paper = I (Section V.1), R = the cost's R",
+    )
     a = p.parse_args()
     torch.set_num_threads(a.threads)
+    PROJECTION["mode"] = a.projection
     if a.all or a.fig5:
         fig5(a.max_iter, a.tol)
     if a.all or a.fig6:

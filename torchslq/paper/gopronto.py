@@ -305,7 +305,8 @@ SOLVER_LABELS = {
     "gopronto-conjugate": "Conjugate GoPRONTO",
     "gopronto-heavy_ball": "Heavy-Ball GoPRONTO",
     "gopronto-nesterov": "Nesterov's GoPRONTO",
-    "pronto": "First-order PRONTO",
+    "pronto": "First-order PRONTO (W = cost Hessian)",
+    "pronto-identity": "First-order PRONTO (W = I)",
     "gradient-method": "Gradient Method",
 }
 
@@ -337,10 +338,21 @@ def make_solver(
             progress=False,
             **kwargs,
         )
-    if name == "pronto":
+    if name in ("pronto", "pronto-identity"):
         if not hasattr(torchslq, "PRONTO"):
             raise RuntimeError("torchslq.PRONTO is not available in this version")
-        return torchslq.PRONTO(order="first", max_iter=max_iter, tol=tol, progress=False, **kwargs)
+        return torchslq.PRONTO(
+            order="first",
+            weights="identity" if name == "pronto-identity" else "hessian",
+            step=step,
+            max_iter=max_iter,
+            tol=tol,
+            Q_reg=setup.Q_reg,
+            R_reg=setup.R_reg,
+            Qf_reg=setup.Qf_reg,
+            progress=False,
+            **kwargs,
+        )
     if name == "gradient-method":
         return torchslq.GradientMethod(
             max_iter=max_iter, tol=tol, line_search="armijo", progress=False, **kwargs
