@@ -60,8 +60,8 @@ def _env() -> dict:
     }
 
 
-def _timed_solve(name: str, setup, max_iter: int, tol: float) -> dict:
-    solver = make_solver(name, setup, max_iter=max_iter, tol=tol)
+def _timed_solve(name: str, setup, max_iter: int, tol: float, **kwargs) -> dict:
+    solver = make_solver(name, setup, max_iter=max_iter, tol=tol, **kwargs)
     t0 = time.perf_counter()
     res = solver.solve(setup.problem, setup.x0)
     total = time.perf_counter() - t0
@@ -71,7 +71,7 @@ def _timed_solve(name: str, setup, max_iter: int, tol: float) -> dict:
     per_it = float(h[it] - h[0]) / it if it > 0 else float("nan")
     rec = getattr(res, "recomputations", None)
     return {
-        "solver": name,
+        "solver": name + "".join(f" ({k}={v})" for k, v in kwargs.items()),
         "n_carts": setup.n_carts,
         "batch": setup.batch_size,
         "iterations": res.iterations.tolist(),
@@ -85,18 +85,22 @@ def _timed_solve(name: str, setup, max_iter: int, tol: float) -> dict:
     }
 
 
-def table3(carts: list[int], iters: int) -> list[dict]:
+def table3(carts: list[int], iters: int, backtracks: int) -> list[dict]:
     import torchslq
 
     rows = []
-    names = ["gopronto-gradient"] + (["pronto"] if hasattr(torchslq, "PRONTO") else [])
+    runs = [("gopronto-gradient", {})]
+    if backtracks > 0:
+        runs.append(("gopronto-gradient", {"max_backtracks": backtracks}))
+    if hasattr(torchslq, "PRONTO"):
+        runs.append(("pronto", {}))
     for N in carts:
         setup = pendulum_train_problem(N, 30.0)
-        for name in names:
-            r = _timed_solve(name, setup, iters, 1e-12)
+        for name, kw in runs:
+            r = _timed_solve(name, setup, iters, 1e-12, **kw)
             rows.append(r)
             print(
-                f"[table3] N={N:3d} {name:18s} {r['s_per_iteration']:.3f} s/it, first "
+                f"[table3] N={N:3d} {r['solver']:18s} {r['s_per_iteration']:.3f} s/it, first "
                 f"{r['first_iteration_s']:.2f} s, total {r['total_s']:.2f} s "
                 f"({r['iterations'][0]} it)",
                 flush=True,
@@ -242,6 +246,13 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawTextHelpFormatter)
     p.add_argument("--carts", type=int, nargs="+", default=[2, 5, 10, 50, 100])
     p.add_argument("--iters", type=int, default=10, help="iterations per timed solve")
+    p.add_argument(
+        "--backtracks",
+        type=int,
+        default=6,
+        help="also time GoPRONTO with this max_backtracks (Armijo trials per iteration, "
+        "all rolled out as one batch; default of the solver: 30); 0 to skip",
+    )
     p.add_argument("--profile-carts", type=int, default=100)
     p.add_argument("--profile-iters", type=int, default=5)
     p.add_argument("--batch", type=int, default=64)
@@ -261,7 +272,7 @@ def main() -> None:
         "command": "python benchmarks/gopronto.py " + " ".join(sys.argv[1:]),
     }
     if not a.skip_table:
-        res["table3"] = table3(a.carts, a.iters)
+        res["table3"] = table3(a.carts, a.iters, a.backtracks)
     if not a.skip_profile:
         res["profile"] = profile_solve(a.profile_carts, a.profile_iters)
         print(f"[profile] {res['profile']}", flush=True)

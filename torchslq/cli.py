@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 SOLVERS = ("slq", "ilqr", "ddp")
-REPRODUCTIONS = ("sideris-table1", "sideris-hopper")
+REPRODUCTIONS = ("sideris-table1", "sideris-hopper", "gopronto-fig5")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -108,6 +108,11 @@ def _run(system: str, args: argparse.Namespace, title: str) -> int:
 def _reproduce(name: str, args: argparse.Namespace) -> int:
     if name not in REPRODUCTIONS:
         return _fail(f"unknown reproduction {name!r}; choose from {', '.join(REPRODUCTIONS)}")
+    if name == "gopronto-fig5":
+        from .paper import gopronto
+
+        print(gopronto.format_rows(gopronto.reproduce_figure5()))
+        return 0
     from .paper import sideris
 
     if name == "sideris-table1":

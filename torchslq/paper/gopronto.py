@@ -43,6 +43,8 @@ from ..systems import PendulumCartTrain, PendulumCartTrainRK4
 __all__ = [
     "SOLVER_LABELS",
     "first_below",
+    "format_rows",
+    "reproduce_figure5",
     "make_solver",
     "plot_grad_norms",
     "run_solver",
@@ -448,3 +450,43 @@ def plot_grad_norms(
     fig.savefig(path, dpi=120)
     plt.close(fig)
     return path
+
+
+def reproduce_figure5(max_iter: int = 50, tol: float = 1e-8) -> list[dict[str, Any]]:
+    """Figure 5 in numbers (N = 2, +-30 deg, Armijo): one row per solver with the
+    gradient norm at a few iterations (the ``torchslq reproduce gopronto-fig5`` table)."""
+    setup = pendulum_train_problem(2, 30.0)
+    rows = []
+    for name in ("gopronto-gradient", "gradient-method", "pronto", "pronto-identity"):
+        try:
+            r = run_solver(name, setup, max_iter=max_iter, tol=tol)[0]
+        except RuntimeError:  # solver not available
+            continue
+        h = r["grad_norm_history"]
+
+        def at(k: int, h=h) -> str:
+            return f"{h[k]:.2e}" if k < len(h) and h[k] is not None else "-"
+
+        rows.append(
+            {
+                "solver": r["label"],
+                "status": r["status"],
+                "iterations": r["iterations"],
+                "J": f"{r['cost']:.6g}",
+                "grad k=0": at(0),
+                "grad k=10": at(10),
+                "grad k=50": at(50),
+                "final grad": f"{r['grad_norm']:.2e}",
+            }
+        )
+    return rows
+
+
+def format_rows(rows: Sequence[Mapping[str, Any]]) -> str:
+    """A markdown table of ``rows`` (the keys of the first row as columns)."""
+    if not rows:
+        return ""
+    cols = list(rows[0])
+    lines = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
+    lines += ["| " + " | ".join(str(r[c]) for c in cols) + " |" for r in rows]
+    return "\n".join(lines)
