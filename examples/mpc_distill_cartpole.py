@@ -6,14 +6,14 @@ initial states ``x0 = [0, 0.05 N(0, 1), 0, 0]``), solved for ``--n`` initial sta
 (default 10,000) in chunks of ``--chunk`` with a batched solver (DDP by default, or
 iLQR; ``compact=True`` so finished elements drop out of the working set). Every time
 step of every *converged and successful* solution gives a training pair
-``((x_t, t / T), u_t)`` (50 pairs per solve).
+``(x_t, u_t)`` (50 pairs per solve).
 
-A policy MLP ``pi(x, t / T) -> u`` (inputs ``[s, sin theta, cos theta, s_dot,
-theta_dot, t / T]``; the time-to-go input is needed because the optimal control of a
-finite-horizon problem is time-varying, ``--no-time`` drops it) is fitted by plain
-regression, then run *closed loop* on the true dynamics from fresh initial states of
-the same distribution (a different seed): ``u_t = pi(x_t, t / T)``, ``x_{t+1} =
-f(x_t, u_t)`` for 50 steps, and scored by the task's criterion
+A policy MLP ``pi(x) -> u`` (inputs ``[s, sin theta, cos theta, s_dot, theta_dot]``;
+``--time-input`` adds ``t / T``, since the optimal control of a finite-horizon problem
+is time-varying, though on a 1,000-solve run the state-only policy did better: 98.7 %
+vs 92.3 % success) is fitted by plain regression, then run *closed loop* on the true
+dynamics from fresh initial states of the same distribution (a different seed):
+``u_t = pi(x_t)``, ``x_{t+1} = f(x_t, u_t)`` for 50 steps, and scored by the task's criterion
 (:func:`torchslq.tasks.swingup_success`: final angle within 0.1 rad of upright). The
 optimal solutions from the same fresh states are solved too, for comparison.
 
@@ -48,9 +48,10 @@ LABELS = ["s [m]", "theta [rad]", "s_dot [m/s]", "theta_dot [rad/s]"]
 
 
 class Policy(nn.Module):
-    """MLP ``(x (..., 4), t/T (...)) -> u (..., 1)``; angle as ``sin, cos``."""
+    """MLP ``(x (..., 4), t/T (...)) -> u (..., 1)``; angle as ``sin, cos``; ``t/T`` is
+    ignored unless ``use_time``."""
 
-    def __init__(self, hidden: int = 128, use_time: bool = True):
+    def __init__(self, hidden: int = 128, use_time: bool = False):
         super().__init__()
         self.use_time = use_time
         d = 6 if use_time else 5
@@ -136,7 +137,7 @@ def train_policy(args, X, tau, U, writer) -> tuple[Policy, dict]:
     val, tr = perm[:n_val], perm[n_val:]
     torch.manual_seed(args.seed)
     X, tau, U = X.float(), tau.float(), U.float()
-    policy = Policy(args.hidden, use_time=not args.no_time)
+    policy = Policy(args.hidden, use_time=args.time_input)
     policy.u_scale.fill_(U[tr].std().item())
     opt = torch.optim.Adam(policy.parameters(), lr=args.lr)
     sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, args.iters)
@@ -267,7 +268,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--iters", type=int, default=4000, help="policy Adam steps")
     ap.add_argument("--batch", type=int, default=512, help="policy minibatch")
     ap.add_argument("--lr", type=float, default=2e-3)
-    ap.add_argument("--no-time", action="store_true", help="policy without the t/T input")
+    ap.add_argument("--time-input", action="store_true", help="policy also takes t/T")
     ap.add_argument("--n-eval", type=int, default=1000, help="fresh initial states")
     ap.add_argument(
         "--no-reference", action="store_true", help="skip the optimal solves of the eval states"
@@ -362,7 +363,7 @@ def main(argv: list[str] | None = None) -> dict:
             "hidden": args.hidden,
             "iters": args.iters,
             "batch": args.batch,
-            "use_time": not args.no_time,
+            "use_time": args.time_input,
             "note": args.note,
             "dataset_cache": args.dataset,
         },
