@@ -306,6 +306,11 @@ def main(argv: list[str] | None = None) -> dict:
         if data["x"].shape[0] != args.n:
             raise ValueError(f"{args.dataset} holds {data['x'].shape[0]} solves, not --n {args.n}")
         print(f"loaded {args.n} solves from {args.dataset} (solve time {data['time_s']:.1f} s)")
+        args.note = (
+            f"The {args.n} solves were loaded from the cache `{args.dataset}` written by an "
+            "earlier run of this script (same solver settings, --dataset); the solve time "
+            "is that run's. " + args.note
+        ).strip()
     else:
         print(f"solving {args.n} cart-pole swing-ups ({args.solver}, chunks of {args.chunk})")
         data = solve_dataset(args, out)
