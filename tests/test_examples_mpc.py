@@ -39,7 +39,7 @@ def test_imitation_recovers_parameters(tmp_path):
     # towards the truth (quick: 8 L-BFGS epochs from a 60 % / 30 % wrong mass / length)
     assert run["train_loss"] < run["initial_loss"] / 50
     for k in ("mass", "length", "goal"):
-        assert run["rel_errors"][k] < run["initial_rel_errors"][k] / 3, k
+        assert run["rel_errors"][k] < run["initial_rel_errors"][k] / 2.5, k
     assert (tmp_path / "imitation.png").exists()
 
 
