@@ -185,16 +185,17 @@ def fig6(max_iter: int, tol: float) -> None:
     _save("fig6", {"env": _env(), "max_iter": max_iter, "tol": tol, "runs": runs}, md)
 
 
-def fig7(iters: int, n_carts: int) -> None:
+def fig7(iters: int, n_carts: int, step: float) -> None:
     setup = _problem(n_carts, 30.0)
     runs = []
-    step, ghb = PAPER_FIG7["step"], PAPER_FIG7["gamma_hb"]
+    ghb = PAPER_FIG7["gamma_hb"]
+    tag = "" if step == PAPER_FIG7["step"] else f"_step{step:g}"
     for name in ("gopronto-gradient", "gopronto-heavy_ball", "gopronto-nesterov"):
         runs += _safe_run(name, setup, max_iter=iters, tol=1e-9, step=step, gamma_hb=ghb)
         print(f"[fig7] {name}: {runs[-1]['iterations']} iterations, {runs[-1]['wall_s']:.1f} s")
     plot_grad_norms(
         runs,
-        OUT / f"gopronto_fig7{_suffix()}.png",
+        OUT / f"gopronto_fig7{tag}{_suffix()}.png",
         title=f"Fig. 7 analogue: N = {n_carts}, constant step {step:g}, gamma_HB = {ghb}",
     )
     ks = [k for k in (0, 10, 50, 100, 150, 200) if k <= iters]
@@ -203,18 +204,18 @@ def fig7(iters: int, n_carts: int) -> None:
             f"# GoPRONTO Figure 7 analogue (N = {n_carts}, +-30 deg, constant step "
             f"{step:g}, gamma_HB = {ghb})",
             f"Command: `python examples/gopronto_pendulum_train.py --fig7 --fig7-iters "
-            f"{iters} --fig7-carts {n_carts}{_cmd_flag()}` ({iters} iterations each, tol 1e-9).",
+            f"{iters} --fig7-carts {n_carts} --fig7-step {step:g}{_cmd_flag()}` ({iters} iterations each, tol 1e-9).",
             _curve_table(runs, ks, [1e-3, 1e-6, 1e-9]),
             "Paper (Figure 7, N = 50, 200 iterations): Heavy-Ball and Nesterov's GoPRONTO "
             "converge faster than Gradient GoPRONTO (the accelerated curves reach ~1e-9 "
             "within the 200 iterations, the gradient one stays orders of magnitude "
             "higher).",
             NOTE,
-            f"![fig7](gopronto_fig7{_suffix()}.png)",
+            f"![fig7](gopronto_fig7{tag}{_suffix()}.png)",
         ]
     )
     _save(
-        "fig7",
+        f"fig7{tag}",
         {"env": _env(), "iterations": iters, "n_carts": n_carts, "step": step, "runs": runs},
         md,
     )
@@ -277,6 +278,7 @@ def main() -> None:
     p.add_argument("--tol", type=float, default=1e-8, help="gradient-norm stopping test")
     p.add_argument("--fig7-iters", type=int, default=PAPER_FIG7["iterations"])
     p.add_argument("--fig7-carts", type=int, default=PAPER_FIG7["n_carts"])
+    p.add_argument("--fig7-step", type=float, default=PAPER_FIG7["step"])
     p.add_argument("--table2-max-iter", type=int, default=100)
     p.add_argument("--table2-carts", type=int, nargs="+", default=[3, 50, 100])
     p.add_argument("--threads", type=int, default=1)
@@ -294,7 +296,7 @@ def main() -> None:
     if a.all or a.fig6:
         fig6(a.max_iter, a.tol)
     if a.all or a.fig7:
-        fig7(a.fig7_iters, a.fig7_carts)
+        fig7(a.fig7_iters, a.fig7_carts, a.fig7_step)
     if a.all or a.table2:
         table2(a.table2_max_iter, a.tol, a.table2_carts)
 
