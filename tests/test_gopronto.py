@@ -250,6 +250,14 @@ def test_batch_equals_singles():
         assert torch.allclose(ri.history["grad_norm"], rb.history["grad_norm"][i], rtol=1e-8)
 
 
+def test_chunked_armijo_equals_all_at_once():
+    prob, x0 = pendulum_swingup(batch=2, horizon=30)
+    r1 = GoPRONTO(max_iter=12, armijo_chunk=1, progress=False).solve(prob, x0)
+    r2 = GoPRONTO(max_iter=12, progress=False).solve(prob, x0)  # one rollout of 30 trials
+    assert torch.equal(r1.history["step"], r2.history["step"])
+    assert torch.allclose(r1.x, r2.x, atol=1e-12)
+
+
 def test_barrier_keeps_inputs_inside_bounds():
     prob, x0 = pendulum_swingup(batch=2, horizon=40)
     free = GoPRONTO(max_iter=10, progress=False).solve(prob, x0)

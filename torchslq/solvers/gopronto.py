@@ -27,7 +27,8 @@ updates all of them; it enters only through ``u_0``, since ``x_0 = x_init``). Fi
 instead (one reading of eq. 19b) leaves ``u_0`` with an unpreconditioned gradient and makes
 the first step a slow mode (measured: ~100x more iterations on an unstable LQ problem).
 The shared :func:`~torchslq.solvers.rollout.costate_gradient` does
-the pass on ``(A + B K, B, l_x + K' l_u, l_u)``.
+the pass with the gains (``lam_t = a_t + A_t' lam_{t+1} + K_t' grad_mu_t``, the same
+recursion without forming ``A + B K``).
 
 Variants (``variant=``):
 
@@ -154,12 +155,8 @@ def curve_gradient(
         ``grad_alpha (B, T, n)``,
         ``grad_mu (B, T, m)`` and the costates ``lam (B, T+1, n)``.
     """
-    T = lu.shape[-2]
-    Kt = K.mT
-    Acl = A + B @ K
-    lx_cl = torch.cat([lx[..., :T, :] + (Kt @ lu.unsqueeze(-1))[..., 0], lx[..., T:, :]], dim=-2)
-    g_mu, lam = costate_gradient(Acl, B, lx_cl, lu)
-    g_alpha = -(Kt @ g_mu.unsqueeze(-1))[..., 0]
+    g_mu, lam = costate_gradient(A, B, lx, lu, K)
+    g_alpha = -(K.mT @ g_mu.unsqueeze(-1))[..., 0]
     return g_alpha, g_mu, lam
 
 
@@ -220,6 +217,7 @@ class GoPRONTOOptions:
     armijo_c1: float = 1e-4
     armijo_beta: float = 0.5
     max_backtracks: int = 30
+    armijo_chunk: int | None = None
     step0: float = 1.0
     armijo_growth: float = 4.0
     linearize_method: str = "auto"
@@ -309,7 +307,9 @@ class GoPRONTO:
             barrier continuation (initial weight 1, factor 0.2 down to 1e-4, start clipped
             to 95% of the bound).
         armijo_c1, armijo_beta, max_backtracks: Armijo constants (trials
-            ``s0 beta^j``, ``j < max_backtracks``); step0: the first trial step;
+            ``s0 beta^j``, ``j < max_backtracks``); armijo_chunk: trials per batched
+            rollout (None: all at once for small problems, 4 at a time for large ones,
+            see :meth:`_armijo_chunk`); step0: the first trial step;
             armijo_growth: later first trials are this times the last accepted step.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: tqdm bar for long solves.
@@ -374,6 +374,12 @@ class GoPRONTO:
             or o.max_backtracks < 1
         ):
             raise ValueError(f"max_backtracks must be a positive int, got {o.max_backtracks!r}")
+        if o.armijo_chunk is not None and (
+            isinstance(o.armijo_chunk, bool)
+            or not isinstance(o.armijo_chunk, int)
+            or o.armijo_chunk < 1
+        ):
+            raise ValueError(f"armijo_chunk must be None or a positive int, got {o.armijo_chunk!r}")
         _positive("step0", o.step0)
         _positive("armijo_growth", o.armijo_growth, lo=1.0, closed_lo=True)
 
@@ -622,7 +628,7 @@ class GoPRONTO:
             eps = torch.full(
                 (Bsz,), o.barrier_weight if umax is not None else 0.0, dtype=x0.dtype, device=dev
             )
-            alpha, mu, x, u, K0 = self._initial_curve(problem, x0, u, alpha_init, eps, umax)
+            alpha, mu, x, u, K0, ok0 = self._initial_curve(problem, x0, u, alpha_init, eps, umax)
             J, Jc = self._objective(cost_fn, x, u, eps, umax)
             status = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=dev)
             finite0 = torch.isfinite(J) & torch.isfinite(x).flatten(1).all(1)
@@ -644,9 +650,9 @@ class GoPRONTO:
                 "k_nest": torch.zeros(Bsz, dtype=torch.int64, device=dev),
                 "cg_restarts": torch.zeros(Bsz, dtype=torch.int64, device=dev),
             }
-            pending = torch.ones(Bsz, dtype=torch.bool, device=dev)  # gains to (re)compute
+            pending = ~ok0  # gains to (re)compute at the next iteration
             fresh = torch.zeros(Bsz, dtype=torch.bool, device=dev)  # gains new, no step since
-            computed = torch.zeros(Bsz, dtype=torch.bool, device=dev)
+            computed = ok0.clone()  # gains computed about the current curve/trajectory
             recomputations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
             thresh = torch.full((Bsz,), float(o.stability_tol), dtype=x0.dtype, device=dev)
             iterations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
@@ -678,7 +684,7 @@ class GoPRONTO:
                 # ---- projection gains: compute / recompute when they stop stabilising
                 flag = running & pending
                 if o.recompute == "always":
-                    flag = running.clone()
+                    flag = running & (pending | (it > 0))
                 elif o.recompute == "auto" and bool(computed.any()):
                     growth = closed_loop_growth(A, Bm, s["K"])
                     flag = flag | (running & computed & ~(growth <= thresh))
@@ -846,7 +852,8 @@ class GoPRONTO:
 
         The curve ``(alpha, mu) = (alpha_init, u_init)`` is projected with the gains of
         the linearisation *at the curve* (eq. 8 needs gains before there is a
-        trajectory); iteration 0 then recomputes them at the projected trajectory. An
+        trajectory; for the paper's zero curve at an equilibrium, curve and trajectory
+        coincide). They are not counted as a recomputation. An
         element whose projected start is not finite, or (with ``u_max``) not strictly
         inside the bounds, falls back to the open-loop start: ``u_init`` clipped to
         ``(1 - barrier_margin) u_max`` and its rollout as the curve, which the projection
@@ -887,7 +894,19 @@ class GoPRONTO:
             alpha = _where(bad, x_ol[:, :T], alpha)
             x = _where(bad, x_ol, x)
             uu = _where(bad, u, uu)
-        return alpha, u.clone(), x, uu, K
+        # gains about the curve serve the first iteration (the "auto" rule replaces them
+        # if they do not stabilise the projected trajectory); elements that fell back to
+        # the open-loop start, or whose LQ solve failed, get theirs at iteration 0
+        return alpha, u.clone(), x, uu, K, ~(failed | bad)
+
+    def _armijo_chunk(self, x0: Tensor, d: dict) -> int:
+        """Armijo trials per batched rollout: ``armijo_chunk``, or with None all of them
+        for small problems and 4 at a time once a trial rollout is large (``B T n``
+        above 2e5 entries), where the rollouts, not the Python overhead, dominate."""
+        o = self.options
+        if o.armijo_chunk is not None:
+            return o.armijo_chunk
+        return o.max_backtracks if d["base_a"].numel() <= 200_000 else 4
 
     def _first_trial(self, gamma_prev: Tensor) -> Tensor:
         """First Armijo trial per element: ``armijo_growth`` times the last accepted step
@@ -935,15 +954,29 @@ class GoPRONTO:
             def ev_scaled(a: Tensor) -> Tensor:
                 return evaluate(a * scale)
 
-            a, Jnew, ok = armijo_search(
-                ev_scaled,
-                d["ref"],
-                scale * d["slope"],
-                c1=o.armijo_c1,
-                beta=o.armijo_beta,
-                max_backtracks=o.max_backtracks,
-                roundoff=8.0,
-            )
+            chunk = self._armijo_chunk(x0, d)
+            a = torch.zeros_like(scale)
+            Jnew = d["ref"].clone()
+            ok = torch.zeros_like(scale, dtype=torch.bool)
+            for start in range(0, o.max_backtracks, chunk):
+                # trials scale * beta^j, j in [start, start + chunk): the first chunk is
+                # usually enough, later ones only run while some element has no step
+                a_c, J_c, ok_c = armijo_search(
+                    ev_scaled,
+                    d["ref"],
+                    scale * d["slope"],
+                    c1=o.armijo_c1,
+                    beta=o.armijo_beta,
+                    max_backtracks=min(chunk, o.max_backtracks - start),
+                    alpha0=o.armijo_beta**start,
+                    roundoff=8.0 if start == 0 else 0.0,
+                )
+                new = ok_c & ~ok
+                a = torch.where(new, a_c, a)
+                Jnew = torch.where(new, J_c, Jnew)
+                ok = ok | ok_c
+                if start + chunk >= o.max_backtracks or bool((ok | ~s["running"]).all()):
+                    break
             gamma = a * scale
             # near a minimum the predicted decrease of even the first trial can be below
             # the rounding noise of J, and Armijo then passes or fails trials at random,
