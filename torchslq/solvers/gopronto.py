@@ -46,9 +46,13 @@ Variants (``variant=``):
 Step sizes (``step=``): ``"armijo"`` backtracking (Assumption 3.1), all trial steps
 evaluated at once as an extra batch dimension (:func:`torchslq.solvers.armijo_search`);
 the first trial of each element is ``step0`` at its first iteration and
-``armijo_growth`` times its last accepted step afterwards. For heavy-ball the test is
+``armijo_growth`` times its last accepted step afterwards (trials run in chunks for large
+problems, ``armijo_chunk``). For heavy-ball the test is
 ``J(c + m - s g) <= J(c) - c1 s ||g||^2`` with the momentum ``m`` kept fixed; for
 Nesterov it is taken at the extrapolated curve (``J(c~ - s g~) <= J(c~) - c1 s ||g~||^2``).
+With Armijo, a heavy-ball / Nesterov step that ends above ``J(c_k)`` is rejected and the
+momentum restarted (function-value restart, O'Donoghue & Candes 2015), so the cost never
+increases; with a constant step the paper's iterations are run as they are.
 A float gives a constant step (the paper's Figure 7 setting); the step is then
 accepted whatever the cost does, as long as the projected trajectory stays finite (and,
 with a barrier, feasible: the constant step is then halved until it is).
@@ -64,14 +68,21 @@ element's gains are recomputed only when they stop stabilising, detected by eith
    ``stability_tol`` (default ``1e4``) over the horizon (max over ``t`` of
    ``||v_t|| / ||v_0||``; it costs one matrix-vector product per step, like the costate
    pass); or
-2. *line-search failure*: no trial step was accepted (Armijo), or the projected rollout
-   was not finite (constant step).
+2. *line-search failure of a plain gradient step*: no trial step was accepted (Armijo),
+   or the projected rollout was not finite (constant step). A failed momentum or
+   conjugate step only restarts the method (the next step is a plain one).
+
+After a recomputation the element's growth threshold becomes
+``max(stability_tol, 10 x`` the fresh gains' own growth``)``, so gains that cannot do better
+on this horizon (weak ``R_reg``, short horizon) do not trigger a recomputation at every
+iteration. The first gains are computed about the initial curve (see
+:meth:`GoPRONTO._initial_curve`).
 
 A recomputation re-linearises nothing: it uses the Jacobians of the current iteration.
 Since ``P_K(x, u) = (x, u)`` for any ``K``, the curve is then reset to the current
 trajectory (same point, same cost, new coordinates) and momentum / CG memory is
-cleared. A line-search failure right after a fresh recomputation ends the element
-(``LINE_SEARCH_FAILED``). ``"always"`` recomputes every iteration (as PRONTO does) and
+cleared. A failed plain step right after a fresh recomputation ends the element
+(``LINE_SEARCH_FAILED``; ``DIVERGED`` for a constant step). ``"always"`` recomputes every iteration (as PRONTO does) and
 ``"never"`` keeps the first gains. The count (excluding the initial computation) is
 ``result.recomputations (B,)`` and per iteration ``history["recompute"]``.
 
@@ -80,9 +91,10 @@ Input bounds (``u_max=``): the log barrier of Section V.5 (see
 weight ``eps`` starting at ``barrier_weight``; whenever an element's gradient norm is
 below ``max(tol, eps)`` its weight is multiplied by ``barrier_decrease`` until it reaches
 ``barrier_min``, after which the usual test ``||grad|| < tol`` decides convergence.
-*Feasible start:* ``u_init`` is clipped to ``(1 - barrier_margin) u_max`` and the initial
-curve is its open-loop trajectory ``(alpha_0, mu_0) = (x(u_init), u_init)``, which the
-projection maps to itself; it is thus strictly feasible. Every later iterate is an
+*Feasible start:* ``u_init`` is clipped to ``(1 - barrier_margin) u_max``; if the projected
+initial curve's inputs are not strictly inside the bounds, the element starts instead from
+the open-loop trajectory of the clipped ``u_init``, ``(alpha, mu) = (x(u_init), u_init)``,
+which the projection maps to itself: strictly feasible. Every later iterate is an
 accepted trial with a finite barrier, so it is strictly feasible too (non-finite or
 infeasible trials count as ``+inf`` and are never accepted). ``result.cost`` and
 ``history["cost"]`` are the problem's cost without the barrier; ``history["objective"]``
