@@ -396,3 +396,15 @@ def test_validation_errors():
         GoPRONTO().solve(prob, x0, alpha_init=torch.zeros(9, 2, dtype=DT))
     with pytest.raises(ValueError, match="x0"):
         GoPRONTO().solve(prob, torch.zeros(2, 3, dtype=DT))
+
+
+def test_non_finite_element_does_not_poison_the_batch():
+    prob, x0 = unstable_problem(30)
+    bad = torch.tensor([[1e200, 0.0]], dtype=DT)  # its cost overflows to inf
+    solver = GoPRONTO(max_iter=40, progress=False)
+    rb = solver.solve(prob, torch.cat([bad, x0[:1]]))
+    r1 = solver.solve(prob, x0[:1])
+    assert rb.status_names()[0] == "non_finite"
+    assert int(rb.iterations[0]) == 0
+    assert torch.allclose(rb.x[1], r1.x[0], atol=1e-10)
+    assert int(rb.iterations[1]) == int(r1.iterations[0]) > 0
