@@ -200,8 +200,8 @@ def test_variants_decrease_cost_and_reach_small_gradient(variant, twolink):
 
 @pytest.mark.parametrize("variant", ["gradient", "nesterov"])
 def test_variants_on_pendulum_swingup(variant):
-    prob, x0 = pendulum_swingup(batch=2, horizon=40)
-    r = GoPRONTO(variant=variant, max_iter=40, progress=False).solve(prob, x0)
+    prob, x0 = pendulum_swingup(batch=2, horizon=30)
+    r = GoPRONTO(variant=variant, max_iter=30, progress=False).solve(prob, x0)
     hist, g = r.history["cost"], r.history["grad_norm"]
     assert bool((hist[:, 1:] <= hist[:, :-1] + 1e-9).all())
     assert bool((hist[:, -1] < 0.1 * hist[:, 0]).all())
@@ -270,13 +270,13 @@ def test_chunked_armijo_equals_all_at_once():
 
 
 def test_barrier_keeps_inputs_inside_bounds():
-    prob, x0 = pendulum_swingup(batch=2, horizon=40)
+    prob, x0 = pendulum_swingup(batch=2, horizon=30)
     free = GoPRONTO(max_iter=10, progress=False).solve(prob, x0)
     u_max = 2.0
     assert float(free.u.abs().max()) > 2 * u_max  # the bound is active
     # an infeasible initial guess is clipped into the bounds (feasible start)
-    u_init = torch.full((40, 1), 5.0, dtype=DT)
-    r = GoPRONTO(max_iter=60, u_max=u_max, progress=False).solve(prob, x0, u_init=u_init)
+    u_init = torch.full((30, 1), 5.0, dtype=DT)
+    r = GoPRONTO(max_iter=40, u_max=u_max, progress=False).solve(prob, x0, u_init=u_init)
     assert float(r.u.abs().max()) < u_max
     assert torch.allclose(
         box_log_barrier(r.u, torch.tensor([u_max], dtype=DT)).isfinite().double(),
@@ -292,17 +292,16 @@ def test_barrier_keeps_inputs_inside_bounds():
     assert float(r2.u.abs().max()) < u_max
 
 
-@pytest.mark.parametrize("variant", ["heavy_ball", "nesterov"])
-def test_constant_step_momentum(variant, twolink):
+def test_constant_step_momentum(twolink):
     prob, x0, _ = twolink
-    grad = GoPRONTO(step=0.02, max_iter=60, tol=1e-9, progress=False).solve(prob, x0)
-    mom = GoPRONTO(
-        variant=variant, step=0.02, gamma_hb=0.5, max_iter=60, tol=1e-9, progress=False
-    ).solve(prob, x0)
-    assert bool((mom.history["step"][:, 1:] == 0.02).all())  # constant step, every iteration
-    # momentum accelerates the constant-step gradient method (the paper's Figure 7)
-    assert bool((mom.grad_norm < 0.5 * grad.grad_norm).all())
-    assert bool((mom.cost <= grad.cost).all())
+    kw = dict(step=0.02, gamma_hb=0.5, max_iter=40, tol=1e-9, progress=False)
+    grad = GoPRONTO(**kw).solve(prob, x0)
+    for variant in ("heavy_ball", "nesterov"):
+        mom = GoPRONTO(variant=variant, **kw).solve(prob, x0)
+        assert bool((mom.history["step"][:, 1:] == 0.02).all())  # constant, every iteration
+        # momentum accelerates the constant-step gradient method (the paper's Figure 7)
+        assert bool((mom.grad_norm < 0.5 * grad.grad_norm).all()), variant
+        assert bool((mom.cost <= grad.cost).all())
 
 
 def test_pronto_matches_ilqr_and_identity_weights_descend():
