@@ -77,14 +77,19 @@ def armijo_search(
     alpha0: float = 1.0,
     roundoff: float = 64.0,
     curvature: Tensor | None = None,
+    first_trials: int | None = 4,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Backtracking on sufficient decrease ``J(a) <= J0 + c1 dJ(a)`` (Armijo).
 
     The model decrease is ``dJ(a) = a slope`` (first order), or with ``curvature`` given
     ``dJ(a) = a slope + a^2/2 curvature`` (the expected improvement of iLQR/DDP).
 
-    All ``alpha0 * beta^j`` (``j < max_backtracks``) are tried at once; the result is the
-    largest that satisfies the condition, i.e. what serial backtracking would return.
+    The steps ``alpha0 * beta^j`` (``j < max_backtracks``) are tried as an extra batch
+    dimension; the result is the largest that satisfies the condition, i.e. what serial
+    backtracking would return. With ``first_trials = k`` the ``k`` largest are tried
+    first and the rest only if some element accepted none of them (one host sync);
+    the result is the same as trying all at once, at a fraction of the trial rollouts
+    when (as near convergence) the first steps are accepted. None tries all at once.
 
     Args:
         J0: ``(B,)`` current cost; slope ``(B,)`` directional derivative (< 0).
@@ -96,12 +101,20 @@ def armijo_search(
         ``(alpha (B,), J (B,), ok (B,) bool)``; ``alpha = 0`` where no step was accepted.
     """
     grid = alpha0 * beta ** torch.arange(max_backtracks, dtype=J0.dtype, device=J0.device)
-    alphas = grid.unsqueeze(-1).expand(-1, J0.shape[0])
-    J = _finite(evaluate(alphas))
-    model = alphas * slope
-    if curvature is not None:
-        model = model + 0.5 * alphas * alphas * curvature
-    ok = J <= J0 + c1 * model
+    split = max_backtracks if first_trials is None else max(1, min(first_trials, max_backtracks))
+    chunks = [grid[:split]] + ([grid[split:]] if split < max_backtracks else [])
+    Js, oks = [], []
+    for i, g in enumerate(chunks):
+        alphas = g.unsqueeze(-1).expand(-1, J0.shape[0])
+        J = _finite(evaluate(alphas))
+        model = alphas * slope
+        if curvature is not None:
+            model = model + 0.5 * alphas * alphas * curvature
+        Js.append(J)
+        oks.append(J <= J0 + c1 * model)
+        if i + 1 < len(chunks) and bool(oks[-1].any(dim=0).all()):
+            break  # every element accepted a step among the largest ones
+    J, ok = torch.cat(Js, dim=0), torch.cat(oks, dim=0)
     first = torch.argmax(ok.to(torch.int8), dim=0)  # first True (largest alpha)
     found = ok.any(dim=0)
     alpha = torch.where(found, grid[first], torch.zeros_like(J0))
