@@ -935,15 +935,12 @@ class GoPRONTO:
         ba, bm = d["base_a"], d["base_m"]
         k_ff = d["dm"] - (K @ d["da"].unsqueeze(-1))[..., 0]  # u = bm + a k_ff + K (x - ba)
         trials = TrialRecorder()
-        tried: list[Tensor] = []
 
         def evaluate(alphas: Tensor) -> Tensor:  # (Na, B) -> (Na, B)
             Na = alphas.shape[0]
             xc, uc = rollout_closed_loop(f, x0.expand(Na, *x0.shape), ba, bm, K, k_ff, alphas)
             trials.record(alphas, xc, uc)
-            Jt = self._objective(cost_fn, xc, uc, eps, umax)[0]
-            tried.append(Jt)
-            return Jt
+            return self._objective(cost_fn, xc, uc, eps, umax)[0]
 
         if constant:
             gam = float(o.step)
@@ -991,15 +988,19 @@ class GoPRONTO:
                     break
             gamma = a * scale
             # near a minimum the predicted decrease of even the first trial can be below
-            # the rounding noise of J, and Armijo then passes or fails trials at random,
-            # collapsing the step; take the first trial there if it is no worse than J up
-            # to that noise (the gradient test still decides convergence)
+            # the rounding noise of J, and Armijo then passes or fails trials at random
+            # (collapsing or inflating the step); there the element keeps its last
+            # accepted step if that is no worse than J up to the noise (the gradient test
+            # still decides convergence)
             noise = 8.0 * torch.finfo(x0.dtype).eps * d["ref"].abs().clamp_min(1.0)
-            J_first = tried[0][0]
-            flat = ((scale * d["slope"]).abs() <= noise) & (J_first <= d["ref"] + noise)
-            gamma = torch.where(flat, scale, gamma)
-            Jnew = torch.where(flat, J_first, Jnew)
-            ok = ok | flat
+            flat = (scale * d["slope"]).abs() <= noise
+            if bool((flat & s["running"]).any()):
+                keep = torch.where(gamma_prev > 0, gamma_prev, scale)
+                J_keep = evaluate(keep.unsqueeze(0))[0]  # one more batched rollout
+                flat = flat & (J_keep <= d["ref"] + noise)
+                gamma = torch.where(flat, keep, gamma)
+                Jnew = torch.where(flat, J_keep, Jnew)
+                ok = ok | flat
             # Armijo compares against the reference (J, or J~ for Nesterov); also never
             # accept a non-finite objective
             ok = ok & torch.isfinite(Jnew)
