@@ -2,7 +2,13 @@
 
 from .base import ContinuousDynamics, Dynamics, state_control_dims
 from .discretize import DiscretizedDynamics, discretize
-from .linearize import LearnedDynamics, as_transition, dynamics_vhp, linearize
+from .linearize import (
+    LearnedDynamics,
+    as_transition,
+    dynamics_hessians,
+    dynamics_vhp,
+    linearize,
+)
 
 __all__ = [
     "ContinuousDynamics",
@@ -11,6 +17,7 @@ __all__ = [
     "LearnedDynamics",
     "as_transition",
     "discretize",
+    "dynamics_hessians",
     "dynamics_vhp",
     "linearize",
     "state_control_dims",

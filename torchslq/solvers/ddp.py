@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from ..dynamics.linearize import dynamics_vhp
+from ..dynamics.linearize import dynamics_hessians, dynamics_vhp
 from ..lq.riccati import StageHook
 from .ilqr import ILQR
 
@@ -84,7 +84,7 @@ class DDP(ILQR):
             Bsz, m = x.shape[0], problem.control_dim
             need = Bsz * T * n * (n + m) ** 2 * x.element_size()
             if need <= self.vhp_memory_limit:
-                return self._tensor_hook(f, x[:, :T], u, n)
+                return self._tensor_hook(problem.dynamics, x[:, :T], u, n)
 
         def hook(t: int, Vh_next: Tensor) -> Tensor:
             s = Vh_next[..., :n, n].unsqueeze(-2)  # v_{t+1}, (B, 1, n)
@@ -94,12 +94,11 @@ class DDP(ILQR):
         return hook
 
     @staticmethod
-    def _tensor_hook(f, x: Tensor, u: Tensor, n: int) -> StageHook:
-        """All ``n`` output Hessians for every step in one batched call, contracted with
-        ``v_{t+1}`` inside the Riccati loop (same result as the step-by-step VHP)."""
-        basis = torch.eye(n, dtype=x.dtype, device=x.device)
-        basis = basis.reshape(n, *([1] * (x.ndim - 1)), n).expand(n, *x.shape)
-        Hxx, Huu, Hux = torch.vmap(lambda s: dynamics_vhp(f, x, u, s))(basis)
+    def _tensor_hook(dynamics, x: Tensor, u: Tensor, n: int) -> StageHook:
+        """All ``n`` output Hessians for every step in one batched call
+        (:func:`torchslq.dynamics.dynamics_hessians`), contracted with ``v_{t+1}`` inside
+        the Riccati loop (same result as the step-by-step VHP)."""
+        Hxx, Huu, Hux = dynamics_hessians(dynamics, x, u)
         Hz = _block(Hxx, Huu, Hux)  # (n, B, T, m+n, m+n)
 
         def hook(t: int, Vh_next: Tensor) -> Tensor:
