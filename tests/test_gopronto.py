@@ -254,7 +254,8 @@ def test_batch_equals_singles():
     rb = solver.solve(prob, x0)
     for i in range(3):
         ri = solver.solve(prob, x0[i])  # unbatched in, unbatched out
-        assert ri.x.shape == (31, 2) and ri.K.shape == (30, 1, 2)
+        assert ri.x.shape == (31, 2) and ri.K.shape == (30, 1, 2) and ri.alpha.shape == (30, 2)
+        assert ri.recomputations.ndim == 0 and ri.extra["cg_restarts"].ndim == 0
         assert torch.allclose(ri.x, rb.x[i], atol=1e-9, rtol=1e-9)
         assert torch.allclose(ri.u, rb.u[i], atol=1e-9, rtol=1e-9)
         assert int(ri.iterations) == int(rb.iterations[i])

@@ -247,6 +247,7 @@ class GoPRONTOResult(SolverResult):
         recomputations: ``(B,)`` int64 number of projection-gain recomputations after the
             initial computation.
         barrier_weight: ``(B,)`` final barrier weight (zeros without ``u_max``).
+        extra: ``{"cg_restarts": (B,)}``, conjugate cycles restarted (conjugate variant).
 
     ``history`` adds ``"objective"`` (cost + barrier), ``"recompute"`` (bool, gains
     recomputed at that iteration) and ``"barrier_weight"``.
@@ -270,7 +271,7 @@ class GoPRONTOResult(SolverResult):
             mu=sq(self.mu),
             recomputations=sq(self.recomputations),
             barrier_weight=sq(self.barrier_weight),
-            extra=self.extra,
+            extra={k: sq(v) for k, v in self.extra.items()},
         )
 
 
