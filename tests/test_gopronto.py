@@ -295,7 +295,7 @@ def test_barrier_keeps_inputs_inside_bounds():
 
 def test_constant_step_momentum(twolink):
     prob, x0, _ = twolink
-    kw = dict(step=0.02, gamma_hb=0.5, max_iter=40, tol=1e-9, progress=False)
+    kw = dict(step=0.02, gamma_hb=0.5, max_iter=25, tol=1e-9, progress=False)
     grad = GoPRONTO(**kw).solve(prob, x0)
     for variant in ("heavy_ball", "nesterov"):
         mom = GoPRONTO(variant=variant, **kw).solve(prob, x0)
@@ -401,7 +401,7 @@ def test_validation_errors():
 def test_non_finite_element_does_not_poison_the_batch():
     prob, x0 = unstable_problem(30)
     bad = torch.tensor([[1e200, 0.0]], dtype=DT)  # its cost overflows to inf
-    solver = GoPRONTO(max_iter=40, progress=False)
+    solver = GoPRONTO(max_iter=15, progress=False)
     rb = solver.solve(prob, torch.cat([bad, x0[:1]]))
     r1 = solver.solve(prob, x0[:1])
     assert rb.status_names()[0] == "non_finite"
