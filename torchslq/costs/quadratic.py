@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from .._shapes import broadcast_shapes
+
 __all__ = ["CostExpansion", "QuadraticCost"]
 
 
@@ -121,7 +123,7 @@ class QuadraticCost(nn.Module):
             QT = QT.unsqueeze(1)
         else:
             QT = Qs[:, -1:]
-        bq = torch.broadcast_shapes(Qs.shape[:1], QT.shape[:1])
+        bq = broadcast_shapes(Qs.shape[:1], QT.shape[:1])
         n = Qs.shape[-1]
         Qfull = torch.cat([Qs.expand(*bq, T, n, n), QT.expand(*bq, 1, n, n)], dim=1)
         return Qfull, self._time_varying(self.R, T, "R", 2)

@@ -34,6 +34,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
+
 __all__ = ["BoxQPResult", "box_qp"]
 
 
@@ -128,7 +130,7 @@ def box_qp(
         :class:`BoxQPResult` (``x``, ``clamped``, ``chol``, ``success``, ``iterations``).
     """
     m = H.shape[-1]
-    batch = torch.broadcast_shapes(H.shape[:-2], g.shape[:-1], lower.shape[:-1], upper.shape[:-1])
+    batch = broadcast_shapes(H.shape[:-2], g.shape[:-1], lower.shape[:-1], upper.shape[:-1])
     H = H.expand(*batch, m, m)
     g = g.expand(*batch, m)
     lower = lower.expand(*batch, m)

@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from .boxqp import box_qp
 
 StageHook = Callable[[int, Tensor], Tensor]
@@ -134,7 +135,7 @@ def homogeneous_dynamics(A: Tensor, B: Tensor, c: Tensor | None = None) -> Tenso
     n, m = A.shape[-1], B.shape[-1]
     if c is None:
         c = A.new_zeros(()).expand(*A.shape[:-1])
-    lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2], c.shape[:-1])
+    lead = broadcast_shapes(A.shape[:-2], B.shape[:-2], c.shape[:-1])
     top = torch.cat(
         [B.expand(*lead, n, m), A.expand(*lead, n, n), c.expand(*lead, n).unsqueeze(-1)], dim=-1
     )
@@ -167,9 +168,7 @@ def homogeneous_cost(
     if S is None:
         S = R.new_zeros(()).expand(*R.shape[:-3], T, m, n)
     Qs, qs = Q[..., :T, :, :], q[..., :T, :]
-    lead = torch.broadcast_shapes(
-        Qs.shape[:-2], R.shape[:-2], qs.shape[:-1], r.shape[:-1], S.shape[:-2]
-    )
+    lead = broadcast_shapes(Qs.shape[:-2], R.shape[:-2], qs.shape[:-1], r.shape[:-1], S.shape[:-2])
     Qs, R, S = Qs.expand(*lead, n, n), R.expand(*lead, m, m), S.expand(*lead, m, n)
     qs, r = qs.expand(*lead, n).unsqueeze(-1), r.expand(*lead, m).unsqueeze(-1)
     corner = Q.new_zeros(*lead, 1, 1)
@@ -182,7 +181,7 @@ def homogeneous_cost(
         dim=-2,
     )
     QT, qT = Q[..., T, :, :], q[..., T, :]
-    lead_T = torch.broadcast_shapes(QT.shape[:-2], qT.shape[:-1])
+    lead_T = broadcast_shapes(QT.shape[:-2], qT.shape[:-1])
     QT, qT = QT.expand(*lead_T, n, n), qT.expand(*lead_T, n).unsqueeze(-1)
     VhT = torch.cat(
         [torch.cat([QT, qT], dim=-1), torch.cat([qT.mT, Q.new_zeros(*lead_T, 1, 1)], dim=-1)],
@@ -225,9 +224,9 @@ def riccati_homogeneous(
     T = F.shape[-3]
     n = F.shape[-2] - 1
     m = F.shape[-1] - n - 1
-    batch = torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2])
+    batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2])
     if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
-        batch = torch.broadcast_shapes(batch, reg.shape)
+        batch = broadcast_shapes(batch, reg.shape)
     if u_bounds is not None:
         return _riccati_box(F, H, VhT, reg, stage_hook, u_bounds, batch)
     Vh = VhT.expand(*batch, n + 1, n + 1)
@@ -306,7 +305,7 @@ def _riccati_box(
     lower, upper = (
         with_time(b.reshape(1) if b.ndim == 0 else b, 1, T).to(F.dtype) for b in u_bounds
     )
-    batch = torch.broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
+    batch = broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
     lower = lower.expand(*batch, T, m)
     upper = upper.expand(*batch, T, m)
     Vh = VhT.expand(*batch, n + 1, n + 1)

@@ -21,6 +21,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from .._shapes import broadcast_shapes
 from ..status import Status
 from .riccati import (
     chol_solve,
@@ -300,7 +301,7 @@ def lqr_solve(
 
     if validate:
         try:
-            torch.broadcast_shapes(
+            broadcast_shapes(
                 A.shape[:-3],
                 B.shape[:-3],
                 Q.shape[:-3],
@@ -313,7 +314,7 @@ def lqr_solve(
             raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
     F = homogeneous_dynamics(A, B, c)
     H, VhT = homogeneous_cost(Q, R, q, r, S)
-    batch = torch.broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
+    batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
     # one flat batch dim for the kernel
     nb = int(torch.Size(batch).numel())
     Ff = _flat_batch(F, batch, nb, 3)

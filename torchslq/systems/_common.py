@@ -12,6 +12,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from .._shapes import broadcast_shapes
+
 Scalar = float | Tensor
 
 
@@ -54,24 +56,12 @@ def get_param(module: nn.Module, name: str, like: Tensor) -> Scalar:
 
 
 def lead_shape(x: Tensor, u: Tensor, *params: Scalar) -> torch.Size:
-    """Broadcast of the leading dims of ``x``, ``u`` and the tensor parameters.
-
-    Plain Python on shape tuples: ``torch.broadcast_shapes`` costs ~80 us a call, which
-    dominated rollouts of these small models.
-    """
-    shapes = [x.shape[:-1], u.shape[:-1]]
-    shapes += [p.shape for p in params if isinstance(p, Tensor)]
-    ndim = max(len(s) for s in shapes)
-    out = [1] * ndim
-    for shape in shapes:
-        offset = ndim - len(shape)
-        for i, d in enumerate(shape):
-            j = offset + i
-            if d != 1:
-                if out[j] not in (1, d):
-                    raise RuntimeError(f"shapes {[tuple(s) for s in shapes]} do not broadcast")
-                out[j] = d
-    return torch.Size(out)
+    """Broadcast of the leading dims of ``x``, ``u`` and the tensor parameters
+    (:func:`torchslq._shapes.broadcast_shapes`, plain Python: ``torch.broadcast_shapes``
+    costs ~80 us a call, which dominated rollouts of these small models)."""
+    return broadcast_shapes(
+        x.shape[:-1], u.shape[:-1], *(p.shape for p in params if isinstance(p, Tensor))
+    )
 
 
 def stack_vector(entries: list[Scalar], lead: torch.Size, like: Tensor) -> Tensor:
