@@ -791,7 +791,30 @@ class GoPRONTO:
                     # raised the cost is rejected and the next iteration restarts from a
                     # plain gradient step (which Armijo makes a descent step)
                     bump = accept & ~(Jnew <= J) & ~d["plain"]
-                    accept = accept & ~bump
+                    if bool(bump.any()):
+                        # retry those elements at once with a plain gradient step from
+                        # c_k (so an iteration is never wasted on a rejected momentum step)
+                        d2 = dict(
+                            base_a=s["alpha"],
+                            base_m=s["mu"],
+                            da=-s["g_a"],
+                            dm=-s["g_m"],
+                            ref=J,
+                            slope=-s["g2"],
+                            plain=torch.ones_like(bump),
+                        )
+                        g2_, J2, ok2, x2, u2 = self._line_search(
+                            f, cost_fn, x0, d2, s, gamma_prev, constant, umax
+                        )
+                        d = {
+                            k: _where(bump, d2[k], v) if torch.is_tensor(v) else v
+                            for k, v in d.items()
+                        }
+                        gamma = torch.where(bump, g2_, gamma)
+                        Jnew = torch.where(bump, J2, Jnew)
+                        ok = torch.where(bump, ok2, ok)
+                        xn, un = _where(bump, x2, xn), _where(bump, u2, un)
+                        accept = running & ok
                 else:
                     bump = torch.zeros_like(accept)
                 na = d["base_a"] + gamma[:, None, None] * d["da"]
