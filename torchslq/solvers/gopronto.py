@@ -50,9 +50,9 @@ the first trial of each element is ``step0`` at its first iteration and
 problems, ``armijo_chunk``). For heavy-ball the test is
 ``J(c + m - s g) <= J(c) - c1 s ||g||^2`` with the momentum ``m`` kept fixed; for
 Nesterov it is taken at the extrapolated curve (``J(c~ - s g~) <= J(c~) - c1 s ||g~||^2``).
-With Armijo, a heavy-ball / Nesterov step that ends above ``J(c_k)`` is rejected and the
-momentum restarted (function-value restart, O'Donoghue & Candes 2015), so the cost never
-increases; with a constant step the paper's iterations are run as they are.
+With Armijo, a heavy-ball / Nesterov step that ends above ``J(c_k)`` is rejected, replaced
+in the same iteration by a plain gradient step from ``c_k``, and the momentum restarted
+(function-value restart, O'Donoghue & Candes 2015), so the cost never increases; with a constant step the paper's iterations are run as they are.
 A float gives a constant step (the paper's Figure 7 setting); the step is then
 accepted whatever the cost does, as long as the projected trajectory stays finite (and,
 with a barrier, feasible: the constant step is then halved until it is).
