@@ -15,7 +15,10 @@ per-element status, barrier, history, logger); only the direction differs. The
 projection gains come from the same LQ problem with ``(Q_reg, R_reg, Qf_reg)`` and are
 recomputed at every iteration by default (``recompute="always"``, as in PRONTO).
 ``grad_norm`` is the norm of ``grad J(alpha, mu)`` at the curve ``(x, u)`` (eq. 16), the
-quantity of Figure 5, so it is comparable with GoPRONTO's.
+quantity of Figure 5, so it is comparable with GoPRONTO's. An LQ solve that fails
+(``W`` not positive definite on the tangent space, e.g. an indefinite general cost) or a
+direction that is not a descent direction fails the line search; with fresh gains at
+every iteration the element then ends as ``LINE_SEARCH_FAILED``.
 """
 
 from __future__ import annotations
