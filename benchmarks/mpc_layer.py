@@ -440,6 +440,14 @@ def markdown(meta, rows, rat, gc, summary, profile_notes):
         )
     L += [
         "",
+        "Iterations: torchslq, per element (``SolverResult.iterations``; with "
+        "``compact=True`` the batch iterates until its slowest element is done); "
+        "mpc.pytorch, per batch (it iterates all elements until the batch-wide test "
+        "passes). Unconverged: torchslq solves whose status is not converged; "
+        "mpc.pytorch, B per solve that stopped at ``lqr_iter``.",
+    ]
+    L += [
+        "",
         "## Ratios t_mpc.pytorch / t_torchslq (same run; > 1: torchslq faster)",
         "",
         "| warm start | torchslq | mpc.pytorch | forward | backward | forward + backward |",
