@@ -265,7 +265,7 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--tol", type=float, default=1e-6)
     ap.add_argument("--horizon", type=int, default=50)
     ap.add_argument("--hidden", type=int, default=128)
-    ap.add_argument("--iters", type=int, default=4000, help="policy Adam steps")
+    ap.add_argument("--iters", type=int, default=16000, help="policy Adam steps")
     ap.add_argument("--batch", type=int, default=512, help="policy minibatch")
     ap.add_argument("--lr", type=float, default=2e-3)
     ap.add_argument("--time-input", action="store_true", help="policy also takes t/T")
