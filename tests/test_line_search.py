@@ -57,3 +57,23 @@ def test_staged_search_skips_small_steps_when_large_ones_are_accepted():
     assert calls == [4] and bool(ok.all())
     ref = armijo_search(evaluate, J0, slope, first_trials=None)
     assert torch.equal(alpha, ref[0]) and torch.equal(J, ref[1])
+
+
+def test_passes_of_fixed_size_and_inactive_elements():
+    scale = torch.tensor([0.5, 40.0, 1.0], dtype=torch.float64)
+    J0, slope = torch.full_like(scale, 10.0), -torch.ones_like(scale)
+    calls: list[int] = []
+    ref = armijo_search(_quadratic_evaluator(scale, []), J0, slope, first_trials=None)
+    out = armijo_search(_quadratic_evaluator(scale, calls), J0, slope, first_trials=2, pass_size=3)
+    # element 1 needs alpha <= 1/20 (j >= 5): passes of 2, 3, 3 (the last one is NaN)
+    assert calls == [2, 3, 3, 3, 3, 3, 3]  # the non-finite last element never accepts
+    for a, b in zip(out, ref, strict=True):
+        assert torch.equal(a, b)
+    # with the non-finite element inactive the search stops once element 1 has a step
+    calls.clear()
+    active = torch.tensor([True, True, False])
+    out = armijo_search(
+        _quadratic_evaluator(scale, calls), J0, slope, first_trials=2, pass_size=3, active=active
+    )
+    assert calls == [2, 3, 3]
+    assert torch.equal(out[0][:2], ref[0][:2])

@@ -988,28 +988,18 @@ class GoPRONTO:
                 return evaluate(a * scale)
 
             chunk = self._armijo_chunk(x0, d)
-            a = torch.zeros_like(scale)
-            Jnew = d["ref"].clone()
-            ok = torch.zeros_like(scale, dtype=torch.bool)
-            for start in range(0, o.max_backtracks, chunk):
-                # trials scale * beta^j, j in [start, start + chunk): the first chunk is
-                # usually enough, later ones only run while some element has no step
-                a_c, J_c, ok_c = armijo_search(
-                    ev_scaled,
-                    d["ref"],
-                    scale * d["slope"],
-                    c1=o.armijo_c1,
-                    beta=o.armijo_beta,
-                    max_backtracks=min(chunk, o.max_backtracks - start),
-                    alpha0=o.armijo_beta**start,
-                    roundoff=8.0 if start == 0 else 0.0,
-                )
-                new = ok_c & ~ok
-                a = torch.where(new, a_c, a)
-                Jnew = torch.where(new, J_c, Jnew)
-                ok = ok | ok_c
-                if start + chunk >= o.max_backtracks or bool((ok | ~s["running"]).all()):
-                    break
+            a, Jnew, ok = armijo_search(
+                ev_scaled,
+                d["ref"],
+                scale * d["slope"],
+                c1=o.armijo_c1,
+                beta=o.armijo_beta,
+                max_backtracks=o.max_backtracks,
+                roundoff=8.0,
+                first_trials=chunk,
+                pass_size=chunk,
+                active=s["running"],
+            )
             gamma = a * scale
             # near a minimum the predicted decrease of even the first trial can be below
             # the rounding noise of J, and Armijo then passes or fails trials at random

@@ -78,6 +78,8 @@ def armijo_search(
     roundoff: float = 64.0,
     curvature: Tensor | None = None,
     first_trials: int | None = 4,
+    pass_size: int | None = None,
+    active: Tensor | None = None,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Backtracking on sufficient decrease ``J(a) <= J0 + c1 dJ(a)`` (Armijo).
 
@@ -87,9 +89,11 @@ def armijo_search(
     The steps ``alpha0 * beta^j`` (``j < max_backtracks``) are tried as an extra batch
     dimension; the result is the largest that satisfies the condition, i.e. what serial
     backtracking would return. With ``first_trials = k`` the ``k`` largest are tried
-    first and the rest only if some element accepted none of them (one host sync);
-    the result is the same as trying all at once, at a fraction of the trial rollouts
-    when (as near convergence) the first steps are accepted. None tries all at once.
+    first and the rest (all at once, or ``pass_size`` at a time) only while some
+    element has accepted none (one host sync per pass); the result is the same as
+    trying all at once, at a fraction of the trial rollouts when (as near convergence)
+    the first steps are accepted. None tries all at once. Elements outside ``active``
+    (``(B,)`` bool, e.g. finished ones) do not hold up the next pass.
 
     Args:
         J0: ``(B,)`` current cost; slope ``(B,)`` directional derivative (< 0).
@@ -101,10 +105,15 @@ def armijo_search(
         ``(alpha (B,), J (B,), ok (B,) bool)``; ``alpha = 0`` where no step was accepted.
     """
     grid = alpha0 * beta ** torch.arange(max_backtracks, dtype=J0.dtype, device=J0.device)
-    split = max_backtracks if first_trials is None else max(1, min(first_trials, max_backtracks))
-    chunks = [grid[:split]] + ([grid[split:]] if split < max_backtracks else [])
+    sizes = [max_backtracks]
+    if first_trials is not None:
+        sizes = [max(1, min(first_trials, max_backtracks))]
+        rest = max_backtracks - sizes[0]
+        while rest > 0:
+            sizes.append(rest if pass_size is None else min(pass_size, rest))
+            rest -= sizes[-1]
     Js, oks = [], []
-    for i, g in enumerate(chunks):
+    for g in torch.split(grid, sizes):
         alphas = g.unsqueeze(-1).expand(-1, J0.shape[0])
         J = _finite(evaluate(alphas))
         model = alphas * slope
@@ -112,8 +121,12 @@ def armijo_search(
             model = model + 0.5 * alphas * alphas * curvature
         Js.append(J)
         oks.append(J <= J0 + c1 * model)
-        if i + 1 < len(chunks) and bool(oks[-1].any(dim=0).all()):
-            break  # every element accepted a step among the largest ones
+        if len(Js) < len(sizes):
+            done = torch.stack([o.any(dim=0) for o in oks]).any(dim=0)
+            if active is not None:
+                done = done | ~active
+            if bool(done.all()):
+                break  # every element accepted a step among the largest ones
     J, ok = torch.cat(Js, dim=0), torch.cat(oks, dim=0)
     first = torch.argmax(ok.to(torch.int8), dim=0)  # first True (largest alpha)
     found = ok.any(dim=0)
