@@ -291,7 +291,7 @@ def test_warm_start_shifts_previous_solution_and_saves_iterations():
     a = warm.step(x)
     u_prev = warm.last_result.u
     x = dyn(x, a)
-    stored = warm._u_warm
+    stored = warm._warm["u"]
     torch.testing.assert_close(stored[:, :-1], u_prev[:, 1:])
     torch.testing.assert_close(stored[:, -1], u_prev[:, -1])
     out_w = warm(x)
@@ -300,7 +300,7 @@ def test_warm_start_shifts_previous_solution_and_saves_iterations():
     assert int(out_w.result.iterations.sum()) < int(out_c.result.iterations.sum())
     assert a.shape == (3, 1)
     warm.reset()
-    assert warm._u_warm is None
+    assert warm._warm is None
 
 
 def test_float32_runs():
@@ -336,3 +336,26 @@ def test_validation():
         mpc(torch.zeros(3, 3))
     with pytest.raises(TypeError, match="x0"):
         mpc(torch.zeros(3, 2, dtype=torch.int64))
+
+
+def test_shifted_warm_start_applies_the_previous_gains():
+    """The guess is ``u_prev + K_prev (x - x_prev)`` rolled out from the new state: equal
+    to the plain shift when the state is where the model predicted, corrected when not."""
+    dyn = discretize(Pendulum(), DT, method="rk4")
+    cost = QuadraticCost(
+        Q=torch.diag(torch.tensor([1.0, 0.1], dtype=torch.float64)),
+        R=0.1 * torch.eye(1, dtype=torch.float64),
+        x_ref=torch.tensor([1.0, 0.0], dtype=torch.float64),
+    )
+    mpc = MPC(dyn, cost, T, solver=ILQR(max_iter=200, tol=1e-9, progress=False))
+    out = mpc(X0)
+    res = out.result
+    x_pred = res.x[:, 1]
+    guess = mpc._initial_guess(x_pred, None)
+    torch.testing.assert_close(guess[:, :-1], res.u[:, 1:], rtol=0, atol=1e-12)
+    x_off = x_pred + torch.tensor([0.05, -0.1], dtype=torch.float64)
+    guess = mpc._initial_guess(x_off, None)
+    K1 = res.K[:, 1]
+    expected_first = res.u[:, 1] + (K1 @ (x_off - x_pred).unsqueeze(-1))[..., 0]
+    torch.testing.assert_close(guess[:, 0], expected_first, rtol=1e-12, atol=1e-12)
+    assert float((guess[:, :-1] - res.u[:, 1:]).abs().max()) > 1e-3

@@ -32,6 +32,7 @@ from ..problem import Problem
 from ..solvers.gradient import GradientMethod
 from ..solvers.ilqr import ILQR
 from ..solvers.result import SolverResult
+from ..solvers.rollout import rollout_closed_loop
 from ..solvers.slq import SLQ
 from ..status import Status, status_names
 from .implicit import implicit_solution
@@ -91,7 +92,8 @@ class MPC(nn.Module):
         backward: ``"implicit"`` | ``"implicit_gn"`` | ``"unroll"`` (module docstring).
         warm_start: ``True``/``"shift"``: the next solve of a batch of the same size
             starts from the previous solution shifted by one step (receding horizon,
-            last control repeated); ``"reuse"``: from the previous solution as is (the
+            last control repeated), with the previous feedback gains applied to the
+            deviation of the new state from the predicted trajectory; ``"reuse"``: from the previous solution as is (the
             same problems re-solved while their parameters are learned); ``False``: from
             zeros (or ``u_init``). :meth:`reset` forgets the stored solution.
         unconverged: what to do when gradients are needed and some element did not
@@ -158,7 +160,7 @@ class MPC(nn.Module):
         self.warm_start = "shift" if warm_start is True else warm_start
         self.unconverged = unconverged
         self.unroll_iters = unroll_iters
-        self._u_warm: Tensor | None = None
+        self._warm: dict[str, Tensor] | None = None
         self.last_result: SolverResult | None = None
 
     @property
@@ -175,23 +177,54 @@ class MPC(nn.Module):
 
     def reset(self) -> None:
         """Forget the stored warm start."""
-        self._u_warm = None
+        self._warm = None
 
-    def _initial_guess(self, Bsz: int, u_init: Tensor | None) -> Tensor | None:
+    def _initial_guess(self, x0: Tensor, u_init: Tensor | None) -> Tensor | None:
+        """``u_init``, else the stored warm start for this batch size: the previous
+        controls, and for ``"shift"`` with the previous feedback gains applied to the
+        deviation from the previous (shifted) trajectory, ``u = u_prev + K_prev (x - x_prev)``
+        rolled out from the new ``x0`` (so a state that drifted from the prediction, e.g.
+        under model mismatch, starts from a corrected guess)."""
         if u_init is not None:
             return u_init.detach()
-        w = self._u_warm
-        if self.warm_start is False or w is None or w.shape[0] != Bsz:
+        w = self._warm
+        if self.warm_start is False or w is None or w["u"].shape[0] != x0.shape[0]:
             return None
-        return w
+        if "K" not in w:
+            return w["u"]
+        lo, hi = self._bounds(x0)
+        with torch.no_grad():
+            _, u = rollout_closed_loop(
+                self.problem.transition,
+                x0.detach(),
+                w["x"],
+                w["u"],
+                w["K"],
+                torch.zeros_like(w["u"]),
+                x0.new_zeros(x0.shape[0]),
+                lo,
+                hi,
+            )
+        # a guess that blew up (a gain far from valid) falls back to the plain shift
+        ok = torch.isfinite(u).flatten(1).all(1).view(-1, 1, 1)
+        return torch.where(ok, u, w["u"])
 
-    def _store_warm_start(self, u: Tensor) -> None:
+    def _store_warm_start(self, result: SolverResult) -> None:
         if self.warm_start is False:
             return
-        u = u.detach()
-        if self.warm_start == "shift":
-            u = torch.cat([u[:, 1:], u[:, -1:]], dim=1)
-        self._u_warm = u
+        u = result.u.detach()
+        if self.warm_start == "reuse":
+            self._warm = {"u": u}
+            return
+
+        def shift(t: Tensor) -> Tensor:
+            return torch.cat([t[:, 1:], t[:, -1:]], dim=1)
+
+        warm = {"u": shift(u)}
+        K = getattr(result, "K", None)
+        if K is not None and K.shape[:2] == u.shape[:2] and bool(torch.isfinite(K).all()):
+            warm.update(x=shift(result.x.detach()), K=shift(K.detach()))
+        self._warm = warm
 
     def _needs_grad(self, x0: Tensor) -> bool:
         if not torch.is_grad_enabled():
@@ -225,7 +258,7 @@ class MPC(nn.Module):
         unbatched = x0.ndim == 1
         x0b = x0.reshape(-1, n)
         Bsz = x0b.shape[0]
-        guess = self._initial_guess(Bsz, u_init)
+        guess = self._initial_guess(x0b, u_init)
         if self._supports_compact():
             compact = self.compact
             if compact == "auto":
@@ -234,7 +267,7 @@ class MPC(nn.Module):
         with torch.no_grad():
             result = self.solver.solve(self.problem, x0b.detach(), guess)
         self.last_result = result
-        self._store_warm_start(result.u)
+        self._store_warm_start(result)
         x, u, status = result.x, result.u, result.status
         if self._needs_grad(x0b):
             x, u, status = self._attach_gradients(x0b, result, guess)
