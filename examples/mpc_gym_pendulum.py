@@ -17,7 +17,11 @@ Three controllers, each on the same 20 seeds (``env.reset(seed=s)``):
 * ``mpc_learned``: the same MPC with an MLP dynamics model (``[cos, sin, theta_dot, u]``
   -> ``[dtheta, dtheta_dot]``, residual) trained by plain supervised regression on
   transitions of the environment under a random policy (episodes from the
-  environment's own random resets); nothing of the analytic model is used.
+  environment's own random resets); nothing of the analytic model is used;
+* ``mpc_finetuned``: that model fine-tuned *through the MPC layer* on plan consistency
+  (:func:`finetune_model`: the environment, started in the planned-from state, is driven
+  by the MPC's planned controls, and the squared difference between the planned and the
+  real states is backpropagated through ``MPC(backward="implicit_gn")`` into the MLP).
 
 Both MPCs minimise the environment's own cost (the negative reward, with the angle
 wrapped) over a horizon of ``T`` steps plus the same terms as a terminal cost, with
@@ -40,6 +44,7 @@ import argparse
 import json
 import math
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -50,7 +55,7 @@ from torchslq import ILQR, MPC, Cost, Dynamics
 
 MAX_TORQUE = 2.0
 DT = 0.05
-CONTROLLERS = ("random", "mpc_analytic", "mpc_learned")
+CONTROLLERS = ("random", "mpc_analytic", "mpc_learned", "mpc_finetuned")
 
 
 def wrap(a: Tensor) -> Tensor:
@@ -246,6 +251,87 @@ def train_model(args, writer) -> tuple[MLPPendulumModel, dict]:
     return model, info
 
 
+def real_rollout(env, x0: Tensor, u: Tensor) -> Tensor:
+    """States ``(B, T+1, 2)`` of the environment started in ``x0`` (its ``state`` set
+    directly) under the open-loop controls ``u (B, T, 1)``."""
+    out = []
+    for i in range(x0.shape[0]):
+        env.reset(seed=0)
+        env.unwrapped.state = x0[i].numpy().copy()
+        xs = [x0[i]]
+        for t in range(u.shape[1]):
+            obs, *_ = env.step(u[i, t].numpy().astype(np.float32))
+            xs.append(obs_to_state(obs[None])[0])
+        out.append(torch.stack(xs))
+    return torch.stack(out)
+
+
+def finetune_model(model: MLPPendulumModel, args, writer) -> tuple[MLPPendulumModel, dict]:
+    """Fine-tune the learned model *through the MPC layer* on plan consistency.
+
+    For a batch of states, the MPC plans ``(x_hat, u_hat)`` with the learned model
+    (gradients through the plan); the environment is started in the same states and
+    driven open loop by ``u_hat``; the loss is the mean squared (angle-wrapped)
+    difference between the planned and the real states, so the model is corrected where
+    the planner takes it. ``backward="implicit_gn"``: with the exact Hessian, a plan at
+    which the Hessian of the Lagrangian is not positive definite makes the layer's
+    output (and every shared gradient) NaN (reported to the MPC layer's owner).
+    """
+    import copy
+
+    import gymnasium as gym
+
+    model = copy.deepcopy(model).requires_grad_(True)
+    mpc = MPC(
+        model,
+        gym_cost(),
+        args.horizon,
+        solver=ILQR(max_iter=args.max_iter, tol=args.tol, progress=False),
+        u_min=-MAX_TORQUE,
+        u_max=MAX_TORQUE,
+        backward="implicit_gn",
+        warm_start=False,
+        unconverged="zero",
+    )
+    env = gym.make("Pendulum-v1")
+    gen = torch.Generator().manual_seed(args.seed + 1)
+    opt = torch.optim.Adam(model.net.parameters(), lr=args.finetune_lr)
+    losses = []
+    t0 = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # unconverged plans: zero gradient
+        for ep in range(args.finetune_epochs):
+            xs = torch.stack(
+                [
+                    (torch.rand(args.finetune_batch, generator=gen, dtype=torch.float64) * 2 - 1)
+                    * math.pi,
+                    (torch.rand(args.finetune_batch, generator=gen, dtype=torch.float64) * 2 - 1)
+                    * 2.0,
+                ],
+                -1,
+            )
+            x, u = mpc(xs)
+            xr = real_rollout(env, xs, u.detach())
+            err = torch.stack([wrap(x[..., 0] - xr[..., 0]), x[..., 1] - xr[..., 1]], -1)
+            loss = (err**2).mean()
+            opt.zero_grad()
+            loss.backward()
+            opt.step()
+            losses.append(loss.item())
+            writer.add_scalar("finetune/plan_consistency_mse", loss.item(), ep)
+    env.close()
+    info = {
+        "epochs": args.finetune_epochs,
+        "batch": args.finetune_batch,
+        "loss_first": losses[0] if losses else None,
+        "loss_last": losses[-1] if losses else None,
+        "loss_first5_mean": float(np.mean(losses[:5])) if losses else None,
+        "loss_last5_mean": float(np.mean(losses[-5:])) if losses else None,
+        "time_s": time.perf_counter() - t0,
+    }
+    return model.requires_grad_(False), info
+
+
 def plot(results: dict, trajs: dict, seeds: list[int], path: Path) -> None:
     import matplotlib
 
@@ -307,6 +393,15 @@ def write_results(summary: dict, args, stem: Path) -> None:
             f"analytic model, which omits the speed clip: {mi['analytic_model_val_rmse_dtheta']:.2e}, "
             f"{mi['analytic_model_val_rmse_dthetadot']:.2e}).",
         ]
+    if summary.get("finetune"):
+        fi = summary["finetune"]
+        lines += [
+            "",
+            f"Fine-tuning through the MPC layer (`mpc_finetuned`): {fi['epochs']} Adam steps, "
+            f"batches of {fi['batch']} random states, backward='implicit_gn'; plan-consistency "
+            f"MSE {fi['loss_first5_mean']:.3e} (mean of the first 5 steps) -> "
+            f"{fi['loss_last5_mean']:.3e} (last 5) ({fi['time_s']:.1f} s).",
+        ]
     lines += [
         "",
         "Mean iLQR iterations per step can be below 1: once the pendulum is balanced, the "
@@ -336,6 +431,9 @@ def main(argv: list[str] | None = None) -> dict:
     ap.add_argument("--model-batch", type=int, default=256)
     ap.add_argument("--model-lr", type=float, default=3e-3)
     ap.add_argument("--seed", type=int, default=0, help="model training seed")
+    ap.add_argument("--finetune-epochs", type=int, default=30)
+    ap.add_argument("--finetune-batch", type=int, default=32)
+    ap.add_argument("--finetune-lr", type=float, default=1e-3)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--out", default="runs/mpc_gym_pendulum")
     ap.add_argument(
@@ -390,6 +488,18 @@ def main(argv: list[str] | None = None) -> dict:
                 flush=True,
             )
             mpc = make_mpc(model.requires_grad_(False), args.horizon, args.max_iter, args.tol)
+        elif name == "mpc_finetuned":
+            if "model" not in summary:
+                model, summary["model"] = train_model(args, writer)
+            tuned, finfo = finetune_model(model, args, writer)
+            summary["finetune"] = finfo
+            print(
+                f"fine-tuned through the MPC layer: plan-consistency MSE "
+                f"{finfo['loss_first5_mean']:.3e} (first 5 epochs) -> "
+                f"{finfo['loss_last5_mean']:.3e} (last 5) ({finfo['time_s']:.1f} s)",
+                flush=True,
+            )
+            mpc = make_mpc(tuned, args.horizon, args.max_iter, args.tol)
         ret, states, actions, wall, iters = run_episodes(name, seeds, args.steps, mpc)
         trajs[name] = states
         summary["controllers"][name] = {
