@@ -4,6 +4,7 @@ unconverged handling, warm start and validation."""
 
 from __future__ import annotations
 
+import math
 import warnings
 
 import pytest
@@ -11,6 +12,7 @@ import torch
 from torch import nn
 
 from torchslq import DDP, ILQR, MPC, SLQ, Cost, LearnedDynamics, QuadraticCost, Status, discretize
+from torchslq.mpc import implicit_solution
 from torchslq.systems import Pendulum
 
 DT, T = 0.05, 20
@@ -359,3 +361,44 @@ def test_shifted_warm_start_applies_the_previous_gains():
     expected_first = res.u[:, 1] + (K1 @ (x_off - x_pred).unsqueeze(-1))[..., 0]
     torch.testing.assert_close(guess[:, 0], expected_first, rtol=1e-12, atol=1e-12)
     assert float((guess[:, :-1] - res.u[:, 1:]).abs().max()) > 1e-3
+
+
+def test_indefinite_elements_get_zero_gradient_and_do_not_poison_the_batch():
+    """Elements stopped far from a minimum where the Hessian of the Lagrangian is not
+    positive definite keep the solver's values, get zero gradient, and the shared
+    parameters' gradient equals that of the other elements alone (no NaN)."""
+    kw = dict(dtype=torch.float64)
+
+    def build(goal):
+        cost = QuadraticCost(
+            0.05 * torch.eye(2, **kw),
+            0.005 * torch.eye(1, **kw),
+            Qf=100 * torch.eye(2, **kw),
+            x_ref=goal,
+        )
+        solver = ILQR(max_iter=3, tol=1e-8, progress=False)
+        return MPC(discretize(Pendulum(), 0.05), cost, 30, solver=solver, warm_start=False)
+
+    gen = torch.Generator().manual_seed(0)
+    x0 = (torch.rand(64, 2, generator=gen, **kw) * 2 - 1) * 3
+    goal = torch.tensor([math.pi, 0.0], **kw, requires_grad=True)
+    mpc = build(goal)
+    with torch.no_grad():
+        res = mpc(x0).result
+    _, _, lq_status = implicit_solution(mpc.problem, x0, res.x, res.u)
+    not_pd = lq_status == Status.NOT_POSITIVE_DEFINITE
+    assert 0 < int(not_pd.sum()) < 64
+    x0r = x0.clone().requires_grad_(True)
+    with pytest.warns(RuntimeWarning):
+        out = build(goal)(x0r)
+    assert torch.equal(out.x.detach(), out.result.x) and torch.isfinite(out.x).all()
+    (out.u.sum() + out.x.sum()).backward()
+    assert torch.isfinite(goal.grad).all() and torch.isfinite(x0r.grad).all()
+    assert float(x0r.grad[not_pd].abs().max()) == 0.0
+    assert float(x0r.grad[~not_pd].abs().max()) > 0.0
+    # the same gradient from the other elements alone
+    goal2 = goal.detach().clone().requires_grad_(True)
+    with pytest.warns(RuntimeWarning):
+        out2 = build(goal2)(x0[~not_pd])
+    (out2.u.sum() + out2.x.sum()).backward()
+    torch.testing.assert_close(goal.grad, goal2.grad, rtol=1e-9, atol=1e-12)

@@ -35,6 +35,7 @@ from torch import Tensor
 from ..dynamics.linearize import dynamics_vhp, linearize
 from ..lq.solve import lqr_solve
 from ..solvers.rollout import costate_gradient
+from ..status import Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -122,35 +123,55 @@ def implicit_solution(
     Returns:
         ``(x_out, u_out, lq_status)``: the same values as ``x``, ``u`` (exactly), with a
         backward pass giving ``dx*/dθ``, ``du*/dθ`` by one LQ solve; ``lq_status`` is
-        the LQ solve's per-element :class:`torchslq.Status` (``NOT_POSITIVE_DEFINITE``
-        when the Hessian is not positive definite on the constraint null space, i.e.
-        the point is not a strict local minimum and the derivative is not defined).
+        the LQ solve's per-element :class:`torchslq.Status`: ``NOT_POSITIVE_DEFINITE``
+        when the Hessian is not positive definite on the constraint null space (not a
+        strict local minimum: no derivative), ``NON_FINITE`` for a non-finite solution.
+        Those elements get zero gradient and never make other elements' or shared
+        parameters' gradients non-finite.
     """
     T = problem.horizon
     xs, us = x.detach(), u.detach()
+    # a non-finite solution has no derivative: a finite stand-in (zeros) keeps NaN out of
+    # the LQ data, whose adjoint terms are summed into shared parameters
+    finite = torch.isfinite(xs).flatten(1).all(1) & torch.isfinite(us).flatten(1).all(1)
+    xl = torch.where(finite.view(-1, 1, 1), xs, torch.zeros_like(xs))
+    ul = torch.where(finite.view(-1, 1, 1), us, torch.zeros_like(us))
     f = problem.transition
     with torch.enable_grad():
-        A, Bm = linearize(problem.dynamics, xs[:, :T], us, create_graph=True)
-        Q, R, S, _, _ = lagrangian_hessian(problem, xs, us, hessian, A, Bm)
-        lx, lu = cost_gradients(problem.cost, xs, us)
-        u_free = us
+        A, Bm = linearize(problem.dynamics, xl[:, :T], ul, create_graph=True)
+        Q, R, S, _, _ = lagrangian_hessian(problem, xl, ul, hessian, A, Bm)
+        lx, lu = cost_gradients(problem.cost, xl, ul)
+        u_free = ul
         if active is not None:
             keep = (~active).to(xs.dtype)  # (B, T, m)
             Bm = Bm * keep.unsqueeze(-2)
             R = R * keep.unsqueeze(-1) * keep.unsqueeze(-2) + torch.diag_embed(1.0 - keep)
             S = S * keep.unsqueeze(-1)
-            u_free = us * keep
-        fx = f(xs[:, :T], us)
-        c = fx - (A @ xs[:, :T].unsqueeze(-1))[..., 0] - (Bm @ u_free.unsqueeze(-1))[..., 0]
-        Sx = (S @ xs[:, :T].unsqueeze(-1))[..., 0]
+            u_free = ul * keep
+        fx = f(xl[:, :T], ul)
+        c = fx - (A @ xl[:, :T].unsqueeze(-1))[..., 0] - (Bm @ u_free.unsqueeze(-1))[..., 0]
+        Sx = (S @ xl[:, :T].unsqueeze(-1))[..., 0]
         StU = (S.mT @ u_free.unsqueeze(-1))[..., 0]
-        q = lx - (Q @ xs.unsqueeze(-1))[..., 0]
+        q = lx - (Q @ xl.unsqueeze(-1))[..., 0]
         q = torch.cat([q[:, :T] - StU, q[:, T:]], dim=1)
         r = lu - Sx - (R @ u_free.unsqueeze(-1))[..., 0]
         if active is not None:
             r = r * keep
         sol = lqr_solve(A, Bm, Q, R, x0, q, r, S, c, validate=False)
-    # exact values of the solver, derivatives of the LQ fixed point
-    x_out = xs + (sol.x - sol.x.detach())
-    u_out = us + (sol.u - sol.u.detach())
-    return x_out, u_out, sol.status
+        status = torch.where(finite, sol.status, torch.full_like(sol.status, Status.NON_FINITE))
+        failed = sol.status != Status.CONVERGED
+        if bool(failed.any()):
+            # no derivative where the Hessian is not positive definite on the null space
+            # (not a strict local minimum): those elements get a positive definite stand-in
+            # so that their (zero) adjoint stays finite, and zero gradient below
+            fm = failed.view(-1, 1, 1, 1)
+            n, m = Q.shape[-1], R.shape[-1]
+            Q = torch.where(fm, torch.eye(n, dtype=Q.dtype, device=Q.device), Q)
+            R = torch.where(fm, torch.eye(m, dtype=R.dtype, device=R.device), R)
+            S = torch.where(fm, torch.zeros_like(S), S)
+            sol = lqr_solve(A, Bm, Q, R, x0, q, r, S, c, validate=False)
+    # exact values of the solver, derivatives of the LQ fixed point (none where undefined)
+    good = (finite & ~failed).view(-1, 1, 1)
+    x_out = xs + torch.where(good, sol.x - sol.x.detach(), torch.zeros_like(xs))
+    u_out = us + torch.where(good, sol.u - sol.u.detach(), torch.zeros_like(us))
+    return x_out, u_out, status

@@ -324,12 +324,13 @@ class MPC(nn.Module):
             x, u, lq_status = implicit_solution(
                 self.problem, x0, result.x, result.u, hessian=hessian, active=active
             )
-            not_pd = lq_status != Status.CONVERGED
+            not_pd = (lq_status == Status.NOT_POSITIVE_DEFINITE) & ~bad
             if bool(not_pd.any()):
-                status = torch.where(not_pd & ~bad, lq_status, status)
+                status = torch.where(not_pd, lq_status, status)
                 msg = (
                     f"MPC: the Hessian of the Lagrangian is not positive definite for "
-                    f"{int(not_pd.sum())} solves (not a strict local minimum)"
+                    f"{int(not_pd.sum())} solves (not a strict local minimum; their "
+                    "gradient is zero)"
                 )
                 if self.unconverged == "raise":
                     raise RuntimeError(msg)
