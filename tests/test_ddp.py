@@ -160,3 +160,17 @@ def test_ddp_batch_equals_singles(near_optimum):
 def test_ddp_option_validation():
     with pytest.raises(ValueError, match="second_order"):
         ts.DDP(second_order="hessian")
+
+
+def test_second_order_failure_falls_back_to_the_ilqr_step():
+    """From this cart-pole start the value-mode second-order terms make the backward pass
+    non-finite at iteration 2 for every mu (the value function overflows); the element
+    then takes the iLQR step instead of stopping as non-finite (found in the 10k
+    distillation example), and DDP converges to a stationary point."""
+    from torchslq.tasks import cartpole_swingup
+
+    problem, _ = cartpole_swingup(1)
+    x0 = torch.tensor([[0, -0.03212286533913405, 0, 0.0]], dtype=F64)
+    res = ts.DDP(max_iter=300, tol=1e-6, progress=False).solve(problem, x0)
+    assert res.status_names() == ["converged"]
+    assert torch.isfinite(res.u).all() and float(res.grad_norm[0]) < 1e-6

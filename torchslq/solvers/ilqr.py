@@ -30,6 +30,7 @@ The solve loop (batching, per-element masks and status, history, logging) is SLQ
 
 from __future__ import annotations
 
+from dataclasses import fields
 from typing import TYPE_CHECKING, Any
 
 import torch
@@ -37,7 +38,7 @@ from torch import Tensor
 
 from ..costs.general import project_psd
 from ..dynamics.linearize import linearize
-from ..lq.riccati import StageHook, riccati_backward
+from ..lq.riccati import RiccatiFactors, StageHook, riccati_backward
 from .line_search import TrialRecorder, armijo_search
 from .rollout import costate_gradient, rollout_closed_loop
 from .slq import SLQ
@@ -58,6 +59,19 @@ def active_bounds(u: Tensor, lo: Tensor, hi: Tensor, rtol: float | None = None) 
     out = torch.zeros(u.shape, dtype=torch.int8, device=u.device)
     out = torch.where(at_lo, torch.full_like(out, -1), out)
     return torch.where(at_hi & ~at_lo, torch.ones_like(out), out)
+
+
+def _merge_factors(mask: Tensor, a: RiccatiFactors, b: RiccatiFactors) -> RiccatiFactors:
+    """Per element: ``a``'s factors where ``mask`` (``(B,)`` bool), else ``b``'s."""
+
+    def pick(ta: Tensor | None, tb: Tensor | None) -> Tensor | None:
+        if ta is None or tb is None:
+            return tb
+        return torch.where(mask.view(-1, *([1] * (ta.ndim - 1))), ta, tb)
+
+    return RiccatiFactors(
+        **{f.name: pick(getattr(a, f.name), getattr(b, f.name)) for f in fields(RiccatiFactors)}
+    )
 
 
 class ILQR(SLQ):
@@ -216,7 +230,8 @@ class ILQR(SLQ):
             self._begin(x[:, 0])
         lo, hi = getattr(self, "_lo", None), getattr(self, "_hi", None)
         u_bounds = None if lo is None else (lo - u, hi - u)  # bounds on δu at ū = u
-        for _ in range(8):
+
+        def backward_pass(stage_hook):
             fac = riccati_backward(
                 A,
                 B,
@@ -226,18 +241,32 @@ class ILQR(SLQ):
                 e.lu,
                 e.lux,
                 reg=self._mu,
-                stage_hook=hook,
+                stage_hook=stage_hook,
                 u_bounds=u_bounds,
             )
+            # a factorisation can succeed and still give non-finite gains (DDP's
+            # second-order terms can make the value function overflow): a failure too
+            return fac, fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
+
+        for _ in range(8):
+            fac, bad = backward_pass(hook)
             # retry only elements still iterating whose mu may still grow: a frozen
             # (e.g. non-finite) element must not make the others repeat their pass
-            retry = fac.failed & self._running & (self._mu <= self.mu_max)
+            retry = bad & self._running & (self._mu <= self.mu_max)
             if not bool(retry.any()):
                 break
             self._increase_mu(retry)
+        if hook is not None and bool((bad & self._running).any()):
+            # the second-order terms made the pass fail for good (regularising Quu does
+            # not bound an indefinite Qxx): those elements take the iLQR step instead
+            fac_gn, bad_gn = backward_pass(None)
+            fac, bad = (
+                _merge_factors(bad & self._running, fac_gn, fac),
+                torch.where(bad & self._running, bad_gn, bad),
+            )
         # an element that needed mu > mu_max to factorise stops (status
         # not_positive_definite, set by the solve loop from ``failed``)
-        failed = fac.failed | (self._mu > self.mu_max)
+        failed = bad | (self._mu > self.mu_max)
         k = fac.k
         if fac.dV is None:
             # k'Quu k = |L'k|^2 with L the Cholesky factor of the (regularised) Quu
