@@ -7,6 +7,7 @@ save it with ``fig.savefig(path)``.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from pathlib import Path
 
 import matplotlib
 
@@ -97,3 +98,14 @@ def convergence_figure(
         ax.set_title(title)
     fig.tight_layout()
     return fig
+
+
+def save_figure(fig: Figure, path: str | Path) -> Path:
+    """``tight_layout``, create the parent folder, save at 120 dpi and close ``fig``;
+    returns the path."""
+    fig.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+    return path

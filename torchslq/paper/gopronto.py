@@ -37,6 +37,7 @@ from torch import Tensor
 from ..costs import QuadraticCost
 from ..dynamics import DiscretizedDynamics, linearize
 from ..lq.dare import dare
+from ..plotting import save_figure
 from ..problem import Problem
 from ..systems import PendulumCartTrain, PendulumCartTrainRK4
 
@@ -444,12 +445,7 @@ def plot_grad_norms(
     ax.grid(alpha=0.3, which="both")
     ax.legend()
     ax.set_title(title, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def reproduce_figure5(max_iter: int = 50, tol: float = 1e-8) -> list[dict[str, Any]]:

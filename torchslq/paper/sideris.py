@@ -33,6 +33,7 @@ import torch
 from torch import Tensor
 
 from ..costs import QuadraticCost
+from ..plotting import save_figure
 from ..problem import Problem
 from ..solvers import SLQ, GradientMethod, SolverResult
 from ..systems import DragVehicle, Hopper
@@ -473,12 +474,7 @@ def plot_drag_solution(
     if beta is not None:
         ttl += f", beta = {beta:g}"
     fig.suptitle(ttl, fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def relative_cost_histories(
@@ -531,12 +527,7 @@ def plot_relative_cost(
     ax.grid(alpha=0.3, which="both")
     ax.legend()
     ax.set_title(title or "Relative cost (Sideris & Bobrow Fig. 2)", fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 def plot_hopper(
@@ -568,12 +559,7 @@ def plot_hopper(
     axes[0, 0].legend(fontsize=8)
     axes[1, 0].set_ylabel("control u = dyp/dt (in/s)")
     fig.suptitle("Gas-actuated hopper (Sideris & Bobrow Fig. 3)", fontsize=10)
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path)
 
 
 # ---------------------------------------------------------------------------- reports
