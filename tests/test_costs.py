@@ -232,3 +232,32 @@ def test_horizon_mismatch_names_the_argument():
         QuadraticCost(Q, R)(x[0], u[0])
     with pytest.raises(ValueError, match="expected x"):
         QuadraticCost(Q, R)(x[:, :-1], u)
+
+
+@pytest.mark.parametrize("diagonal", [True, False])
+def test_value_is_bitwise_batch_invariant_and_trials_broadcast(diagonal):
+    """Every row gets the same bits alone, in the batch, and with extra leading (trial)
+    dims; shared diagonal weights take the elementwise path (same value as the dense
+    weights up to rounding)."""
+    g = _gen(40)
+    Qm = torch.diag(torch.rand(N, dtype=DT, generator=g) + 0.1) if diagonal else spd(k=N, seed=41)
+    kw = dict(
+        Q=Qm, R=spd(k=M, seed=42), Qf=spd(k=N, seed=43), x_ref=torch.randn(N, dtype=DT, generator=g)
+    )
+    cost = QuadraticCost(**kw)
+    x = torch.randn(6, B, T + 1, N, dtype=DT, generator=g)
+    u = torch.randn(6, B, T, M, dtype=DT, generator=g)
+    J = cost(x, u)
+    assert J.shape == (6, B)
+    for a, b in ((0, 0), (5, B - 1)):
+        assert torch.equal(cost(x[a, b : b + 1], u[a, b : b + 1])[0], J[a, b])
+        assert torch.equal(cost(x[a], u[a])[b], J[a, b])
+    torch.testing.assert_close(J[0], loop_cost(x[0], u[0], **kw), atol=1e-12, rtol=1e-12)
+    assert cost._diagonal("Q") is diagonal
+    # an in-place change of the weight is seen (the cache is keyed on the version)
+    with torch.no_grad():
+        cost.Q[0, 1] = cost.Q[1, 0] = 0.01
+    assert cost._diagonal("Q") is False
+    torch.testing.assert_close(
+        cost(x[0], u[0]), loop_cost(x[0], u[0], **{**kw, "Q": cost.Q}), atol=1e-12, rtol=1e-12
+    )

@@ -164,16 +164,36 @@ class QuadraticCost(nn.Module):
         batch dim of per-element weights aligns with the dim just before time.
         """
         T = self._check_traj(x, u)
-        Q, R = self.weights(T)
+        Qs = self._time_varying(self.Q, T, "Q", 2)  # (Bq, T or 1, n, n)
+        QT = self.Qf if self.Qf is not None else Qs[:, -1]  # (n, n) or (Bq, n, n)
+        Rs = self._time_varying(self.R, T, "R", 2)
         xr, ur = self.references(T, x)
         dx, du = x - xr, u - ur
         # per-row products then a row-wise sum over time: unlike einsum (which may turn
         # into a batched GEMM whose blocking depends on B), this gives every element the
         # same bits whatever the batch it is evaluated in; line searches near the optimum
-        # compare costs at that level
-        Jx = (dx * (Q @ dx.unsqueeze(-1)).squeeze(-1)).sum(-1)
-        Ju = (du * (R @ du.unsqueeze(-1)).squeeze(-1)).sum(-1)
-        return 0.5 * (Jx.sum(-1) + Ju.sum(-1))
+        # compare costs at that level. Diagonal weights are applied elementwise: the same
+        # bits as the matrix product (whose other terms are exact zeros), without
+        # broadcasting the weights into every leading dim (matmul would copy Q per trial
+        # of a line search: gigabytes at n = 400)
+        Js = _quadratic_form(Qs, dx[..., :T, :], self._diagonal("Q")).sum(-1)
+        Jf = _quadratic_form(
+            QT, dx[..., T, :], self._diagonal("Qf") if self.Qf is not None else self._diagonal("Q")
+        )
+        Ju = _quadratic_form(Rs, du, self._diagonal("R")).sum(-1)
+        return 0.5 * (Js + Jf + Ju)
+
+    def _diagonal(self, name: str) -> bool:
+        """Whether weight ``name`` is diagonal; one host sync per new value (cached on
+        the tensor's identity and version, so in-place parameter updates re-check)."""
+        W = getattr(self, name)
+        key = (id(W), W._version)
+        cache = self.__dict__.setdefault("_diagonal_cache", {})
+        if cache.get(name, (None, None))[0] != key:
+            Wd = W.detach()
+            off = Wd - torch.diag_embed(Wd.diagonal(dim1=-2, dim2=-1))
+            cache[name] = (key, not bool(off.any()))
+        return cache[name][1]
 
     def quadratize(self, x: Tensor, u: Tensor) -> CostExpansion:
         """Exact second-order expansion (the cost is quadratic): gradients
@@ -184,6 +204,17 @@ class QuadraticCost(nn.Module):
         lx = (Q @ (x - xr).unsqueeze(-1)).squeeze(-1)
         lu = (R @ (u - ur).unsqueeze(-1)).squeeze(-1)
         return CostExpansion(lxx=Q, luu=R, lux=None, lx=lx, lu=lu)
+
+
+def _quadratic_form(W: Tensor, d: Tensor, diagonal: bool) -> Tensor:
+    """``d' W d`` per row (``d (..., k)``, ``W (..., k, k)`` broadcasting), ``(...)``."""
+    if diagonal:
+        return (d * (W.diagonal(dim1=-2, dim2=-1) * d)).sum(-1)
+    if W.ndim == 2:
+        # a shared matrix: matmul would fold the rows into one GEMM, whose rounding can
+        # depend on how many rows there are; a row-wise product cannot
+        return (d * (W * d.unsqueeze(-2)).sum(-1)).sum(-1)
+    return (d * (W @ d.unsqueeze(-1)).squeeze(-1)).sum(-1)
 
 
 def _as_tensor(name: str, value, like: Tensor | None = None) -> Tensor:
