@@ -43,11 +43,12 @@ Variants (``variant=``):
   ``c~_k = c_k + k/(k+3) (c_k - c_{k-1})`` (projected, linearised there), then
   ``c_{k+1} = c~_k - gamma_k g~_k``.
 
-Step sizes (``step=``): ``"armijo"`` backtracking (Assumption 3.1), all trial steps
-evaluated at once as an extra batch dimension (:func:`torchslq.solvers.armijo_search`);
+Step sizes (``step=``): ``"armijo"`` backtracking (Assumption 3.1), trial steps
+evaluated as an extra batch dimension (:func:`torchslq.solvers.armijo_search`: the 4
+largest first, the others only if some element accepted none of them);
 the first trial of each element is ``step0`` at its first iteration and
-``armijo_growth`` times its last accepted step afterwards (trials run in chunks for large
-problems, ``armijo_chunk``). For heavy-ball the test is
+``armijo_growth`` times its last accepted step afterwards (``armijo_chunk`` sets the
+trials per batched rollout). For heavy-ball the test is
 ``J(c + m - s g) <= J(c) - c1 s ||g||^2`` with the momentum ``m`` kept fixed; for
 Nesterov it is taken at the extrapolated curve (``J(c~ - s g~) <= J(c~) - c1 s ||g~||^2``).
 With Armijo, a heavy-ball / Nesterov step that ends above ``J(c_k)`` is rejected, replaced
@@ -321,8 +322,8 @@ class GoPRONTO:
             to 95% of the bound).
         armijo_c1, armijo_beta, max_backtracks: Armijo constants (trials
             ``s0 beta^j``, ``j < max_backtracks``); armijo_chunk: trials per batched
-            rollout (None: all at once for small problems, 4 at a time for large ones,
-            see :meth:`_armijo_chunk`); step0: the first trial step;
+            rollout (None: the 4 largest first, then the rest at once for small problems
+            or 4 at a time for large ones, see :meth:`_armijo_passes`); step0: the first trial step;
             armijo_growth: later first trials are this times the last accepted step.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: tqdm bar for long solves.
@@ -935,14 +936,16 @@ class GoPRONTO:
         # the open-loop start, or whose LQ solve failed, get theirs at iteration 0
         return alpha, u.clone(), x, uu, K, ~(failed | bad)
 
-    def _armijo_chunk(self, x0: Tensor, d: dict) -> int:
-        """Armijo trials per batched rollout: ``armijo_chunk``, or with None all of them
-        for small problems and 4 at a time once a trial rollout is large (``B T n``
-        above 2e5 entries), where the rollouts, not the Python overhead, dominate."""
+    def _armijo_passes(self, d: dict) -> tuple[int, int | None]:
+        """``(first_trials, pass_size)`` of :func:`armijo_search`: ``armijo_chunk`` at a
+        time when set; by default the 4 largest trials first (the first trial grows
+        from the last accepted step, so one of them is usually accepted), then the rest
+        at once for small problems and 4 at a time once a trial rollout is large
+        (``B T n`` above 2e5 entries), where the rollouts dominate."""
         o = self.options
         if o.armijo_chunk is not None:
-            return o.armijo_chunk
-        return o.max_backtracks if d["base_a"].numel() <= 200_000 else 4
+            return o.armijo_chunk, o.armijo_chunk
+        return 4, (None if d["base_a"].numel() <= 200_000 else 4)
 
     def _first_trial(self, gamma_prev: Tensor) -> Tensor:
         """First Armijo trial per element: ``armijo_growth`` times the last accepted step
@@ -987,7 +990,7 @@ class GoPRONTO:
             def ev_scaled(a: Tensor) -> Tensor:
                 return evaluate(a * scale)
 
-            chunk = self._armijo_chunk(x0, d)
+            first_trials, pass_size = self._armijo_passes(d)
             a, Jnew, ok = armijo_search(
                 ev_scaled,
                 d["ref"],
@@ -996,8 +999,8 @@ class GoPRONTO:
                 beta=o.armijo_beta,
                 max_backtracks=o.max_backtracks,
                 roundoff=8.0,
-                first_trials=chunk,
-                pass_size=chunk,
+                first_trials=first_trials,
+                pass_size=pass_size,
                 active=s["running"],
             )
             gamma = a * scale
