@@ -222,8 +222,12 @@ class MPC(nn.Module):
 
         warm = {"u": shift(u)}
         K = getattr(result, "K", None)
-        if K is not None and K.shape[:2] == u.shape[:2] and bool(torch.isfinite(K).all()):
-            warm.update(x=shift(result.x.detach()), K=shift(K.detach()))
+        if K is not None and K.shape[:2] == u.shape[:2]:
+            # an element without valid gains (e.g. a failed solve) gets the plain shift
+            K = K.detach()
+            valid = torch.isfinite(K).flatten(1).all(1).view(-1, 1, 1, 1)
+            x = torch.nan_to_num(result.x.detach())
+            warm.update(x=shift(x), K=shift(torch.where(valid, K, torch.zeros_like(K))))
         self._warm = warm
 
     def _needs_grad(self, x0: Tensor) -> bool:
