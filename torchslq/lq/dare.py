@@ -29,6 +29,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
+
 __all__ = ["dare", "dare_gain", "dare_residual"]
 
 
@@ -66,7 +68,7 @@ def dare(
         )
     if tol is None:
         tol = 1e-13 if A.dtype == torch.float64 else 1e-6
-    lead = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2], Q.shape[:-2], R.shape[:-2])
+    lead = broadcast_shapes(A.shape[:-2], B.shape[:-2], Q.shape[:-2], R.shape[:-2])
     Ak = A.expand(*lead, n, n)
     Bx = B.expand(*lead, n, m)
     G = Bx @ torch.linalg.solve(R.expand(*lead, m, m), Bx.mT)

@@ -111,6 +111,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from ..costs.barrier import box_log_barrier, box_log_barrier_derivatives
 from ..costs.quadratic import CostExpansion
 from ..dynamics.linearize import linearize
@@ -444,7 +445,7 @@ class GoPRONTO:
         if Qs.ndim == 4 and Qf.ndim == 3:
             Qf = Qf.unsqueeze(0)
         if Qs.ndim == 4:
-            bq = torch.broadcast_shapes(Qs.shape[:1], Qf.shape[:1])
+            bq = broadcast_shapes(Qs.shape[:1], Qf.shape[:1])
             Qs, Qf = Qs.expand(*bq, *Qs.shape[1:]), Qf.expand(*bq, *Qf.shape[1:])
         Q = torch.cat([Qs, Qf], dim=-3)
         R = as_mat("R_reg", o.R_reg, m, e.luu)

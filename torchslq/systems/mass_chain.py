@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from ..dynamics import ContinuousDynamics
 from ._common import get_param, set_param
 
@@ -93,7 +94,7 @@ class MassChain(ContinuousDynamics):
         Ap = torch.diag_embed(-(ds + ds_next))
         if N > 1:
             Ap = Ap + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
-        lead = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1], Ap.shape[:-2])
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1], Ap.shape[:-2])
         ones = x.new_ones(*lead, N)
         Av = torch.diag_embed(-c * ones / m)
         eye = torch.diag_embed(ones)

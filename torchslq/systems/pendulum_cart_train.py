@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from ..dynamics import ContinuousDynamics, DiscretizedDynamics
 from ._common import get_param, set_param
 
@@ -150,7 +151,7 @@ class PendulumCartTrain(ContinuousDynamics):
         """
         thdd, wdd, aux = self._accel(x, u)
         Mp, l, fp, Mc, ks, fc, g, th, thd, w, wd, s, c, r1, r2, D = aux
-        lead = torch.broadcast_shapes(thdd.shape, wdd.shape)
+        lead = broadcast_shapes(thdd.shape, wdd.shape)
         dD = Mp * Mp * l * l * c * s  # dD/dth
         dr2_dth = -0.5 * Mp * l * c * thd * thd
         dr2_dthd = -Mp * l * s * thd
