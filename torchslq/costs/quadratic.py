@@ -96,6 +96,7 @@ class QuadraticCost(nn.Module):
         if Qf is not None:
             _check_symmetric("Qf", Qf, psd=True)
         self.state_dim, self.control_dim = n, m
+        self._diagonal_cache: dict[str, tuple] = {}  # name -> ((id, version), diagonal?)
         _register(self, "Q", Q)
         _register(self, "R", R)
         _register(self, "Qf", Qf)
@@ -188,7 +189,7 @@ class QuadraticCost(nn.Module):
         the tensor's identity and version, so in-place parameter updates re-check)."""
         W = getattr(self, name)
         key = (id(W), W._version)
-        cache = self.__dict__.setdefault("_diagonal_cache", {})
+        cache = self._diagonal_cache
         if cache.get(name, (None, None))[0] != key:
             Wd = W.detach()
             off = Wd - torch.diag_embed(Wd.diagonal(dim1=-2, dim2=-1))

@@ -113,6 +113,7 @@ def armijo_search(
             sizes.append(rest if pass_size is None else min(pass_size, rest))
             rest -= sizes[-1]
     Js, oks = [], []
+    found = torch.zeros_like(J0, dtype=torch.bool)
     for g in torch.split(grid, sizes):
         alphas = g.unsqueeze(-1).expand(-1, J0.shape[0])
         J = _finite(evaluate(alphas))
@@ -121,10 +122,9 @@ def armijo_search(
             model = model + 0.5 * alphas * alphas * curvature
         Js.append(J)
         oks.append(J <= J0 + c1 * model)
+        found = found | oks[-1].any(dim=0)
         if len(Js) < len(sizes):
-            done = torch.stack([o.any(dim=0) for o in oks]).any(dim=0)
-            if active is not None:
-                done = done | ~active
+            done = found if active is None else found | ~active
             if bool(done.all()):
                 break  # every element accepted a step among the largest ones
     J, ok = torch.cat(Js, dim=0), torch.cat(oks, dim=0)
