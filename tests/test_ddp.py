@@ -174,3 +174,30 @@ def test_second_order_failure_falls_back_to_the_ilqr_step():
     res = ts.DDP(max_iter=300, tol=1e-6, progress=False).solve(problem, x0)
     assert res.status_names() == ["converged"]
     assert torch.isfinite(res.u).all() and float(res.grad_norm[0]) < 1e-6
+
+
+def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
+    """Far from the optimum DDP's second-order terms make some ``Quu`` indefinite; the
+    pass is then repeated with a larger ``mu`` for those elements only (fewer rows per
+    retry, measured by wrapping the kernel), and the batch still equals one-by-one
+    solves (so the rows put back are the right ones)."""
+    import torchslq.solvers.ilqr as ilqr_mod
+    from torchslq.tasks import cartpole_swingup
+
+    problem, x0 = cartpole_swingup(4, seed=3)
+    rows_per_pass: list[int] = []
+    kernel = ilqr_mod.riccati_backward
+
+    def counting(A, *args, **kwargs):
+        rows_per_pass.append(A.shape[0])
+        return kernel(A, *args, **kwargs)
+
+    monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
+    solver = ts.DDP(progress=False, max_iter=15, tol=1e-8)
+    batch = solver.solve(problem, x0)
+    assert any(0 < r < x0.shape[0] for r in rows_per_pass), rows_per_pass
+    monkeypatch.undo()
+    for b in range(x0.shape[0]):
+        single = solver.solve(problem, x0[b])
+        torch.testing.assert_close(single.u, batch.u[b], rtol=1e-9, atol=1e-11)
+        assert int(single.iterations) == int(batch.iterations[b])

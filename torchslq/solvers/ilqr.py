@@ -74,6 +74,22 @@ def _merge_factors(mask: Tensor, a: RiccatiFactors, b: RiccatiFactors) -> Riccat
     )
 
 
+def _scatter_factors(full: RiccatiFactors, idx: Tensor, part: RiccatiFactors) -> RiccatiFactors:
+    """``full`` with rows ``idx`` replaced by ``part`` (a pass repeated for ``idx`` only)."""
+
+    def put(ta: Tensor | None, tb: Tensor | None) -> Tensor | None:
+        if ta is None or tb is None:
+            return ta
+        return ta.index_copy(0, idx, tb.expand(idx.shape[0], *ta.shape[1:]))
+
+    return RiccatiFactors(
+        **{
+            f.name: put(getattr(full, f.name), getattr(part, f.name))
+            for f in fields(RiccatiFactors)
+        }
+    )
+
+
 class ILQR(SLQ):
     """Iterative LQR for general costs (any cost with ``quadratize``).
 
@@ -231,31 +247,49 @@ class ILQR(SLQ):
         lo, hi = getattr(self, "_lo", None), getattr(self, "_hi", None)
         u_bounds = None if lo is None else (lo - u, hi - u)  # bounds on δu at ū = u
 
-        def backward_pass(stage_hook):
+        def backward_pass(stage_hook, idx: Tensor | None = None):
+            """The Riccati pass for the whole batch, or for the rows ``idx`` only (a
+            retry: the pass costs per element, so only the failing ones repeat it)."""
+
+            def rows(t: Tensor | None, tail: int) -> Tensor | None:
+                if idx is None or t is None or t.ndim <= tail or t.shape[0] == 1:
+                    return t  # no batch dim, or one shared by every element
+                return t.index_select(0, idx)
+
+            bounds = None if u_bounds is None else tuple(rows(b, 2) for b in u_bounds)
             fac = riccati_backward(
-                A,
-                B,
-                e.lxx,
-                e.luu,
-                e.lx,
-                e.lu,
-                e.lux,
-                reg=self._mu,
-                stage_hook=stage_hook,
-                u_bounds=u_bounds,
+                rows(A, 3),
+                rows(B, 3),
+                rows(e.lxx, 3),
+                rows(e.luu, 3),
+                rows(e.lx, 2),
+                rows(e.lu, 2),
+                rows(e.lux, 3),
+                reg=rows(self._mu, 0),
+                stage_hook=stage_hook
+                if idx is None or stage_hook is None
+                else stage_hook.subset(idx),
+                u_bounds=bounds,
             )
             # a factorisation can succeed and still give non-finite gains (DDP's
             # second-order terms can make the value function overflow): a failure too
             return fac, fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
 
+        fac, bad = backward_pass(hook)
         for _ in range(8):
-            fac, bad = backward_pass(hook)
             # retry only elements still iterating whose mu may still grow: a frozen
             # (e.g. non-finite) element must not make the others repeat their pass
             retry = bad & self._running & (self._mu <= self.mu_max)
             if not bool(retry.any()):
                 break
             self._increase_mu(retry)
+            if hook is not None and not hasattr(hook, "subset"):
+                fac, bad = backward_pass(hook)  # a hook that cannot be restricted
+                continue
+            idx = retry.nonzero().squeeze(1)
+            fac_r, bad_r = backward_pass(hook, idx)
+            fac = _scatter_factors(fac, idx, fac_r)
+            bad = bad.index_copy(0, idx, bad_r)
         if hook is not None and bool((bad & self._running).any()):
             # the second-order terms made the pass fail for good (regularising Quu does
             # not bound an indefinite Qxx): those elements take the iLQR step instead
