@@ -511,6 +511,12 @@ def bench_cartpole(args, rows):
 
 def bench_unicycle(args, rows):
     T = 20
+    # warm-up on this model (first-call costs of torch.func transforms for a new module),
+    # as main() does for the cart-pole
+    p, x = unicycle_problem(2, args.seed + 1, T)
+    for name, mk in torchslq_solvers(3).items():
+        if "SLQ" not in name:
+            mk().solve(p, x)
     for B in args.batches:
         problem, x0 = unicycle_problem(B, args.seed, T)
         x0n = x0.numpy()

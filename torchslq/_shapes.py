@@ -17,7 +17,11 @@ def broadcast_shapes(*shapes: Sequence[int]) -> torch.Size:
     and measured 80-900 us a call, which added up in the per-time-step loops (box QP,
     Riccati set-up, line-search cost evaluations).
     """
-    ndim = max((len(s) for s in shapes), default=0)
+    if torch.compiler.is_compiling():  # traced code: the symbolic version is the right one
+        return torch.broadcast_shapes(*shapes)
+    ndim = 0
+    for shape in shapes:
+        ndim = max(ndim, len(shape))
     out = [1] * ndim
     for shape in shapes:
         offset = ndim - len(shape)
