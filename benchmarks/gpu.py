@@ -244,6 +244,7 @@ def bench_cartpole(args, meta, save):
                     ref = cost
                 row["_cost"] = cost
                 rows.append(row)
+                save([{k: v for k, v in r.items() if k != "_cost"} for r in rows])
                 print(f"  cartpole B={B:<5d} {sname:5s} {dev_name:4s} {dtype_name} "
                       f"{t:8.2f} s iters {row['iters_mean']:.1f}/{row['iters_max']} "
                       f"converged {row['converged']}/{B}", flush=True)  # fmt: skip
@@ -286,6 +287,24 @@ def cartpole_markdown(rows, args) -> str:
 
 
 # ---------------------------------------------------------------------------- (c) MPC layer
+def add_speedups(rows: list[dict]) -> None:
+    """fwd+bwd speedup of every row over torchslq on the CPU, 1 thread, same dtype."""
+    for row in rows:
+        base = next(
+            (
+                r
+                for r in rows
+                if r["method"] == "torchslq implicit" and r["device"] == "cpu"
+                and r["threads"] == 1 and r["dtype"] == row["dtype"]
+            ),
+            None,
+        )  # fmt: skip
+        if base is not None:
+            row["fwd+bwd speedup vs torchslq cpu 1 thr"] = (
+                base["forward_s"] + base["backward_s"]
+            ) / (row["forward_s"] + row["backward_s"])
+
+
 def bench_mpc(args, meta, save):
     import mpc_layer as ml
 
@@ -427,25 +446,12 @@ def bench_mpc(args, meta, save):
             "grad_rel_diff_vs_ref": float((out["grad"] - ref["grad"]).norm() / ref["grad"].norm()),
         }  # fmt: skip
         rows.append(row)
+        add_speedups(rows)
         print(f"  mpc {method:22s} {dev_name:4s} thr={thr} {dtype_name} fwd {row['forward_s']:.2f} s "
               f"bwd {row['backward_s']:.2f} s dx {row['max_abs_dx_vs_ref']:.1e} "
               f"grad {row['grad_rel_diff_vs_ref']:.1e}", flush=True)  # fmt: skip
         save(rows)
     torch.set_num_threads(args.threads)
-    for row in rows:
-        base = next(
-            (
-                r
-                for r in rows
-                if r["method"] == "torchslq implicit" and r["device"] == "cpu"
-                and r["threads"] == 1 and r["dtype"] == row["dtype"]
-            ),
-            None,
-        )  # fmt: skip
-        if base is not None:
-            row["fwd+bwd speedup vs torchslq cpu 1 thr"] = (
-                base["forward_s"] + base["backward_s"]
-            ) / (row["forward_s"] + row["backward_s"])
     save(rows)
     return rows
 
