@@ -547,3 +547,45 @@ def test_option_validation():
     s = ILQR()
     assert s.options.rollout == "closed_loop" and s.options.line_search == "armijo"
     assert s.mu_init == 0.0 and s.hessian_floor is None
+
+
+def test_float32_solve_at_its_precision_limit_stops_as_stalled():
+    import torchslq as ts
+
+    """In float32 a gradient tolerance of 1e-4 is below what some elements' float32
+    gradients can resolve: their line searches keep accepting noise-level steps. With the
+    stall rule they stop early with status ``stalled`` (not converged) at the float64
+    optimum to float32 precision; without it they run to ``max_iter``."""
+    from torchslq.systems import MassChain
+
+    dyn = ts.discretize(MassChain(4, mass=1.0, k3=1.0, damping=0.1), 0.1)
+    q = torch.tensor([1.0] * 4 + [0.1] * 4)
+    goal = torch.tensor([0.25, 0.5, 0.75, 1.0] + [0.0] * 4)
+    x0 = 0.5 * torch.randn(64, 8, generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    results = {}
+    for dtype in (torch.float32, torch.float64):
+        Q = torch.diag(q).to(dtype)
+        cost = ts.QuadraticCost(Q, 0.1 * torch.eye(4, dtype=dtype), 10 * Q, x_ref=goal.to(dtype))
+        prob = ts.Problem(dyn, cost, 40)
+        tol = 1e-4 if dtype == torch.float32 else 1e-9
+        for stall in (10, 0) if dtype == torch.float32 else (10,):
+            solver = ts.ILQR(max_iter=60, tol=tol, progress=False, stall_iters=stall)
+            results[dtype, stall] = solver.solve(prob, x0.to(dtype))
+    r, r0, ref = results[torch.float32, 10], results[torch.float32, 0], results[torch.float64, 10]
+    assert bool(ref.converged.all())
+    stalled = r.status == ts.Status.STALLED
+    assert bool(stalled.any()), r.status_names()
+    assert set(r.status_names()) <= {"converged", "stalled"}
+    assert int(r.iterations[stalled].max()) < 40  # vs 60 (max_iter) without the rule:
+    assert set(r0.status_names()) <= {"converged", "max_iter"}
+    assert bool((r0.status[stalled] == ts.Status.MAX_ITER).all())
+    # stopping lost nothing the extra iterations would have gained
+    torch.testing.assert_close(r.cost[stalled].double(), ref.cost[stalled], rtol=1e-6, atol=0)
+    torch.testing.assert_close(r.cost.double(), r0.cost.double(), rtol=1e-6, atol=0)
+
+
+def test_stall_iters_validation():
+    import torchslq as ts
+
+    with pytest.raises(ValueError, match="stall_iters"):
+        ts.ILQR(stall_iters=-1)

@@ -28,6 +28,7 @@ class Status(IntEnum):
     NON_FINITE = 3
     DIVERGED = 4
     NOT_POSITIVE_DEFINITE = 5
+    STALLED = 6  # accepted steps stopped changing the cost beyond rounding noise
 
     @property
     def label(self) -> str:

@@ -64,6 +64,7 @@ class SLQOptions:
     stop: str = "grad"
     step_tol: float | None = None
     rtol: float = 0.0
+    stall_iters: int = 10
     rollout: str = "open_loop"
     armijo_c1: float = 1e-4
     armijo_beta: float = 0.5
@@ -89,6 +90,13 @@ class SLQ:
         step_tol: tolerance of the step rule (defaults to ``tol``).
         rtol: also stop (as converged) after an accepted step that changes the cost by
             at most ``rtol |J|``; 0 (default) disables this test.
+        stall_iters: stop an element with status ``stalled`` (not converged) when this
+            many consecutive accepted steps changed its cost by no more than rounding
+            noise (``64 eps max(|J|, 1)``, eps of the dtype) and did not halve its
+            gradient norm, while the stopping test was still unmet: the solve has reached
+            the precision of the dtype (typically float32 with a tolerance below what
+            float32 gradients can resolve), and further iterations only accept noise.
+            Default 10; 0 disables.
         rollout: ``"open_loop"`` (the paper's ``U + αŪ``) or ``"closed_loop"`` (the line
             search applies the LQ feedback: ``u = u + α k + K (x_new - x)``).
         armijo_c1, armijo_beta, max_backtracks: Armijo constants.
@@ -119,6 +127,8 @@ class SLQ:
             raise ValueError(f"rollout must be one of {_ROLLOUTS}, got {o.rollout!r}")
         if not o.rtol >= 0:
             raise ValueError(f"rtol must be >= 0, got {o.rtol!r}")
+        if not isinstance(o.stall_iters, int) or o.stall_iters < 0:
+            raise ValueError(f"stall_iters must be a non-negative int, got {o.stall_iters!r}")
         if o.stop not in _STOPS:
             raise ValueError(f"stop must be one of {_STOPS}, got {o.stop!r}")
 
@@ -187,6 +197,9 @@ class SLQ:
             finite0 = torch.isfinite(J) & torch.isfinite(x).flatten(1).all(1)
             status = status.masked_fill(~finite0, int(Status.NON_FINITE))
             iterations = torch.zeros(Bsz, dtype=torch.int64, device=x0.device)
+            stalls = torch.zeros_like(iterations)  # consecutive noise-level accepted steps
+            stall_grad = torch.zeros_like(J)  # gradient norm when that run started
+            noise = 64.0 * torch.finfo(J.dtype).eps
             step = torch.zeros_like(J)
             hist_cost, hist_grad, hist_step, hist_time = [], [], [], []
             K = x0.new_zeros(Bsz, T, m, n)
@@ -256,6 +269,19 @@ class SLQ:
                     st = st.masked_fill(
                         accept & ((Js - J_new).abs() <= o.rtol * Js.abs()), int(Status.CONVERGED)
                     )
+                if o.stall_iters > 0:
+                    # a window of noise-level accepted steps: stalled if the gradient did
+                    # not halve over it (near a minimum cost changes are quadratic in the
+                    # gradient and hit the noise first, while the gradient still falls)
+                    flat = accept & ((Js - J_new).abs() <= noise * Js.abs().clamp_min(1.0))
+                    ns = torch.where(flat, _take(stalls, idx) + 1, 0)
+                    g_ref = torch.where(ns == 1, gn, _take(stall_grad, idx))
+                    full = ns >= o.stall_iters
+                    st = st.masked_fill(
+                        (st == Status.RUNNING) & full & (gn > 0.5 * g_ref), int(Status.STALLED)
+                    )
+                    stalls = _put(stalls, idx, torch.where(full, 0, ns))
+                    stall_grad = _put(stall_grad, idx, g_ref)
                 status = _put(status, idx, st)
                 J = _put(J, idx, torch.where(accept, J_new, Js))
                 step = _put(torch.zeros_like(step), idx, a)
