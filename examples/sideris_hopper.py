@@ -32,8 +32,9 @@ NOTES = """\
   independent attempts under any reading or line search (about 100-140 iterations for
   y° = 1; y° = 50 did not meet a 1e-6 gradient test in 1000). Our counts are reported
   as observed; y° = 20 is the case where independent methods agree on the optimum.
-* When y° = 50 ends as `line_search_failed` with ‖∇J‖ of a few 1e-5, the iteration has
-  stalled: the predicted decrease |∇J·Ū| is about 1e-11, the full SLQ step raises J by
+* When y° = 50 ends as `stalled` (or, with ``stall_iters=0``, as `line_search_failed`
+  some 10-60 iterations later at the same cost) with ‖∇J‖ of 1e-5 to 1e-4, the iteration
+  has stalled: the predicted decrease |∇J·Ū| is about 1e-11, the full SLQ step raises J by
   about 1e-9 (J grows like α² along Ū: the Gauss-Newton model misses the curvature from
   the spring's kinks, where a trajectory point sits), and the decrease left for small α
   is at the rounding level of J (eps·J ≈ 1.4e-13). The two line searches also end in
