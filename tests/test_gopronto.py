@@ -411,3 +411,19 @@ def test_non_finite_element_does_not_poison_the_batch():
     assert int(rb.iterations[0]) == 0
     assert torch.allclose(rb.x[1], r1.x[0], atol=1e-10)
     assert int(rb.iterations[1]) == int(r1.iterations[0]) > 0
+
+
+def test_float32_stops_as_stalled_at_its_precision_limit(twolink):
+    """In float32 a gradient tolerance of 1e-7 is below what the iteration can resolve:
+    with the shared stall rule GoPRONTO stops (status ``stalled``) long before
+    ``max_iter``, at the float64 optimum to float32 precision; without it, it runs on."""
+    prob, x0, ref = twolink
+    x32 = x0.float()
+    r = GoPRONTO(max_iter=150, tol=1e-7, progress=False).solve(prob, x32)
+    r0 = GoPRONTO(max_iter=150, tol=1e-7, progress=False, stall_iters=0).solve(prob, x32)
+    assert r.status_names() == ["stalled", "stalled"]
+    assert int(r.iterations.max()) < 100
+    assert r0.status_names() == ["max_iter", "max_iter"]
+    torch.testing.assert_close(r.cost.double(), ref.cost, rtol=1e-6, atol=0)
+    with pytest.raises(ValueError, match="stall_iters"):
+        GoPRONTO(stall_iters=-1)

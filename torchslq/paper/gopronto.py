@@ -311,9 +311,13 @@ def make_solver(
     **kwargs: Any,
 ):
     """A solver of :data:`SOLVER_LABELS` configured as in Section V (projection weights
-    ``Q_reg = Q, R_reg = I, Qf_reg = Qf``; Armijo unless ``step`` is a float)."""
+    ``Q_reg = Q, R_reg = I, Qf_reg = Qf``; Armijo unless ``step`` is a float; no stall
+    rule unless ``stall_iters`` is passed)."""
     import torchslq
 
+    # the paper's figures show fixed-length runs (to the iteration cap), so the library's
+    # round-off stall rule (status "stalled") is off in these experiments
+    kwargs.setdefault("stall_iters", 0)
     if name.startswith("gopronto-"):
         return torchslq.GoPRONTO(
             variant=name.split("-", 1)[1],

@@ -121,6 +121,7 @@ from .line_search import TrialRecorder, armijo_search
 from .progress import progress_bar
 from .result import SolverResult
 from .rollout import costate_gradient, rollout, rollout_closed_loop
+from .stopping import stall_update
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -236,6 +237,7 @@ class GoPRONTOOptions:
     armijo_growth: float = 4.0
     linearize_method: str = "auto"
     progress: bool = True
+    stall_iters: int = 10
 
 
 @dataclass
@@ -328,6 +330,10 @@ class GoPRONTO:
             armijo_growth: later first trials are this times the last accepted step.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: tqdm bar for long solves.
+        stall_iters: stop an element with status ``stalled`` after this many consecutive
+            accepted steps that changed its objective by no more than rounding noise
+            without halving its gradient norm (:func:`torchslq.solvers.stopping.stall_update`,
+            as for :class:`torchslq.SLQ`); 0 disables.
 
     ``solve(problem, x0, u_init=None, logger=None)`` returns a :class:`GoPRONTOResult`.
     """
@@ -346,6 +352,8 @@ class GoPRONTO:
         o = self.options
         if o.variant not in _VARIANTS:
             raise ValueError(f"variant must be one of {_VARIANTS}, got {o.variant!r}")
+        if not isinstance(o.stall_iters, int) or o.stall_iters < 0:
+            raise ValueError(f"stall_iters must be a non-negative int, got {o.stall_iters!r}")
         if isinstance(o.step, str):
             if o.step != "armijo":
                 raise ValueError(f"step must be 'armijo' or a positive float, got {o.step!r}")
@@ -671,6 +679,8 @@ class GoPRONTO:
             recomputations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
             thresh = torch.full((Bsz,), float(o.stability_tol), dtype=x0.dtype, device=dev)
             iterations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
+            stall_count = torch.zeros_like(iterations)
+            stall_grad = torch.zeros(Bsz, dtype=x0.dtype, device=dev)
             gamma_prev = torch.full((Bsz,), o.step0 / o.armijo_growth, dtype=x0.dtype, device=dev)
             step = torch.zeros_like(J)
             grad_norm = torch.full_like(J, float("nan"))
@@ -826,6 +836,13 @@ class GoPRONTO:
                 s["prev_m"] = _where(accept, s["mu"], s["prev_m"])
                 s["alpha"] = _where(accept, na, s["alpha"])
                 s["mu"] = _where(accept, nm, s["mu"])
+                if o.stall_iters > 0:
+                    stalled, stall_count, stall_grad = stall_update(
+                        stall_count, stall_grad, accept, J, Jnew, gn, o.stall_iters
+                    )
+                    status = status.masked_fill(
+                        stalled & (status == Status.RUNNING), int(Status.STALLED)
+                    )
                 x = _where(accept, xn, x)
                 u = _where(accept, un, u)
                 J = torch.where(accept, Jnew, J)

@@ -32,6 +32,7 @@ from .line_search import TrialRecorder, armijo_search, exact_search
 from .progress import progress_bar
 from .result import SolverResult
 from .rollout import costate_gradient, rollout, rollout_closed_loop
+from .stopping import stall_update
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -199,7 +200,6 @@ class SLQ:
             iterations = torch.zeros(Bsz, dtype=torch.int64, device=x0.device)
             stalls = torch.zeros_like(iterations)  # consecutive noise-level accepted steps
             stall_grad = torch.zeros_like(J)  # gradient norm when that run started
-            noise = 64.0 * torch.finfo(J.dtype).eps
             step = torch.zeros_like(J)
             hist_cost, hist_grad, hist_step, hist_time = [], [], [], []
             K = x0.new_zeros(Bsz, T, m, n)
@@ -270,18 +270,12 @@ class SLQ:
                         accept & ((Js - J_new).abs() <= o.rtol * Js.abs()), int(Status.CONVERGED)
                     )
                 if o.stall_iters > 0:
-                    # a window of noise-level accepted steps: stalled if the gradient did
-                    # not halve over it (near a minimum cost changes are quadratic in the
-                    # gradient and hit the noise first, while the gradient still falls)
-                    flat = accept & ((Js - J_new).abs() <= noise * Js.abs().clamp_min(1.0))
-                    ns = torch.where(flat, _take(stalls, idx) + 1, 0)
-                    g_ref = torch.where(ns == 1, gn, _take(stall_grad, idx))
-                    full = ns >= o.stall_iters
-                    st = st.masked_fill(
-                        (st == Status.RUNNING) & full & (gn > 0.5 * g_ref), int(Status.STALLED)
-                    )
-                    stalls = _put(stalls, idx, torch.where(full, 0, ns))
-                    stall_grad = _put(stall_grad, idx, g_ref)
+                    stalled, ns, g_ref = stall_update(
+                        _take(stalls, idx), _take(stall_grad, idx), accept, Js, J_new, gn,
+                        o.stall_iters,
+                    )  # fmt: skip
+                    st = st.masked_fill((st == Status.RUNNING) & stalled, int(Status.STALLED))
+                    stalls, stall_grad = _put(stalls, idx, ns), _put(stall_grad, idx, g_ref)
                 status = _put(status, idx, st)
                 J = _put(J, idx, torch.where(accept, J_new, Js))
                 step = _put(torch.zeros_like(step), idx, a)

@@ -1,0 +1,48 @@
+"""Stopping rules shared by the solver loops (SLQ/iLQR/DDP and GoPRONTO)."""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["ROUNDOFF_NOISE", "stall_update"]
+
+# a cost change below ROUNDOFF_NOISE * eps * max(|J|, 1) cannot be told from rounding
+ROUNDOFF_NOISE = 64.0
+
+
+def stall_update(
+    count: Tensor,
+    g_ref: Tensor,
+    accept: Tensor,
+    J_old: Tensor,
+    J_new: Tensor,
+    grad_norm: Tensor,
+    stall_iters: int,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """One iteration of the round-off stall rule (status ``stalled``).
+
+    An element stalls when ``stall_iters`` consecutive accepted steps changed its cost by
+    no more than rounding noise (``64 eps max(|J|, 1)``) and its gradient norm did not
+    halve over that window: its line search is accepting noise (e.g. a float32 solve
+    asked for a tolerance float32 cannot resolve). The gradient test matters: near a
+    minimum the cost change is quadratic in the gradient and reaches the noise first
+    while the gradient still falls.
+
+    Args:
+        count: ``(B,)`` int, consecutive noise-level accepted steps so far;
+        g_ref: ``(B,)`` gradient norm at the start of that run;
+        accept: ``(B,)`` bool, the step of this iteration was accepted;
+        J_old, J_new: ``(B,)`` costs before and after the step;
+        grad_norm: ``(B,)`` gradient norm at the start of this iteration.
+
+    Returns:
+        ``(stalled (B,) bool, count, g_ref)`` (the new counters).
+    """
+    noise = ROUNDOFF_NOISE * torch.finfo(J_old.dtype).eps
+    flat = accept & ((J_old - J_new).abs() <= noise * J_old.abs().clamp_min(1.0))
+    count = torch.where(flat, count + 1, 0)
+    g_ref = torch.where(count == 1, grad_norm, g_ref)
+    full = count >= stall_iters
+    stalled = full & (grad_norm > 0.5 * g_ref)
+    return stalled, torch.where(full, 0, count), g_ref
