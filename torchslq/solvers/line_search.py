@@ -13,6 +13,8 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from .stopping import ROUNDOFF_NOISE, roundoff_tolerance
+
 __all__ = ["armijo_search", "exact_search", "EXACT_GRID", "TrialRecorder"]
 
 # Candidate steps of the exact search: dense near 1 (the Gauss-Newton step), then halving.
@@ -62,7 +64,7 @@ def _within_roundoff(J1: Tensor, J0: Tensor, slope: Tensor | None, noise: float)
     """
     if slope is None or noise <= 0:
         return torch.zeros_like(J0, dtype=torch.bool)
-    tol = noise * torch.finfo(J0.dtype).eps * J0.abs().clamp_min(1.0)
+    tol = roundoff_tolerance(J0, noise)
     return (slope.abs() <= tol) & (J1 <= J0 + tol)
 
 
@@ -75,7 +77,7 @@ def armijo_search(
     beta: float = 0.5,
     max_backtracks: int = 20,
     alpha0: float = 1.0,
-    roundoff: float = 64.0,
+    roundoff: float = ROUNDOFF_NOISE,
     curvature: Tensor | None = None,
     first_trials: int | None = 4,
     pass_size: int | None = None,
@@ -145,7 +147,7 @@ def exact_search(
     grid: tuple[float, ...] = EXACT_GRID,
     refine: bool = True,
     slope: Tensor | None = None,
-    roundoff: float = 64.0,
+    roundoff: float = ROUNDOFF_NOISE,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Approximately minimise ``J(a)`` over ``a`` in ``(0, 1]``.
 

@@ -5,10 +5,16 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["ROUNDOFF_NOISE", "stall_update"]
+__all__ = ["ROUNDOFF_NOISE", "roundoff_tolerance", "stall_update"]
 
 # a cost change below ROUNDOFF_NOISE * eps * max(|J|, 1) cannot be told from rounding
 ROUNDOFF_NOISE = 64.0
+
+
+def roundoff_tolerance(J: Tensor, noise: float = ROUNDOFF_NOISE) -> Tensor:
+    """``noise * eps * max(|J|, 1)`` (eps of ``J``'s dtype): the smallest change of the cost
+    ``J`` that rounding cannot explain (used by the line searches and the stall rule)."""
+    return noise * torch.finfo(J.dtype).eps * J.abs().clamp_min(1.0)
 
 
 def stall_update(
@@ -39,8 +45,7 @@ def stall_update(
     Returns:
         ``(stalled (B,) bool, count, g_ref)`` (the new counters).
     """
-    noise = ROUNDOFF_NOISE * torch.finfo(J_old.dtype).eps
-    flat = accept & ((J_old - J_new).abs() <= noise * J_old.abs().clamp_min(1.0))
+    flat = accept & ((J_old - J_new).abs() <= roundoff_tolerance(J_old))
     count = torch.where(flat, count + 1, 0)
     g_ref = torch.where(count == 1, grad_norm, g_ref)
     full = count >= stall_iters
