@@ -10,15 +10,21 @@ respect to ``θ`` is the KKT system of an LQ problem (Amos et al. 2018, Section 
   mpc.pytorch uses: the dynamics curvature is dropped, an approximation);
 * constraint matrices: ``A_t = f_x``, ``B_t = f_u``.
 
-We build that LQ problem *around the solution* so that the solution is its fixed point:
-linear terms ``q = ∇l - H z*``, affine dynamics ``c = f(z*) - A x* - B u*``, and solve
-it with :func:`torchslq.lqr_solve`. Its minimiser is ``z*`` again (to round-off) and
-its implicit-KKT backward pass (one more LQ solve with the same factors) gives exactly
-the derivative of ``z*`` with respect to every tensor that ``∇l``, ``f``, ``A``, ``B``
-and ``x0`` depend on. The Hessian ``H`` may be detached: its derivative multiplies
-``ẑ - z* = 0``. The gradients of the linear terms with respect to the parameters are
-second derivatives (``∂²l/∂z∂θ``, ``∂²f/∂z∂θ``), which autograd takes through
-``create_graph`` Jacobians.
+With ``w = (dz, dλ)`` the solution of that LQ problem whose linear terms are the
+incoming gradient ``∂ℓ/∂z*`` (zero initial state, no affine term), the implicit function
+theorem gives ``dℓ/dθ = w' ∂r/∂θ`` for the KKT residual ``r``; only two of its parts
+depend on ``θ``: the Lagrangian gradient ``G(θ) = ∇_z J(z*; θ) + f_z(z*; θ)'λ*`` and the
+dynamics ``f(z*; θ)`` (and ``x0``). So
+
+    dℓ/dθ = Σ_t dz_t·∂G_t/∂θ + Σ_t dλ_{t+1}·∂f(z*_t)/∂θ + dλ_0·∂x0/∂θ.
+
+:func:`implicit_solution` factorises the LQ problem once (forward), evaluates ``G`` and
+``f(z*)`` once with autograd recording (one vector-Jacobian product of ``f`` along
+``λ*``, kept differentiable), and its backward pass is one linear Riccati sweep with
+the stored factors followed by one reverse pass through those evaluations. (Building
+the LQ data ``A = f_x``, ``B = f_u`` with ``create_graph`` and differentiating through
+them, as a fixed-point LQ layer would, costs ``n`` vector-Jacobian products with graph
+instead of one; measured in ``benchmarks/mpc_layer.py``.)
 
 Control bounds active at the solution are held fixed: those inputs are removed from
 the LQ problem (their column of ``B`` is zeroed, their row of the Hessian replaced by
@@ -31,9 +37,11 @@ from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
+from torch.autograd.function import once_differentiable
 
 from ..dynamics.linearize import dynamics_vhp, linearize
-from ..lq.solve import lqr_solve
+from ..lq.riccati import homogeneous_cost, homogeneous_dynamics, riccati_homogeneous
+from ..lq.solve import lq_adjoint_solve
 from ..solvers.rollout import costate_gradient
 from ..status import Status
 
@@ -67,6 +75,19 @@ def lagrangian_hessian(
     second derivatives ``λ_{t+1}·f_xx``, ``λ_{t+1}·f_uu``, ``λ_{t+1}·f_ux`` (the DDP
     terms, vector-Hessian products with ``torch.func``), and the cost gradients.
     """
+    return _lagrangian_terms(problem, x, u, hessian, A, B)[:5]
+
+
+def _lagrangian_terms(
+    problem: Problem,
+    x: Tensor,
+    u: Tensor,
+    hessian: str,
+    A: Tensor | None,
+    B: Tensor | None,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`lagrangian_hessian`'s blocks and the costates ``λ (B,T+1,n)`` at ``(x, u)``
+    (Sideris & Bobrow eqs. 8-9)."""
     if hessian not in _HESSIANS:
         raise ValueError(f"hessian must be one of {_HESSIANS}, got {hessian!r}")
     T, n, m = problem.horizon, problem.state_dim, problem.control_dim
@@ -82,15 +103,15 @@ def lagrangian_hessian(
             S = _batched(e.lux.detach(), Bsz, (m, n)).expand(Bsz, T, m, n)
         lx = _batched(e.lx.detach(), Bsz, (n,)).expand(Bsz, T + 1, n)
         lu = _batched(e.lu.detach(), Bsz, (m,)).expand(Bsz, T, m)
+        if A is None or B is None:
+            A, B = linearize(problem.transition, x[:, :T], u)
+        _, lam = costate_gradient(A.detach(), B.detach(), lx, lu)
         if hessian == "exact":
-            if A is None or B is None:
-                A, B = linearize(problem.transition, x[:, :T], u)
-            _, lam = costate_gradient(A.detach(), B.detach(), lx, lu)
             Hxx, Huu, Hux = dynamics_vhp(problem.transition, x[:, :T], u, lam[:, 1:])
             Q = torch.cat([Q[:, :T] + Hxx, Q[:, T:]], dim=1)
             R = R + Huu
             S = S + Hux
-    return Q, R, S, lx, lu
+    return Q, R, S, lx, lu, lam
 
 
 def cost_gradients(cost, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
@@ -98,6 +119,41 @@ def cost_gradients(cost, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     the autograd graph to the cost's parameters and to ``x``, ``u`` (``torch.func.grad``
     composes with autograd; rows are independent so the sum's gradient is per row)."""
     return torch.func.grad(lambda a, b: cost(a, b).sum(), argnums=(0, 1))(x, u)
+
+
+class _KKTSensitivity(torch.autograd.Function):
+    """``(Gx, Gu, F, x0) -> (x*, u*)``: the solution's implicit derivative.
+
+    The inputs are the parameter-dependent parts of the KKT residual evaluated at the
+    (fixed) solution: the Lagrangian gradient ``G = ∇_z J + f_z'λ*`` (``Gx (B,T+1,n)``,
+    ``Gu (B,T,m)``), the dynamics ``F = f(z*) (B,T,n)`` and ``x0 (B,n)``; their values are
+    not used, only the autograd graph from them to the parameters. The outputs are the
+    solution itself. Backward (implicit function theorem on the KKT conditions,
+    Amos et al. 2018, eq. 7): the LQ problem with the Lagrangian Hessian as quadratic
+    terms and the incoming gradient as linear terms, solved with the factorisation made
+    in the forward pass (:func:`torchslq.lq.solve.lq_adjoint_solve`), gives ``dz`` and
+    its costates ``dλ``; then ``dℓ/dθ = dz·∂G/∂θ + Σ dλ_{t+1}·∂f_t/∂θ + dλ_0·∂x0/∂θ``.
+    """
+
+    @staticmethod
+    def forward(ctx, Gx, Gu, F, x0, x_star, u_star, Fh, Kk, Vh, chol, keep_u, good):  # noqa: D401
+        ctx.save_for_backward(Fh, Kk, Vh, chol, keep_u, good)
+        return x_star.clone(), u_star.clone()
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, gx, gu):
+        Fh, Kk, Vh, chol, keep_u, good = ctx.saved_tensors
+        if gx is None:
+            gx = torch.zeros(Vh.shape[0], Vh.shape[1], Vh.shape[-1] - 1, dtype=Vh.dtype)
+        if gu is None:
+            gu = torch.zeros(*Kk.shape[:-1], dtype=Kk.dtype, device=Kk.device)
+        # no derivative for elements without one (zero gradient, never NaN)
+        gx = torch.where(good.view(-1, 1, 1), gx, torch.zeros_like(gx))
+        gu = torch.where(good.view(-1, 1, 1) & keep_u, gu, torch.zeros_like(gu))
+        dx, du, dlam = lq_adjoint_solve(Fh, Kk, Vh, chol, gx, gu)
+        none = (None,) * 8
+        return dx, du, dlam[:, 1:], dlam[:, 0], *none
 
 
 def implicit_solution(
@@ -123,55 +179,75 @@ def implicit_solution(
     Returns:
         ``(x_out, u_out, lq_status)``: the same values as ``x``, ``u`` (exactly), with a
         backward pass giving ``dx*/dθ``, ``du*/dθ`` by one LQ solve; ``lq_status`` is
-        the LQ solve's per-element :class:`torchslq.Status`: ``NOT_POSITIVE_DEFINITE``
-        when the Hessian is not positive definite on the constraint null space (not a
-        strict local minimum: no derivative), ``NON_FINITE`` for a non-finite solution.
-        Those elements get zero gradient and never make other elements' or shared
-        parameters' gradients non-finite.
+        the LQ factorisation's per-element :class:`torchslq.Status`:
+        ``NOT_POSITIVE_DEFINITE`` when the Hessian is not positive definite on the
+        constraint null space (not a strict local minimum: no derivative), ``NON_FINITE``
+        for a non-finite solution or factorisation. Those elements get zero gradient and
+        never make other elements' or shared parameters' gradients non-finite.
+
+    Cost: the forward pass factorises the LQ problem (Riccati pass) and evaluates the
+    Lagrangian gradient and the dynamics once with autograd recording; the backward pass
+    is one linear Riccati sweep plus one reverse pass through those two evaluations (a
+    single vector-Jacobian product, not one per state dimension).
     """
     T = problem.horizon
     xs, us = x.detach(), u.detach()
     # a non-finite solution has no derivative: a finite stand-in (zeros) keeps NaN out of
-    # the LQ data, whose adjoint terms are summed into shared parameters
+    # the LQ data and of the graph that carries gradients to shared parameters
     finite = torch.isfinite(xs).flatten(1).all(1) & torch.isfinite(us).flatten(1).all(1)
     xl = torch.where(finite.view(-1, 1, 1), xs, torch.zeros_like(xs))
     ul = torch.where(finite.view(-1, 1, 1), us, torch.zeros_like(us))
-    f = problem.transition
-    with torch.enable_grad():
-        A, Bm = linearize(problem.dynamics, xl[:, :T], ul, create_graph=True)
-        Q, R, S, _, _ = lagrangian_hessian(problem, xl, ul, hessian, A, Bm)
-        lx, lu = cost_gradients(problem.cost, xl, ul)
-        u_free = ul
+    with torch.no_grad():
+        A, Bm = linearize(problem.dynamics, xl[:, :T], ul)
+        Q, R, S, _, _, lam = _lagrangian_terms(problem, xl, ul, hessian, A, Bm)
+        keep_u = torch.ones_like(ul, dtype=torch.bool) if active is None else ~active
         if active is not None:
-            keep = (~active).to(xs.dtype)  # (B, T, m)
+            keep = keep_u.to(xs.dtype)  # (B, T, m)
             Bm = Bm * keep.unsqueeze(-2)
             R = R * keep.unsqueeze(-1) * keep.unsqueeze(-2) + torch.diag_embed(1.0 - keep)
             S = S * keep.unsqueeze(-1)
-            u_free = ul * keep
-        fx = f(xl[:, :T], ul)
-        c = fx - (A @ xl[:, :T].unsqueeze(-1))[..., 0] - (Bm @ u_free.unsqueeze(-1))[..., 0]
-        Sx = (S @ xl[:, :T].unsqueeze(-1))[..., 0]
-        StU = (S.mT @ u_free.unsqueeze(-1))[..., 0]
-        q = lx - (Q @ xl.unsqueeze(-1))[..., 0]
-        q = torch.cat([q[:, :T] - StU, q[:, T:]], dim=1)
-        r = lu - Sx - (R @ u_free.unsqueeze(-1))[..., 0]
-        if active is not None:
-            r = r * keep
-        sol = lqr_solve(A, Bm, Q, R, x0, q, r, S, c, validate=False)
-        status = torch.where(finite, sol.status, torch.full_like(sol.status, Status.NON_FINITE))
-        failed = sol.status != Status.CONVERGED
+        Fh = homogeneous_dynamics(A, Bm)
+        fac = riccati_homogeneous(Fh, *homogeneous_cost(Q, R, None, None, S))
+        ok_fac = torch.isfinite(fac.Kk).flatten(1).all(1) & torch.isfinite(fac.Vh).flatten(1).all(1)
+        not_pd = fac.failed  # (a failed factorisation also leaves non-finite gains)
+        failed = fac.failed | ~ok_fac
         if bool(failed.any()):
             # no derivative where the Hessian is not positive definite on the null space
             # (not a strict local minimum): those elements get a positive definite stand-in
-            # so that their (zero) adjoint stays finite, and zero gradient below
+            # so that their (zero) adjoint stays finite
             fm = failed.view(-1, 1, 1, 1)
             n, m = Q.shape[-1], R.shape[-1]
             Q = torch.where(fm, torch.eye(n, dtype=Q.dtype, device=Q.device), Q)
             R = torch.where(fm, torch.eye(m, dtype=R.dtype, device=R.device), R)
             S = torch.where(fm, torch.zeros_like(S), S)
-            sol = lqr_solve(A, Bm, Q, R, x0, q, r, S, c, validate=False)
-    # exact values of the solver, derivatives of the LQ fixed point (none where undefined)
-    good = (finite & ~failed).view(-1, 1, 1)
-    x_out = xs + torch.where(good, sol.x - sol.x.detach(), torch.zeros_like(xs))
-    u_out = us + torch.where(good, sol.u - sol.u.detach(), torch.zeros_like(us))
+            fac = riccati_homogeneous(Fh, *homogeneous_cost(Q, R, None, None, S))
+        status = torch.where(
+            not_pd,
+            torch.full_like(failed, Status.NOT_POSITIVE_DEFINITE, dtype=torch.int64),
+            torch.where(
+                ok_fac,
+                torch.full_like(failed, Status.CONVERGED, dtype=torch.int64),
+                torch.full_like(failed, Status.NON_FINITE, dtype=torch.int64),
+            ),
+        )
+        status = torch.where(finite, status, torch.full_like(status, Status.NON_FINITE))
+        good = finite & ~failed
+
+    f, cost = problem.transition, problem.cost
+    lam_next = lam[:, 1:].detach()
+
+    def lagrangian(a: Tensor, b: Tensor) -> tuple[Tensor, Tensor]:
+        fz = f(a[:, :T], b)
+        return cost(a, b).sum() + (lam_next * fz).sum(), fz
+
+    with torch.enable_grad():
+        # one evaluation of ∇_z (J + λ*'f) and of f, recording the graph to every
+        # parameter (torch.func.grad composes with autograd)
+        (Gx, Gu), Fz = torch.func.grad(lagrangian, argnums=(0, 1), has_aux=True)(xl, ul)
+        if not (Gx.requires_grad or Gu.requires_grad or Fz.requires_grad or x0.requires_grad):
+            return xs, us, status
+        x_out, u_out = _KKTSensitivity.apply(
+            Gx, Gu, Fz, x0.expand(xs.shape[0], xs.shape[-1]), xs, us,
+            Fh, fac.Kk, fac.Vh, fac.chol, keep_u, good,
+        )  # fmt: skip
     return x_out, u_out, status
