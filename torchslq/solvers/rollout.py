@@ -47,17 +47,23 @@ def rollout_closed_loop(
     Returns:
         ``x (..., B, T+1, n)`` and ``u (..., B, T, m)``.
     """
-    a = alpha.unsqueeze(-1)
+    T = u_nom.shape[-2]
+    # everything that does not depend on the new states is formed for all steps at
+    # once, time-major, so that each step is a handful of small ops (rollouts are
+    # dispatch-bound: ~6 ops per step here besides the model, instead of ~14)
+    ff = (u_nom + alpha[..., None, None] * k).unsqueeze(-2).movedim(-3, 0)  # (T, ..., B, 1, m)
+    KT = K.mT.movedim(-3, 0)  # (T, B, n, m)
+    xn = x_nom.unsqueeze(-2).movedim(-3, 0)  # (T+1, B, 1, n)
+    lo = None if u_min is None else u_min.unsqueeze(-2).movedim(-3, 0)
+    hi = None if u_max is None else u_max.unsqueeze(-2).movedim(-3, 0)
     xt = x0.unsqueeze(-2)
     xs, us = [xt], []
-    for t in range(u_nom.shape[-2]):
-        dx = xt[..., 0, :] - x_nom[..., t, :]
-        ut = u_nom[..., t, :] + a * k[..., t, :] + (K[..., t, :, :] @ dx.unsqueeze(-1))[..., 0]
-        if u_min is not None:
-            ut = torch.maximum(ut, u_min[..., t, :])
-        if u_max is not None:
-            ut = torch.minimum(ut, u_max[..., t, :])
-        ut = ut.unsqueeze(-2)
+    for t in range(T):
+        ut = ff[t] + (xt - xn[t]) @ KT[t]
+        if lo is not None:
+            ut = torch.maximum(ut, lo[t])
+        if hi is not None:
+            ut = torch.minimum(ut, hi[t])
         xt = f(xt, ut)
         xs.append(xt)
         us.append(ut)

@@ -50,8 +50,8 @@ def set_param(module: nn.Module, name: str, value, *, positive: bool = False, no
 def get_param(module: nn.Module, name: str, like: Tensor) -> Scalar:
     """Parameter ``name`` as a float, or as a tensor in ``like``'s dtype and device."""
     p = getattr(module, name)
-    if isinstance(p, Tensor):
-        return p.to(dtype=like.dtype, device=like.device)
+    if isinstance(p, Tensor) and (p.dtype != like.dtype or p.device != like.device):
+        return p.to(dtype=like.dtype, device=like.device)  # (a no-op .to still costs a dispatch)
     return p
 
 

@@ -53,7 +53,7 @@ class MassChain(ContinuousDynamics):
         out = []
         for name in ("mass", "k", "k3", "damping"):
             p = get_param(self, name, x)
-            out.append(p.unsqueeze(-1) if isinstance(p, Tensor) else p)
+            out.append(p.unsqueeze(-1) if isinstance(p, Tensor) and p.ndim > 0 else p)
         return out  # tensors broadcast against (..., N)
 
     def _extensions(self, p: Tensor) -> Tensor:

@@ -89,7 +89,7 @@ class PendulumCartTrain(ContinuousDynamics):
         out = []
         for k in ("Mp", "l", "fp", "Mc", "ks", "fc", "g"):
             p = get_param(self, k, x)
-            out.append(p.unsqueeze(-1) if isinstance(p, Tensor) else p)
+            out.append(p.unsqueeze(-1) if isinstance(p, Tensor) and p.ndim > 0 else p)
         return tuple(out)
 
     def _split(self, x: Tensor, u: Tensor) -> tuple[Tensor, ...]:
