@@ -402,3 +402,67 @@ def test_indefinite_elements_get_zero_gradient_and_do_not_poison_the_batch():
         out2 = build(goal2)(x0[~not_pd])
     (out2.u.sum() + out2.x.sum()).backward()
     torch.testing.assert_close(goal.grad, goal2.grad, rtol=1e-9, atol=1e-12)
+
+
+def _fixed_point_lq_solution(problem, x0, x, u, hessian, active=None):
+    """Independent reference for the implicit derivative: the LQ problem whose minimiser
+    is the solution ``(x, u)`` itself, built from ``create_graph`` Jacobians and cost
+    gradients and differentiated through ``lqr_solve``'s own implicit backward (the
+    formulation of Amos et al. 2018; a different code path from implicit_solution's)."""
+    from torchslq import linearize, lqr_solve
+    from torchslq.mpc import cost_gradients, lagrangian_hessian
+
+    T = problem.horizon
+    A, Bm = linearize(problem.dynamics, x[:, :T], u, create_graph=True)
+    Q, R, S, _, _ = lagrangian_hessian(problem, x, u, hessian)
+    lx, lu = cost_gradients(problem.cost, x, u)
+    uf = u
+    if active is not None:
+        keep = (~active).to(x.dtype)
+        Bm = Bm * keep.unsqueeze(-2)
+        R = R * keep.unsqueeze(-1) * keep.unsqueeze(-2) + torch.diag_embed(1.0 - keep)
+        S = S * keep.unsqueeze(-1)
+        uf = u * keep
+    c = problem.transition(x[:, :T], u) - (A @ x[:, :T, :, None])[..., 0]
+    c = c - (Bm @ uf[..., None])[..., 0]
+    q = lx - (Q @ x[..., None])[..., 0]
+    q = torch.cat([q[:, :T] - (S.mT @ uf[..., None])[..., 0], q[:, T:]], dim=1)
+    r = lu - (S @ x[:, :T, :, None])[..., 0] - (R @ uf[..., None])[..., 0]
+    if active is not None:
+        r = r * keep
+    sol = lqr_solve(A, Bm, Q, R, x0, q, r, S, c)
+    return sol.x, sol.u
+
+
+@pytest.mark.parametrize("hessian", ["exact", "gn"])
+@pytest.mark.parametrize("bounded", [False, True])
+def test_implicit_solution_equals_fixed_point_lq_derivative(hessian, bounded):
+    """implicit_solution's backward (KKT residual + adjoint LQ sweep) gives the same
+    gradients w.r.t. x0, dynamics and cost parameters as differentiating the fixed-point
+    LQ problem through lqr_solve, to round-off, for both Hessians, with and without
+    active bounds."""
+    x0 = torch.tensor([[2.5, 0.0], [-0.4, 0.1]], dtype=torch.float64)
+    kw = dict(u_min=-0.6, u_max=0.6) if bounded else {}
+    theta = THETA.clone().requires_grad_(True)
+    x0r = x0.clone().requires_grad_(True)
+    mpc = pendulum_mpc(theta[0], theta[1], theta[2:4], theta[4:6], **kw)
+    with torch.no_grad():
+        res = mpc(x0).result
+    active = res.active_bounds != 0 if bounded else None
+    if bounded:
+        assert 0 < int(active.sum()) < active.numel()
+    grads = []
+    for build in ("implicit", "reference"):
+        if build == "implicit":
+            x, u, st = implicit_solution(
+                mpc.problem, x0r, res.x, res.u, hessian=hessian, active=active
+            )
+            assert bool((st == Status.CONVERGED).all())
+            assert torch.equal(x.detach(), res.x) and torch.equal(u.detach(), res.u)
+        else:
+            x, u = _fixed_point_lq_solution(mpc.problem, x0r, res.x, res.u, hessian, active)
+        loss = (WX[:2] * x).sum() + (WU[:2] * u).sum()
+        grads.append(torch.autograd.grad(loss, (theta, x0r)))
+    for g, g_ref in zip(grads[0], grads[1], strict=True):
+        assert float(g_ref.abs().max()) > 0
+        torch.testing.assert_close(g, g_ref, rtol=1e-8, atol=1e-10)
