@@ -26,7 +26,9 @@ Problem (float64 unless ``--dtype``; ``torch.set_num_threads(1)``):
 * torchslq: ``MPC(..., solver=ILQR(tol=TOL on ||dJ/dU||, compact=True),
   backward="implicit" | "implicit_gn", warm_start="shift" | False)``; the MassChain's
   analytic Jacobians are used by the solver (the exact backward's second derivatives
-  are autodiff).
+  are autodiff). Method ``"torchslq implicit DDP-costate"``: the same with
+  ``DDP(second_order="costate")`` as the solver (Newton steps on ``J(U)``: about half
+  the iterations of ILQR's Gauss-Newton steps when warm started, each dearer).
 * mpc.pytorch: ``mpc.MPC(n, m, T + 1, eps=EPS on the full-step norm (max over the
   batch), lqr_iter=LQR_ITER, not_improved_lim=LQR_ITER, exit_unconverged=False,
   detach_unconverged=False)`` with ``GradMethods.ANALYTIC`` (``grad_input`` = the
@@ -77,7 +79,7 @@ from pathlib import Path  # noqa: E402
 import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
-from torchslq import ILQR, MPC, QuadraticCost, discretize  # noqa: E402
+from torchslq import DDP, ILQR, MPC, QuadraticCost, discretize  # noqa: E402
 from torchslq.systems import MassChain  # noqa: E402
 
 N_MASS, DT, T = 4, 0.1, 40
@@ -135,10 +137,18 @@ def closed_loop(policy, th, steps: int):
 
 
 # ---------------------------------------------------------------------------- torchslq
-def torchslq_policy(th, backward: str, warm, tol: float, max_iter: int, stats: dict):
+def torchslq_policy(
+    th, backward: str, warm, tol: float, max_iter: int, stats: dict, solver_name: str = "ILQR"
+):
     Q, R, Qf = weights(th["x0"].dtype)
     cost = QuadraticCost(Q, R, Qf, x_ref=th["goal"])
-    solver = ILQR(max_iter=max_iter, tol=tol, progress=False, compact=True)
+    kw = dict(max_iter=max_iter, tol=tol, progress=False, compact=True)
+    if solver_name == "ILQR":
+        solver = ILQR(**kw)
+    elif solver_name == "DDP-costate":
+        solver = DDP(second_order="costate", **kw)
+    else:
+        raise ValueError(f"unknown torchslq solver {solver_name!r}")
     mpc = MPC(model_dynamics(th), cost, T, solver=solver, backward=backward, warm_start=warm)
 
     def policy(x):
@@ -225,8 +235,11 @@ def mpcpytorch_policy(th, method: str, warm: bool, eps: float, lqr_iter: int, st
 # ---------------------------------------------------------------------------- runs
 def make_policy(name: str, th, warm: bool, args, stats: dict):
     if name.startswith("torchslq"):
-        backward = name.split()[1]
-        return torchslq_policy(th, backward, "shift" if warm else False, args.tol, 200, stats)
+        # "torchslq <backward>" (ILQR solver) or "torchslq <backward> <solver>"
+        parts = name.split()
+        solver_name = parts[2] if len(parts) > 2 else "ILQR"
+        warm_mode = "shift" if warm else False
+        return torchslq_policy(th, parts[1], warm_mode, args.tol, 200, stats, solver_name)
     method = name.split()[1]
     return mpcpytorch_policy(th, method, warm, args.eps, args.lqr_iter, stats)
 
