@@ -466,3 +466,27 @@ def test_implicit_solution_equals_fixed_point_lq_derivative(hessian, bounded):
     for g, g_ref in zip(grads[0], grads[1], strict=True):
         assert float(g_ref.abs().max()) > 0
         torch.testing.assert_close(g, g_ref, rtol=1e-8, atol=1e-10)
+
+
+def test_default_solver_tolerance_follows_the_dtype():
+    """The default solver asks for ||dJ/dU|| < 1e-8 in float64 but 1e-4 in float32 (1e-8
+    is below float32's round-off floor: every element would stall and warn). The float32
+    solve then converges without a warning, to the float64 solution within float32
+    accuracy; a user's solver keeps its own tolerance."""
+    dyn = discretize(Pendulum(mass=nn.Parameter(torch.tensor(1.0))), DT, method="rk4")
+    cost = QuadraticCost(
+        Q=torch.diag(torch.tensor([1.0, 0.1])), R=0.1 * torch.eye(1), x_ref=torch.tensor([1.0, 0.0])
+    )
+    mpc = MPC(dyn, cost, T, warm_start=False)
+    x0 = X0.float().requires_grad_(True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        out32 = mpc(x0)
+    assert bool(out32.converged.all())
+    assert float(out32.result.grad_norm.max()) < 1e-4
+    out64 = MPC(dyn.double(), cost.double(), T, warm_start=False)(X0)
+    assert bool(out64.converged.all()) and float(out64.result.grad_norm.max()) < 1e-8
+    torch.testing.assert_close(out32.u.double(), out64.u, rtol=0, atol=1e-3)
+    own = MPC(dyn.float(), cost.float(), T, solver=ILQR(max_iter=30, tol=1e-8, progress=False))
+    with pytest.warns(RuntimeWarning, match="did not converge"):
+        own(X0.float().requires_grad_(True))

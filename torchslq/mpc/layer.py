@@ -43,6 +43,8 @@ __all__ = ["MPC", "MPCOutput"]
 _BACKWARDS = ("implicit", "implicit_gn", "unroll")
 _UNCONVERGED = ("warn", "raise", "zero")
 _WARM = (True, False, "shift", "reuse")
+# gradient-norm tolerance of the default solver by dtype (others: the float32 value)
+DEFAULT_TOL = {torch.float64: 1e-8, torch.float32: 1e-4}
 
 
 class MPCOutput(tuple):
@@ -84,8 +86,11 @@ class MPC(nn.Module):
         cost: :class:`torchslq.QuadraticCost` or :class:`torchslq.Cost`.
         horizon: number of steps ``T``.
         solver: any torchslq solver (``ILQR``, ``DDP``, ``SLQ``; default
-            ``ILQR(max_iter=200, tol=1e-8, progress=False)``). Implicit gradients are
-            exact only at a converged solution: keep ``tol`` tight.
+            ``ILQR(max_iter=200, tol=1e-8, progress=False)``, whose ``tol`` becomes
+            ``1e-4`` for a float32 / lower-precision ``x0``: 1e-8 is below the gradient's
+            round-off floor there, every element would end ``stalled`` and warn).
+            Implicit gradients are exact only at a converged solution: keep ``tol``
+            tight.
         u_min, u_max: control bounds (float, ``(m,)``, ``(T, m)`` or ``(B, T, m)``);
             need an :class:`torchslq.ILQR`/:class:`torchslq.DDP` solver. Bounds active
             at the solution are held fixed in the backward pass (zero sensitivity).
@@ -138,8 +143,9 @@ class MPC(nn.Module):
             )
         if unconverged not in _UNCONVERGED:
             raise ValueError(f"unconverged must be one of {_UNCONVERGED}, got {unconverged!r}")
+        self._default_solver = solver is None
         if solver is None:
-            solver = ILQR(max_iter=200, tol=1e-8, progress=False)
+            solver = ILQR(max_iter=200, tol=DEFAULT_TOL[torch.float64], progress=False)
         if not callable(getattr(solver, "solve", None)):
             raise TypeError(f"solver must have a solve(problem, x0, u_init) method, got {solver!r}")
         if (u_min is not None or u_max is not None) and not isinstance(solver, ILQR):
@@ -263,6 +269,8 @@ class MPC(nn.Module):
         x0b = x0.reshape(-1, n)
         Bsz = x0b.shape[0]
         guess = self._initial_guess(x0b, u_init)
+        if self._default_solver:
+            self.solver.options.tol = DEFAULT_TOL.get(x0b.dtype, DEFAULT_TOL[torch.float32])
         if self._supports_compact():
             compact = self.compact
             if compact == "auto":
