@@ -168,6 +168,10 @@ def dynamics_vhp(
     return Hx[..., :n], Hu[..., n:], Hu[..., :n]
 
 
+# rows per call of dynamics_hessians' batched reverse-over-reverse pass
+HESSIAN_CHUNK_ROWS = 4096
+
+
 def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Second derivatives of every output of ``f``: ``f_i,xx``, ``f_i,uu``, ``f_i,ux``.
 
@@ -184,6 +188,17 @@ def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor,
     """
     n = x.shape[-1]
     f = as_transition(dynamics)
+    rows = x.shape[:-1].numel()
+    if x.ndim >= 3 and x.shape[-2] > 1 and u.shape[-2] == x.shape[-2] and rows > HESSIAN_CHUNK_ROWS:
+        # a few thousand rows at a time along the time dim (not the batch dim, so that
+        # per-element parameters shaped (B, 1) stay aligned): the reverse-over-reverse
+        # intermediates then stay in cache (cart-pole RK4, 25,600 rows: 311 vs 375 ms)
+        steps = max(1, HESSIAN_CHUNK_ROWS * x.shape[-2] // rows)
+        parts = [
+            dynamics_hessians(f, xc, uc)
+            for xc, uc in zip(x.split(steps, -2), u.split(steps, -2), strict=True)
+        ]
+        return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 1) for i in range(3))
     basis = torch.eye(n, dtype=x.dtype, device=x.device)
     basis = basis.reshape(n, *([1] * (x.ndim - 1)), n).expand(n, *x.shape)
     return vmap(lambda s: dynamics_vhp(f, x, u, s))(basis)
