@@ -137,6 +137,21 @@ def _homog(x: Tensor) -> Tensor:
     return torch.cat([x, x.new_ones(*x.shape[:-1], 1)], dim=-1)
 
 
+def lq_status(failed: Tensor, finite: Tensor) -> Tensor:
+    """Per-element :class:`torchslq.Status` of an LQ solve from ``(B,)`` bool masks:
+    ``NOT_POSITIVE_DEFINITE`` where ``failed`` (some ``Quu`` not PD), else ``CONVERGED``
+    where ``finite``, else ``NON_FINITE``."""
+    return torch.where(
+        failed,
+        torch.full_like(failed, Status.NOT_POSITIVE_DEFINITE, dtype=torch.int64),
+        torch.where(
+            finite,
+            torch.full_like(failed, Status.CONVERGED, dtype=torch.int64),
+            torch.full_like(failed, Status.NON_FINITE, dtype=torch.int64),
+        ),
+    )
+
+
 def lq_adjoint_solve(
     F: Tensor, Kk: Tensor, Vh: Tensor, chol: Tensor, gx: Tensor, gu: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -324,15 +339,7 @@ def lqr_solve(
     x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f)
 
     finite = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
-    status = torch.where(
-        failed,
-        torch.full_like(failed, Status.NOT_POSITIVE_DEFINITE, dtype=torch.int64),
-        torch.where(
-            finite,
-            torch.full_like(failed, Status.CONVERGED, dtype=torch.int64),
-            torch.full_like(failed, Status.NON_FINITE, dtype=torch.int64),
-        ),
-    )
+    status = lq_status(failed, finite)
     lam = (Vh[..., :n, :] @ _homog(x).unsqueeze(-1))[..., 0]
 
     def unflat(t: Tensor) -> Tensor:

@@ -41,9 +41,8 @@ from torch.autograd.function import once_differentiable
 
 from ..dynamics.linearize import dynamics_vhp, linearize
 from ..lq.riccati import homogeneous_cost, homogeneous_dynamics, riccati_homogeneous
-from ..lq.solve import lq_adjoint_solve
+from ..lq.solve import lq_adjoint_solve, lq_status
 from ..solvers.rollout import costate_gradient
-from ..status import Status
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -221,16 +220,8 @@ def implicit_solution(
             R = torch.where(fm, torch.eye(m, dtype=R.dtype, device=R.device), R)
             S = torch.where(fm, torch.zeros_like(S), S)
             fac = riccati_homogeneous(Fh, *homogeneous_cost(Q, R, None, None, S))
-        status = torch.where(
-            not_pd,
-            torch.full_like(failed, Status.NOT_POSITIVE_DEFINITE, dtype=torch.int64),
-            torch.where(
-                ok_fac,
-                torch.full_like(failed, Status.CONVERGED, dtype=torch.int64),
-                torch.full_like(failed, Status.NON_FINITE, dtype=torch.int64),
-            ),
-        )
-        status = torch.where(finite, status, torch.full_like(status, Status.NON_FINITE))
+        # a non-finite solution is NON_FINITE whatever its factorisation did
+        status = lq_status(not_pd & finite, ok_fac & finite)
         good = finite & ~failed
 
     f, cost = problem.transition, problem.cost
