@@ -144,9 +144,9 @@ class _KKTSensitivity(torch.autograd.Function):
     def backward(ctx, gx, gu):
         Fh, Kk, Vh, chol, keep_u, good = ctx.saved_tensors
         if gx is None:
-            gx = torch.zeros(Vh.shape[0], Vh.shape[1], Vh.shape[-1] - 1, dtype=Vh.dtype)
+            gx = Vh.new_zeros(Vh.shape[0], Vh.shape[1], Vh.shape[-1] - 1)
         if gu is None:
-            gu = torch.zeros(*Kk.shape[:-1], dtype=Kk.dtype, device=Kk.device)
+            gu = Kk.new_zeros(Kk.shape[:-1])
         # no derivative for elements without one (zero gradient, never NaN)
         gx = torch.where(good.view(-1, 1, 1), gx, torch.zeros_like(gx))
         gu = torch.where(good.view(-1, 1, 1) & keep_u, gu, torch.zeros_like(gu))
