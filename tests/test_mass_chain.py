@@ -94,3 +94,32 @@ def test_parameters_learnable_through_jacobians():
     (A.sum() + B.sum()).backward()
     assert k3.grad is not None and mass.grad is not None
     assert k3.grad.abs() > 0 and mass.grad.abs() > 0
+
+
+def test_second_derivatives_first_then_again_and_after_dtype_change():
+    """Calling the model first inside torch.func transforms (dynamics_vhp), then again
+    in another transform, then in float32 after ``.float()``: a tensor created inside the
+    first transform and reused later made functorch fail ("escaped?"); the matrices are
+    buffers now. The second-order terms match autograd's Hessian."""
+    from torchslq import discretize
+    from torchslq.dynamics import dynamics_vhp
+
+    dyn = discretize(MassChain(3, k3=2.0), 0.1)
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(2, 6, generator=g, dtype=torch.float64)
+    u = torch.randn(2, 3, generator=g, dtype=torch.float64)
+    s = torch.randn(2, 6, generator=g, dtype=torch.float64)
+    first = dynamics_vhp(dyn, x, u, s)
+    second = dynamics_vhp(dyn, x, u, s)
+    for a, b in zip(first, second, strict=True):
+        assert torch.equal(a, b)
+
+    def sf(z):
+        return (s[1] * dyn(z[:6].unsqueeze(0), z[6:].unsqueeze(0))[0]).sum()
+
+    H = torch.autograd.functional.hessian(sf, torch.cat([x[1], u[1]]))
+    torch.testing.assert_close(first[0][1], H[:6, :6], rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(first[2][1], H[6:, :6], rtol=1e-10, atol=1e-12)
+    dyn32 = dyn.float()
+    out = dynamics_vhp(dyn32, x.float(), u.float(), s.float())
+    torch.testing.assert_close(out[0].double(), first[0], rtol=1e-4, atol=1e-5)

@@ -48,6 +48,10 @@ class MassChain(ContinuousDynamics):
         set_param(self, "k", k)
         set_param(self, "k3", k3)
         set_param(self, "damping", damping, nonneg=True)
+        eye = torch.eye(n_masses, dtype=torch.float64)
+        sub = torch.diag(torch.ones(n_masses - 1, dtype=torch.float64), -1)
+        self.register_buffer("_Dt", (eye - sub).T.contiguous(), persistent=False)
+        self.register_buffer("_M", (sub - eye).contiguous(), persistent=False)
 
     def _params(self, x: Tensor):
         out = []
@@ -60,15 +64,15 @@ class MassChain(ContinuousDynamics):
         return p - torch.cat([torch.zeros_like(p[..., :1]), p[..., :-1]], dim=-1)
 
     def _matrices(self, like: Tensor) -> tuple[Tensor, Tensor]:
-        """``D'`` with ``e = p D'`` (extensions) and ``M`` with ``s M = s_{i+1} - s_i``."""
-        key = (like.dtype, like.device)
-        cache = self.__dict__.setdefault("_mat_cache", {})
-        if key not in cache:
-            N = self.n_masses
-            eye = torch.eye(N, dtype=like.dtype, device=like.device)
-            sub = torch.diag(torch.ones(N - 1, dtype=like.dtype, device=like.device), -1)
-            cache[key] = ((eye - sub).T.contiguous(), (sub - eye).contiguous())
-        return cache[key]
+        """``D'`` with ``e = p D'`` (extensions) and ``M`` with ``s M = s_{i+1} - s_i``.
+
+        Buffers made once in ``__init__`` (``module.to`` moves them), not a cache filled on
+        first use: a tensor made inside a ``torch.func`` transform is wrapped for that
+        transform and must not be reused by a later one."""
+        Dt, M = self._Dt, self._M
+        if Dt.dtype != like.dtype or Dt.device != like.device:
+            Dt, M = Dt.to(like), M.to(like)
+        return Dt, M
 
     def forward(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> Tensor:
         # two small matmuls instead of shifted concatenations: this model is called
