@@ -128,7 +128,7 @@ class _KKTSensitivity(torch.autograd.Function):
     ``Gu (B,T,m)``), the dynamics ``F = f(z*) (B,T,n)`` and ``x0 (B,n)``; their values are
     not used, only the autograd graph from them to the parameters. The outputs are the
     solution itself. Backward (implicit function theorem on the KKT conditions,
-    Amos et al. 2018, eq. 7): the LQ problem with the Lagrangian Hessian as quadratic
+    Amos et al. 2018, Section 4): the LQ problem with the Lagrangian Hessian as quadratic
     terms and the incoming gradient as linear terms, solved with the factorisation made
     in the forward pass (:func:`torchslq.lq.solve.lq_adjoint_solve`), gives ``dz`` and
     its costates ``dλ``; then ``dℓ/dθ = dz·∂G/∂θ + Σ dλ_{t+1}·∂f_t/∂θ + dλ_0·∂x0/∂θ``.
