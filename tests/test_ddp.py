@@ -61,8 +61,8 @@ def test_dynamics_hessians_match_autograd(method):
 
 
 def test_dynamics_hessians_in_time_chunks_equal_one_call(monkeypatch):
-    """Above HESSIAN_CHUNK_ROWS rows the Hessians are computed a few time steps at a
-    time; the result equals the single batched call exactly, also with per-element
+    """Above HESSIAN_CHUNK_ROWS rows the Hessians (and vector-Hessian products) are
+    computed a few time steps at a time; the result equals the single batched call exactly, also with per-element
     model parameters shaped (B, 1) (which a split along the batch dim would misalign)."""
     import sys
 
@@ -72,10 +72,13 @@ def test_dynamics_hessians_in_time_chunks_equal_one_call(monkeypatch):
     g = torch.Generator().manual_seed(3)
     x = torch.randn(3, 11, 4, generator=g, dtype=F64)
     u = torch.randn(3, 11, 1, generator=g, dtype=F64)
+    s = torch.randn(3, 11, 4, generator=g, dtype=F64)
     whole = dynamics_hessians(dyn, x, u)
+    whole_vhp = dynamics_vhp(dyn, x, u, s)
     monkeypatch.setattr(lin, "HESSIAN_CHUNK_ROWS", 7)  # 33 rows -> chunks of 2 steps
     chunked = dynamics_hessians(dyn, x, u)
-    for a, b in zip(whole, chunked, strict=True):
+    chunked_vhp = dynamics_vhp(dyn, x, u, s)
+    for a, b in zip(whole + whole_vhp, chunked + chunked_vhp, strict=True):
         assert a.shape == b.shape
         assert torch.equal(a, b)
     # and per element the parameters really differ (the test would catch a misalignment)

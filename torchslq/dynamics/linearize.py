@@ -136,6 +136,28 @@ def linearize(
     return A.reshape(*lead, n_out, x.shape[-1]), B.reshape(*lead, n_out, u.shape[-1])
 
 
+# rows per call of the batched reverse-over-reverse passes (dynamics_vhp/_hessians)
+HESSIAN_CHUNK_ROWS = 4096
+
+
+def _in_time_chunks(fn: Callable, x: Tensor, *others: Tensor) -> list | None:
+    """``fn`` on a few thousand rows at a time, split along the time dim (dim -2), or
+    None when ``x`` is small enough (or has no time dim shared with ``others``).
+
+    Split along time, not batch, so that per-element parameters shaped ``(B, 1)`` stay
+    aligned; smaller calls keep the reverse-over-reverse intermediates in cache (cart-pole
+    RK4 Hessians at 25,600 rows: 278 vs 442 ms, see benchmarks/results/
+    session10_experiments.md)."""
+    rows = x.shape[:-1].numel()
+    if x.ndim < 3 or x.shape[-2] <= 1 or rows <= HESSIAN_CHUNK_ROWS:
+        return None
+    if any(o.ndim != x.ndim or o.shape[-2] != x.shape[-2] for o in others):
+        return None
+    steps = max(1, HESSIAN_CHUNK_ROWS * x.shape[-2] // rows)
+    pieces = zip(x.split(steps, -2), *(o.split(steps, -2) for o in others), strict=True)
+    return [fn(*p) for p in pieces]
+
+
 def dynamics_vhp(
     dynamics: Callable, x: Tensor, u: Tensor, s: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:
@@ -155,6 +177,9 @@ def dynamics_vhp(
     f = as_transition(dynamics)
     n, m = x.shape[-1], u.shape[-1]
     x, u, s = x.detach(), u.detach(), s.detach()
+    parts = _in_time_chunks(lambda *t: dynamics_vhp(f, *t), x, u, s)
+    if parts is not None:  # outputs (..., T, ., .): time is dim x.ndim - 2
+        return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 2) for i in range(3))
     with torch.no_grad():
         g = torch.func.grad(lambda a, b: (s * f(a, b)).sum(), argnums=(0, 1))
         basis = torch.eye(n + m, dtype=x.dtype, device=x.device)
@@ -166,10 +191,6 @@ def dynamics_vhp(
     Hx = cols_x.movedim(0, -1)  # (..., n, n+m): rows of [Hxx | Hxu]
     Hu = cols_u.movedim(0, -1)  # (..., m, n+m): rows of [Hux | Huu]
     return Hx[..., :n], Hu[..., n:], Hu[..., :n]
-
-
-# rows per call of dynamics_hessians' batched reverse-over-reverse pass
-HESSIAN_CHUNK_ROWS = 4096
 
 
 def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -188,16 +209,8 @@ def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor,
     """
     n = x.shape[-1]
     f = as_transition(dynamics)
-    rows = x.shape[:-1].numel()
-    if x.ndim >= 3 and x.shape[-2] > 1 and u.shape[-2] == x.shape[-2] and rows > HESSIAN_CHUNK_ROWS:
-        # a few thousand rows at a time along the time dim (not the batch dim, so that
-        # per-element parameters shaped (B, 1) stay aligned): the reverse-over-reverse
-        # intermediates then stay in cache (cart-pole RK4, 25,600 rows: 311 vs 375 ms)
-        steps = max(1, HESSIAN_CHUNK_ROWS * x.shape[-2] // rows)
-        parts = [
-            dynamics_hessians(f, xc, uc)
-            for xc, uc in zip(x.split(steps, -2), u.split(steps, -2), strict=True)
-        ]
+    parts = _in_time_chunks(lambda *t: dynamics_hessians(f, *t), x, u)
+    if parts is not None:  # outputs (n, ..., T, ., .): time is dim x.ndim - 1
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 1) for i in range(3))
     basis = torch.eye(n, dtype=x.dtype, device=x.device)
     basis = basis.reshape(n, *([1] * (x.ndim - 1)), n).expand(n, *x.shape)
