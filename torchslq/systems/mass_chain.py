@@ -48,10 +48,6 @@ class MassChain(ContinuousDynamics):
         set_param(self, "k", k)
         set_param(self, "k3", k3)
         set_param(self, "damping", damping, nonneg=True)
-        eye = torch.eye(n_masses, dtype=torch.float64)
-        sub = torch.diag(torch.ones(n_masses - 1, dtype=torch.float64), -1)
-        self.register_buffer("_Dt", (eye - sub).T.contiguous(), persistent=False)
-        self.register_buffer("_M", (sub - eye).contiguous(), persistent=False)
 
     def _params(self, x: Tensor):
         out = []
@@ -66,13 +62,21 @@ class MassChain(ContinuousDynamics):
     def _matrices(self, like: Tensor) -> tuple[Tensor, Tensor]:
         """``D'`` with ``e = p D'`` (extensions) and ``M`` with ``s M = s_{i+1} - s_i``.
 
-        Buffers made once in ``__init__`` (``module.to`` moves them), not a cache filled on
-        first use: a tensor made inside a ``torch.func`` transform is wrapped for that
-        transform and must not be reused by a later one."""
-        Dt, M = self._Dt, self._M
-        if Dt.dtype != like.dtype or Dt.device != like.device:
-            Dt, M = Dt.to(like), M.to(like)
-        return Dt, M
+        Cached per dtype and device, but never filled inside a ``torch.func`` transform:
+        a tensor made there is wrapped for that transform, and reusing it in a later one
+        makes functorch fail ("escaped?"). (Not buffers: the problem's dtype check would
+        then demand float64 inputs.)"""
+        key = (like.dtype, like.device)
+        cache = self.__dict__.setdefault("_mat_cache", {})
+        if key in cache:
+            return cache[key]
+        N = self.n_masses
+        eye = torch.eye(N, dtype=like.dtype, device=like.device)
+        sub = torch.diag(torch.ones(N - 1, dtype=like.dtype, device=like.device), -1)
+        mats = ((eye - sub).T.contiguous(), (sub - eye).contiguous())
+        if torch._C._functorch.peek_interpreter_stack() is None:
+            cache[key] = mats
+        return mats
 
     def forward(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> Tensor:
         # two small matmuls instead of shifted concatenations: this model is called
