@@ -205,7 +205,9 @@ def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
     """Far from the optimum DDP's second-order terms make some ``Quu`` indefinite; the
     pass is then repeated with a larger ``mu`` for those elements only (fewer rows per
     retry, measured by wrapping the kernel), and the batch still equals one-by-one
-    solves (so the rows put back are the right ones)."""
+    solves (so the rows put back are the right ones). Trying the next values of mu side
+    by side in one pass (the default) gives the same solution bit for bit, in fewer
+    passes."""
     import torchslq.solvers.ilqr as ilqr_mod
     from torchslq.tasks import cartpole_swingup
 
@@ -218,10 +220,20 @@ def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
         return kernel(A, *args, **kwargs)
 
     monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
+    monkeypatch.setattr(ilqr_mod, "RETRY_ROWS", 1)  # one candidate mu per restart pass
     solver = ts.DDP(progress=False, max_iter=15, tol=1e-8)
     batch = solver.solve(problem, x0)
     assert any(0 < r < x0.shape[0] for r in rows_per_pass), rows_per_pass
     monkeypatch.undo()
+    # side by side (the default): the same solution to the last bit, in fewer passes
+    passes_one_by_one = len(rows_per_pass)
+    rows_per_pass.clear()
+    monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
+    side_by_side = solver.solve(problem, x0)
+    monkeypatch.undo()
+    assert torch.equal(side_by_side.u, batch.u) and torch.equal(side_by_side.K, batch.K)
+    assert torch.equal(side_by_side.iterations, batch.iterations)
+    assert len(rows_per_pass) < passes_one_by_one, (len(rows_per_pass), passes_one_by_one)
     for b in range(x0.shape[0]):
         single = solver.solve(problem, x0[b])
         torch.testing.assert_close(single.u, batch.u[b], rtol=1e-9, atol=1e-11)
