@@ -27,9 +27,10 @@ from torchslq import DDP, ILQR, MPC, SLQ, GoPRONTO, QuadraticCost, discretize, l
 from torchslq.systems import Pendulum
 from torchslq.tasks import pendulum_swingup
 
-pytestmark = pytest.mark.filterwarnings(
-    "ignore:`torch.jit.script` is deprecated:DeprecationWarning"
-)
+pytestmark = [
+    pytest.mark.filterwarnings("ignore:`torch.jit.script` is deprecated:DeprecationWarning"),
+    pytest.mark.usefixtures("single_thread"),
+]
 
 F64 = torch.float64
 DEVICE = os.environ.get("TORCHSLQ_TEST_DEVICE", "cuda")
@@ -67,14 +68,6 @@ _DEVICES = ["cpu"] if DEVICE.split(":")[0] == "cpu" else ["cpu", DEVICE]
 )
 def device(request) -> torch.device:
     return torch.device(request.param)
-
-
-@pytest.fixture(autouse=True)
-def _threads():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 # ----------------------------------------------------------------------------- helpers

@@ -29,13 +29,7 @@ from torchslq.systems import DragVehicle, Pendulum
 F64 = torch.float64
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _single_thread():
-    """The problems here are tiny: intra-op threading only adds overhead (and noise)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("single_thread")
 
 
 # ----------------------------------------------------------------------------- helpers
