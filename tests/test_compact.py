@@ -60,3 +60,37 @@ def test_compact_refuses_per_element_problem_tensors():
         ts.SLQ(compact=True, progress=False).solve(problem, torch.zeros(2, 2, dtype=torch.float64))
     with pytest.raises(ValueError, match="compact"):
         ts.GradientMethod(compact=True)
+
+
+@pytest.mark.parametrize("module", ["ilqr", "slq"])
+def test_finished_elements_do_not_hold_up_the_line_search(module, monkeypatch):
+    """Without compaction, finished elements ride along in the batch. A converged
+    element's trial costs sit at round-off level (``J(a) = J0 + 1 ulp`` fails Armijo at
+    every step size), which made every later line search run its second pass of step
+    sizes (unicycle B=512: 195 instead of 100 trial rollouts in 100 iterations). The
+    search is told which elements are running: an element is active in a prefix of the
+    searches (never again once finished) at least as long as its accepted steps."""
+    import importlib
+
+    mod = importlib.import_module(f"torchslq.solvers.{module}")
+    seen = []
+    orig = mod.armijo_search
+
+    def spy(*args, **kwargs):
+        seen.append(kwargs.get("active"))
+        return orig(*args, **kwargs)
+
+    monkeypatch.setattr(mod, "armijo_search", spy)
+    problem, x0 = pendulum_swingup(batch=6, horizon=30, seed=4)
+    if module == "ilqr":
+        solver = ts.ILQR(max_iter=60, progress=False)
+    else:
+        solver = ts.SLQ(rollout="closed_loop", line_search="armijo", max_iter=60, progress=False)
+    res = solver.solve(problem, x0)
+    assert seen and all(a is not None for a in seen)
+    act = torch.stack(seen)  # (searches, B)
+    n_active = act.sum(0)
+    for b in range(act.shape[1]):
+        assert bool(act[: n_active[b], b].all()) and not bool(act[n_active[b] :, b].any())
+    assert bool((n_active >= res.iterations).all())
+    assert int(n_active.min()) < act.shape[0]  # someone finished before the last search

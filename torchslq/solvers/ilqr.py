@@ -433,6 +433,7 @@ class ILQR(SLQ):
             c1=o.armijo_c1,
             beta=o.armijo_beta,
             max_backtracks=o.max_backtracks,
+            active=d.get("running"),
         )
         x_new, u_new = trials.select(alpha)
         return alpha, J_new, ok, x_new, u_new

@@ -257,6 +257,7 @@ class SLQ:
                 if n_running == 0 or it == o.max_iter:
                     self._scatter(idx)
                     break
+                d["running"] = run  # finished elements must not hold up a line-search pass
                 alpha, J_new, ok, x_new, u_new = self._line_search(f, cost_fn, x0s, xs, us, Js, d)
                 accept = run & ok
                 st = st.masked_fill(
@@ -360,6 +361,7 @@ class SLQ:
                 c1=o.armijo_c1,
                 beta=o.armijo_beta,
                 max_backtracks=o.max_backtracks,
+                active=d.get("running"),
             )
         x_new, u_new = trials.select(alpha)
         return alpha, J_new, ok, x_new, u_new
