@@ -35,6 +35,7 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
+from .compiled import can_use_compiled, riccati_compiled
 
 StageHook = Callable[[int, Tensor], Tensor]
 
@@ -212,14 +213,19 @@ def riccati_homogeneous(
         stage_hook: optional ``hook(t, Vh_next) -> (B, m+n, m+n)``, a term added to the
             ``[u; x]`` block of the stage Hessian at step ``t`` that may depend on the
             value function of step ``t+1`` (DDP's ``V_x · f_zz`` second-order dynamics
-            terms); ``None`` for the plain LQ recursion.
+            terms); ``None`` for the plain LQ recursion. A hook whose term is
+            ``sum_i v_{t+1,i} Hz[t, i]`` can expose ``Hz (T, n, B, m+n, m+n)`` as its
+            ``hessians`` attribute, which lets the compiled CPU kernel
+            (:mod:`torchslq.lq.compiled`) run the pass.
         u_bounds: optional ``(lower, upper)`` bounds on the control ``u_t`` of this LQ
             problem (in deviation coordinates: bounds on ``δu_t``), each broadcastable
             to ``(B, T, m)``, infinite entries allowed, and containing 0 for the
             expected-improvement terms to be meaningful. See
             :func:`_riccati_box` (control-limited DDP, Tassa et al. 2014).
 
-    The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B).
+    The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B). On the CPU without autograd or
+    bounds the pass runs as one compiled kernel (:mod:`torchslq.lq.compiled`, same
+    equations); otherwise as batched torch ops per step.
     """
     T = F.shape[-3]
     n = F.shape[-2] - 1
@@ -229,6 +235,14 @@ def riccati_homogeneous(
         batch = broadcast_shapes(batch, reg.shape)
     if u_bounds is not None:
         return _riccati_box(F, H, VhT, reg, stage_hook, u_bounds, batch)
+    hessians = getattr(stage_hook, "hessians", None)
+    if (
+        T > 0
+        and (stage_hook is None or hessians is not None)
+        and can_use_compiled(F, H, VhT, *[t for t in (reg, hessians) if isinstance(t, Tensor)])
+    ):
+        Kk, Vh, chol, failed = riccati_compiled(F, H, VhT, reg, hessians, batch)
+        return RiccatiFactors(Kk=Kk, Vh=Vh, chol=chol, failed=failed)
     Vh = VhT.expand(*batch, n + 1, n + 1)
     eye_m = torch.eye(m, dtype=F.dtype, device=F.device)
     if reg is not None:

@@ -115,6 +115,11 @@ class _HessianHook:
     def __init__(self, Hz: Tensor):
         self.Hz = Hz
 
+    @property
+    def hessians(self) -> Tensor:
+        """``Hz``, for the compiled Riccati kernel (which contracts it itself)."""
+        return self.Hz
+
     def __call__(self, t: int, Vh_next: Tensor) -> Tensor:
         n = self.Hz.shape[1]
         s = Vh_next[..., :n, n]  # v_{t+1}, (B, n)

@@ -1,0 +1,172 @@
+"""The compiled CPU Riccati kernel (torchslq.lq.compiled) against the torch path.
+
+Both implement the same recursion; the torch path is itself checked against dense KKT
+solves and a literal transcription of the paper in test_lq_kernel.py.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchslq as ts
+from torchslq.lq import compiled
+from torchslq.lq.riccati import riccati_homogeneous
+from torchslq.solvers.ddp import _HessianHook
+
+F64 = torch.float64
+
+
+@pytest.fixture
+def torch_path():
+    """Run a block with the compiled kernel disabled (the torch path)."""
+
+    class _Switch:
+        def __enter__(self):
+            self.old = compiled.set_compiled(False)
+
+        def __exit__(self, *exc):
+            compiled.set_compiled(self.old)
+
+    return _Switch()
+
+
+def test_numba_kernel_is_available():
+    # numba is a dependency; if it is missing every CPU pass silently takes the slow path
+    assert compiled.compiled_available()
+
+
+def _problem(batch, T, n, m, dtype=F64, seed=0, shared_cost=True):
+    g = torch.Generator().manual_seed(seed)
+    mn1 = m + n + 1
+    F = 0.4 * torch.randn(*batch, T, n + 1, mn1, generator=g, dtype=dtype)
+    F[..., :n, m : m + n] += torch.eye(n, dtype=dtype)
+    F[..., n, :] = 0.0
+    F[..., n, -1] = 1.0
+    cb = (1,) if shared_cost else batch
+    G = torch.randn(*cb, T, mn1, mn1, generator=g, dtype=dtype)
+    H = G @ G.mT / mn1 + 0.1 * torch.eye(mn1, dtype=dtype)
+    H[..., -1, -1] = 0.0
+    W = torch.randn(n + 1, n + 1, generator=g, dtype=dtype)
+    VhT = W @ W.mT / (n + 1)
+    return F, H, VhT
+
+
+def _both(torch_path, *args, **kwargs):
+    fast = riccati_homogeneous(*args, **kwargs)
+    with torch_path:
+        ref = riccati_homogeneous(*args, **kwargs)
+    return fast, ref
+
+
+def _close(fast, ref, rtol=1e-10):
+    assert torch.equal(fast.failed, ref.failed)
+    ok = ~ref.failed
+    for name in ("Kk", "Vh", "chol"):
+        a, b = getattr(fast, name)[ok], getattr(ref, name)[ok]
+        assert a.shape == b.shape, name
+        scale = b.abs().max().clamp_min(1.0)
+        assert float((a - b).abs().max() / scale) < rtol, name
+
+
+@pytest.mark.parametrize("m", [1, 2, 3])
+@pytest.mark.parametrize("reg", [None, 1e-3, "per-element"])
+def test_compiled_equals_torch_path(torch_path, m, reg):
+    F, H, VhT = _problem((7,), 12, 4, m, seed=m)
+    if reg == "per-element":
+        reg = torch.linspace(0.0, 0.5, 7, dtype=F64)
+    fast, ref = _both(torch_path, F, H, VhT, reg=reg)
+    assert not bool(ref.failed.any())
+    _close(fast, ref)
+
+
+def test_compiled_broadcasts_like_the_torch_path(torch_path):
+    # per-element F with shared H and VhT, a 2-d batch, and per-element costs
+    F, H, VhT = _problem((2, 3), 6, 3, 2)
+    fast, ref = _both(torch_path, F, H[0], VhT)
+    assert fast.Kk.shape == (2, 3, 6, 2, 4)
+    _close(fast, ref)
+    F1, Hb, _ = _problem((5,), 6, 3, 2, shared_cost=False)
+    fast, ref = _both(torch_path, F1[:1], Hb, VhT.expand(5, 4, 4))
+    assert fast.Vh.shape == (5, 7, 4, 4)
+    _close(fast, ref)
+
+
+def test_compiled_with_ddp_hessian_hook(torch_path):
+    B, T, n, m = 5, 8, 3, 2
+    F, H, VhT = _problem((B,), T, n, m)
+    g = torch.Generator().manual_seed(7)
+    Hz = torch.randn(T, n, B, m + n, m + n, generator=g, dtype=F64)
+    Hz = 0.05 * (Hz + Hz.mT)
+    fast, ref = _both(torch_path, F, H, VhT, reg=1e-2, stage_hook=_HessianHook(Hz))
+    assert not bool(ref.failed.any())
+    _close(fast, ref)
+
+
+def test_compiled_reports_the_same_failures(torch_path):
+    F, H, VhT = _problem((4,), 10, 3, 2)
+    H = H.expand(4, *H.shape[1:]).clone()
+    H[2, 5, 0, 0] = -50.0  # Quu of element 2 indefinite at step 5
+    H[3, 0, 1, 1] = float("nan")  # element 3 non-finite at step 0
+    fast, ref = _both(torch_path, F, H, VhT)
+    assert fast.failed.tolist() == [False, False, True, True]
+    assert torch.equal(fast.failed, ref.failed)
+    _close(fast, ref)
+    # the failing element's later steps (computed before the failure) agree too
+    torch.testing.assert_close(fast.Kk[2, 6:], ref.Kk[2, 6:], rtol=1e-10, atol=1e-12)
+
+
+def test_compiled_float32(torch_path):
+    F, H, VhT = _problem((6,), 15, 4, 2)
+    fast32 = riccati_homogeneous(F.float(), H.float(), VhT.float(), reg=1e-3)
+    ref64 = riccati_homogeneous(F, H, VhT, reg=1e-3)
+    assert fast32.Kk.dtype == torch.float32
+    torch.testing.assert_close(fast32.Kk.double(), ref64.Kk, rtol=1e-3, atol=1e-4)
+
+
+def test_torch_path_where_autograd_or_transforms_need_it():
+    F, H, VhT = _problem((3,), 5, 2, 1)
+    assert compiled.can_use_compiled(F, H, VhT)
+    Hg = H.clone().requires_grad_()
+    assert not compiled.can_use_compiled(F, Hg, VhT)
+    with torch.no_grad():
+        assert compiled.can_use_compiled(F, Hg, VhT)
+    assert not compiled.can_use_compiled(F.float(), H, VhT)  # mixed dtypes
+    # gradients through a pass still flow (the torch path records them)
+    fac = riccati_homogeneous(F, Hg, VhT)
+    fac.Vh[:, 0].sum().backward()
+    assert Hg.grad is not None and bool(Hg.grad.abs().sum() > 0)
+    # inside torch.func transforms the tensors are wrappers: torch path, same numbers
+    out = torch.func.vmap(lambda f: riccati_homogeneous(f, H[0], VhT).Kk)(F)
+    torch.testing.assert_close(out, riccati_homogeneous(F, H, VhT).Kk, rtol=1e-12, atol=1e-12)
+
+
+def test_lqr_solve_matches_with_and_without_compiled(torch_path):
+    """The public LQ solve (and its implicit gradient) through either path."""
+    g = torch.Generator().manual_seed(3)
+    B, T, n, m = 4, 9, 3, 2
+    A = torch.eye(n, dtype=F64) + 0.2 * torch.randn(B, T, n, n, generator=g, dtype=F64)
+    Bm = torch.randn(B, T, n, m, generator=g, dtype=F64)
+    Q = torch.eye(n, dtype=F64).expand(B, T + 1, n, n)
+    R = 0.5 * torch.eye(m, dtype=F64).expand(B, T, m, m)
+    q = torch.randn(B, T + 1, n, generator=g, dtype=F64).requires_grad_()
+    x0 = torch.randn(B, n, generator=g, dtype=F64)
+    sol = ts.lqr_solve(A, Bm, Q, R, x0, q=q)
+    (gq,) = torch.autograd.grad(sol.u.square().sum(), q)
+    with torch_path:
+        sol_t = ts.lqr_solve(A, Bm, Q, R, x0, q=q)
+        (gq_t,) = torch.autograd.grad(sol_t.u.square().sum(), q)
+    torch.testing.assert_close(sol.u, sol_t.u, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(gq, gq_t, rtol=1e-10, atol=1e-12)
+
+
+def test_ddp_solve_same_with_and_without_compiled(torch_path):
+    from torchslq.tasks import pendulum_swingup
+
+    problem, x0 = pendulum_swingup(batch=5, horizon=30, seed=2)
+    fast = ts.DDP(max_iter=50, progress=False).solve(problem, x0)
+    with torch_path:
+        ref = ts.DDP(max_iter=50, progress=False).solve(problem, x0)
+    assert bool(fast.converged.all()) and bool(ref.converged.all())
+    torch.testing.assert_close(fast.u, ref.u, rtol=1e-6, atol=1e-8)
+    torch.testing.assert_close(fast.cost, ref.cost, rtol=1e-10, atol=0.0)
