@@ -109,26 +109,33 @@ if numba is not None:
                     Vh[b, T, i, j] = VhT[bv, i, j]
             ok = True
             for t in range(T - 1, -1, -1):
+                # 2-d views of this step's matrices (cheaper indexing than 4-d)
+                Vn = Vh[b, t + 1]
+                Vc = Vh[b, t]
+                Ft = F[bf, t]
+                Ht = H[bh, t]
+                Kt = Kk[b, t]
                 # M = H_t + F_t' Vh_{t+1} F_t (symmetric: upper triangle, mirrored)
                 for i in range(n1):
                     for j in range(mn1):
                         s = 0.0
                         for k in range(n1):
-                            s += Vh[b, t + 1, i, k] * F[bf, t, k, j]
+                            s += Vn[i, k] * Ft[k, j]
                         VF[i, j] = s
                 for i in range(mn1):
                     for j in range(i, mn1):
-                        s = H[bh, t, i, j]
+                        s = Ht[i, j]
                         for k in range(n1):
-                            s += F[bf, t, k, i] * VF[k, j]
+                            s += Ft[k, i] * VF[k, j]
                         M[i, j] = s
                         M[j, i] = s
                 if use_hz:  # DDP: + v_{t+1} . f_zz on the [u; x] block
                     for k in range(n):
-                        v = Vh[b, t + 1, k, n]
+                        v = Vn[k, n]
+                        Hk = Hz[t, k, b]
                         for i in range(mn1 - 1):
                             for j in range(mn1 - 1):
-                                M[i, j] += v * Hz[t, k, b, i, j]
+                                M[i, j] += v * Hk[i, j]
                 # Cholesky of Quu + reg I
                 for j in range(m):
                     s = M[j, j] + r
@@ -146,31 +153,32 @@ if numba is not None:
                         Lb[i, j] = s2 / d
                 if not ok:
                     break
+                Lt = L[b, t]
                 for i in range(m):
                     for j in range(i + 1):
-                        L[b, t, i, j] = Lb[i, j]
+                        Lt[i, j] = Lb[i, j]
                 # [K_t, k_t] = -(L L')^{-1} M[:m, m:]
                 for c in range(n1):
                     for i in range(m):
                         s = -M[i, m + c]
                         for k in range(i):
-                            s -= Lb[i, k] * Kk[b, t, k, c]
-                        Kk[b, t, i, c] = s / Lb[i, i]
+                            s -= Lb[i, k] * Kt[k, c]
+                        Kt[i, c] = s / Lb[i, i]
                     for i in range(m - 1, -1, -1):
-                        s = Kk[b, t, i, c]
+                        s = Kt[i, c]
                         for k in range(i + 1, m):
-                            s -= Lb[k, i] * Kk[b, t, k, c]
-                        Kk[b, t, i, c] = s / Lb[i, i]
+                            s -= Lb[k, i] * Kt[k, c]
+                        Kt[i, c] = s / Lb[i, i]
                 if short_form:  # Vh_t = M_zz + M_uz'Kk, symmetrised
                     for i in range(n1):
                         for j in range(i, n1):
                             s = M[m + i, m + j]
                             s2 = M[m + j, m + i]
                             for p in range(m):
-                                s += M[p, m + i] * Kk[b, t, p, j]
-                                s2 += M[p, m + j] * Kk[b, t, p, i]
-                            Vh[b, t, i, j] = 0.5 * (s + s2)
-                            Vh[b, t, j, i] = 0.5 * (s + s2)
+                                s += M[p, m + i] * Kt[p, j]
+                                s2 += M[p, m + j] * Kt[p, i]
+                            Vc[i, j] = 0.5 * (s + s2)
+                            Vc[j, i] = 0.5 * (s + s2)
                     continue
                 # Vh_t = M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk (Tassa et al. 2012's form,
                 # exact for any gains, hence also with reg)
@@ -178,14 +186,14 @@ if numba is not None:
                     for j in range(i, n1):
                         s = M[m + i, m + j]
                         for p in range(m):
-                            kpi = Kk[b, t, p, i]
-                            s += kpi * M[p, m + j] + Kk[b, t, p, j] * M[p, m + i]
+                            kpi = Kt[p, i]
+                            s += kpi * M[p, m + j] + Kt[p, j] * M[p, m + i]
                             acc = 0.0
                             for q in range(m):
-                                acc += M[p, q] * Kk[b, t, q, j]
+                                acc += M[p, q] * Kt[q, j]
                             s += kpi * acc
-                        Vh[b, t, i, j] = s
-                        Vh[b, t, j, i] = s
+                        Vc[i, j] = s
+                        Vc[j, i] = s
             failed[b] = not ok
 
 
