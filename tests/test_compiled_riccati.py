@@ -170,3 +170,30 @@ def test_ddp_solve_same_with_and_without_compiled(torch_path):
     assert bool(fast.converged.all()) and bool(ref.converged.all())
     torch.testing.assert_close(fast.u, ref.u, rtol=1e-6, atol=1e-8)
     torch.testing.assert_close(fast.cost, ref.cost, rtol=1e-10, atol=0.0)
+
+
+@pytest.mark.parametrize("shared", [False, True])
+def test_compiled_rollout_and_adjoint_equal_torch_path(torch_path, shared):
+    """rollout_homogeneous and lq_adjoint_solve (the LQ layer's forward rollout and its
+    implicit backward) through the compiled kernels and the torch path; ``shared``:
+    problem data and factors of batch 1 with per-element x0 and incoming gradients."""
+    from torchslq.lq import lq_adjoint_solve, rollout_homogeneous
+
+    B, T, n, m = 6, 11, 4, 2
+    F, H, VhT = _problem((1,) if shared else (B,), T, n, m, seed=5)
+    fac = riccati_homogeneous(F, H, VhT)
+    g = torch.Generator().manual_seed(9)
+    x0 = torch.randn(B, n, generator=g, dtype=F64)
+    gx = torch.randn(B, T + 1, n, generator=g, dtype=F64)
+    gu = torch.randn(B, T, m, generator=g, dtype=F64)
+    x, u = rollout_homogeneous(F, fac.Kk, x0)
+    adj = lq_adjoint_solve(F, fac.Kk, fac.Vh, fac.chol, gx, gu)
+    with torch_path:
+        x_t, u_t = rollout_homogeneous(F, fac.Kk, x0)
+        adj_t = lq_adjoint_solve(F, fac.Kk, fac.Vh, fac.chol, gx, gu)
+    assert x.shape == (B, T + 1, n) and u.shape == (B, T, m)
+    torch.testing.assert_close(x, x_t, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(u, u_t, rtol=1e-12, atol=1e-12)
+    for a, b in zip(adj, adj_t, strict=True):
+        assert a.shape == b.shape
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)

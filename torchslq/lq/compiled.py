@@ -37,7 +37,14 @@ try:  # numba is a dependency, but the torch path keeps working without it
 except ImportError:  # pragma: no cover - exercised only where numba is missing
     numba = None
 
-__all__ = ["compiled_available", "set_compiled", "riccati_compiled", "can_use_compiled"]
+__all__ = [
+    "adjoint_compiled",
+    "can_use_compiled",
+    "compiled_available",
+    "riccati_compiled",
+    "rollout_compiled",
+    "set_compiled",
+]
 
 _enabled = os.environ.get("TORCHSLQ_COMPILED", "1").strip().lower() not in ("0", "false", "no")
 
@@ -196,6 +203,121 @@ if numba is not None:
                         Vc[j, i] = s
             failed[b] = not ok
 
+    @numba.njit(cache=True, nogil=True)
+    def _rollout_kernel(F, Kk, x0, x, u):  # pragma: no cover - jit
+        """``u_t = Kk_t [x_t; 1]``, ``x_{t+1} = F_t[:n] [u_t; x_t; 1]`` per element.
+
+        F ``(BF, T, n+1, m+n+1)``, Kk ``(BK, T, m, n+1)``, x0 ``(BX, n)`` (batches 1 or
+        B); outputs x ``(B, T+1, n)``, u ``(B, T, m)``.
+        """
+        nb, T, m = u.shape[0], u.shape[1], u.shape[2]
+        n = x.shape[2]
+        for b in range(nb):
+            bf = b if F.shape[0] > 1 else 0
+            bk = b if Kk.shape[0] > 1 else 0
+            bx = b if x0.shape[0] > 1 else 0
+            for i in range(n):
+                x[b, 0, i] = x0[bx, i]
+            for t in range(T):
+                Ft = F[bf, t]
+                Kt = Kk[bk, t]
+                xt = x[b, t]
+                ut = u[b, t]
+                for i in range(m):
+                    s = Kt[i, n]
+                    for j in range(n):
+                        s += Kt[i, j] * xt[j]
+                    ut[i] = s
+                xn = x[b, t + 1]
+                for i in range(n):
+                    s = Ft[i, m + n]
+                    for j in range(m):
+                        s += Ft[i, j] * ut[j]
+                    for j in range(n):
+                        s += Ft[i, m + j] * xt[j]
+                    xn[i] = s
+
+    @numba.njit(cache=True, nogil=True)
+    def _adjoint_kernel(F, Kk, Vh, L, gx, gu, dx, du, dlam):  # pragma: no cover - jit
+        """The adjoint LQ solve of :func:`torchslq.lq.lq_adjoint_solve` per element.
+
+        F ``(., T, n+1, m+n+1)``, Kk ``(., T, m, n+1)``, Vh ``(., T+1, n+1, n+1)``,
+        L ``(., T, m, m)``, gx ``(., T+1, n)``, gu ``(., T, m)`` (each batch 1 or B);
+        outputs dx ``(B, T+1, n)``, du ``(B, T, m)``,
+        dlam ``(B, T+1, n)`` (dlam holds the linear value terms ``v_t`` until the end).
+        """
+        nb, T, m = du.shape[0], du.shape[1], du.shape[2]
+        n = dx.shape[2]
+        qu = np.empty(m, dtype=dx.dtype)
+        for b in range(nb):
+            bf = b if F.shape[0] > 1 else 0
+            bk = b if Kk.shape[0] > 1 else 0
+            bg = b if gx.shape[0] > 1 else 0
+            bgu = b if gu.shape[0] > 1 else 0
+            bv = b if Vh.shape[0] > 1 else 0
+            bl = b if L.shape[0] > 1 else 0
+            v = dlam[b]
+            for i in range(n):
+                v[T, i] = gx[bg, T, i]
+            for t in range(T - 1, -1, -1):
+                Ft = F[bf, t]
+                Lt = L[bl, t]
+                Kt = Kk[bk, t]
+                # qu = gu_t + B'v_{t+1};  k_t = -(L L')^{-1} qu (stored in du)
+                for i in range(m):
+                    s = gu[bgu, t, i]
+                    for j in range(n):
+                        s += Ft[j, i] * v[t + 1, j]
+                    qu[i] = s
+                kt = du[b, t]
+                for i in range(m):
+                    s = -qu[i]
+                    for j in range(i):
+                        s -= Lt[i, j] * kt[j]
+                    kt[i] = s / Lt[i, i]
+                for i in range(m - 1, -1, -1):
+                    s = kt[i]
+                    for j in range(i + 1, m):
+                        s -= Lt[j, i] * kt[j]
+                    kt[i] = s / Lt[i, i]
+                # v_t = gx_t + A'v_{t+1} + K'qu
+                for i in range(n):
+                    s = gx[bg, t, i]
+                    for j in range(n):
+                        s += Ft[j, m + i] * v[t + 1, j]
+                    for j in range(m):
+                        s += Kt[j, i] * qu[j]
+                    v[t, i] = s
+            # forward: dx_0 = 0, du_t = K_t dx_t + k_t, dx_{t+1} = [B A] [du_t; dx_t]
+            for i in range(n):
+                dx[b, 0, i] = 0.0
+            for t in range(T):
+                Ft = F[bf, t]
+                Kt = Kk[bk, t]
+                xt = dx[b, t]
+                ut = du[b, t]
+                for i in range(m):
+                    s = ut[i]
+                    for j in range(n):
+                        s += Kt[i, j] * xt[j]
+                    ut[i] = s
+                xn = dx[b, t + 1]
+                for i in range(n):
+                    s = 0.0
+                    for j in range(m):
+                        s += Ft[i, j] * ut[j]
+                    for j in range(n):
+                        s += Ft[i, m + j] * xt[j]
+                    xn[i] = s
+            # dlam_t = V_t dx_t + v_t
+            for t in range(T + 1):
+                Vt = Vh[bv, t]
+                for i in range(n):
+                    s = v[t, i]
+                    for j in range(n):
+                        s += Vt[i, j] * dx[b, t, j]
+                    v[t, i] = s
+
 
 def _flat(t: Tensor, batch: torch.Size, tail: int) -> np.ndarray:
     """``t (..., *tail dims)`` as a contiguous ``(1 or prod(batch), *tail)`` array."""
@@ -262,4 +384,52 @@ def riccati_compiled(
         Vh.reshape(*batch, T + 1, n1, n1),
         L.reshape(*batch, T, m, m),
         failed.reshape(batch),
+    )
+
+
+def rollout_compiled(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`torchslq.lq.rollout_homogeneous` on the CPU kernel (same shapes); call
+    only where :func:`can_use_compiled` holds."""
+    T, n1 = F.shape[-3], F.shape[-2]
+    m = Kk.shape[-2]
+    n = n1 - 1
+    batch = torch.broadcast_shapes(F.shape[:-3], Kk.shape[:-3], x0.shape[:-1])
+    nb = math.prod(batch)
+    x = torch.empty(nb, T + 1, n, dtype=F.dtype)
+    u = torch.empty(nb, T, m, dtype=F.dtype)
+    _rollout_kernel(
+        _flat(F, batch, 3), _flat(Kk, batch, 3), _flat(x0, batch, 1), x.numpy(), u.numpy()
+    )
+    return x.reshape(*batch, T + 1, n), u.reshape(*batch, T, m)
+
+
+def adjoint_compiled(
+    F: Tensor, Kk: Tensor, Vh: Tensor, chol: Tensor, gx: Tensor, gu: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """:func:`torchslq.lq.lq_adjoint_solve` on the CPU kernel (same shapes and outputs);
+    call only where :func:`can_use_compiled` holds."""
+    T, m = gu.shape[-2], gu.shape[-1]
+    n = gx.shape[-1]
+    batch = torch.broadcast_shapes(
+        F.shape[:-3], Kk.shape[:-3], Vh.shape[:-3], chol.shape[:-3], gx.shape[:-2], gu.shape[:-2]
+    )
+    nb = math.prod(batch)
+    dx = torch.empty(nb, T + 1, n, dtype=F.dtype)
+    du = torch.empty(nb, T, m, dtype=F.dtype)
+    dlam = torch.empty(nb, T + 1, n, dtype=F.dtype)
+    _adjoint_kernel(
+        _flat(F, batch, 3),
+        _flat(Kk, batch, 3),
+        _flat(Vh, batch, 3),
+        _flat(chol, batch, 3),
+        _flat(gx, batch, 2),
+        _flat(gu, batch, 2),
+        dx.numpy(),
+        du.numpy(),
+        dlam.numpy(),
+    )
+    return (
+        dx.reshape(*batch, T + 1, n),
+        du.reshape(*batch, T, m),
+        dlam.reshape(*batch, T + 1, n),
     )

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
-from .compiled import can_use_compiled, riccati_compiled
+from .compiled import can_use_compiled, riccati_compiled, rollout_compiled
 
 StageHook = Callable[[int, Tensor], Tensor]
 
@@ -397,6 +397,8 @@ def rollout_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tens
         x ``(B, T+1, n)`` and u ``(B, T, m)``.
     """
     T = Kk.shape[-3]
+    if T > 0 and can_use_compiled(F, Kk, x0):
+        return rollout_compiled(F, Kk, x0)
     xh = torch.cat([x0, x0.new_ones(*x0.shape[:-1], 1)], dim=-1).unsqueeze(-1)
     xs, us = [xh], []
     for t in range(T):

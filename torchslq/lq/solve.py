@@ -23,6 +23,7 @@ from torch.autograd.function import once_differentiable
 
 from .._shapes import broadcast_shapes
 from ..status import Status
+from .compiled import adjoint_compiled, can_use_compiled
 from .riccati import (
     chol_solve,
     homogeneous_cost,
@@ -167,6 +168,8 @@ def lq_adjoint_solve(
     """
     T, m = gu.shape[-2], gu.shape[-1]
     n = gx.shape[-1]
+    if T > 0 and can_use_compiled(F, Kk, Vh, chol, gx, gu):
+        return adjoint_compiled(F, Kk, Vh, chol, gx, gu)
     K = Kk[..., :n]
     v = gx[..., T, :].unsqueeze(-1)
     ks: list[Tensor] = [v] * T
