@@ -197,3 +197,50 @@ def test_compiled_rollout_and_adjoint_equal_torch_path(torch_path, shared):
     for a, b in zip(adj, adj_t, strict=True):
         assert a.shape == b.shape
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_threaded_launch_equals_one_thread(torch_path, monkeypatch):
+    """Large passes are split over torch.get_num_threads() threads (contiguous chunks of
+    the batch); every element's numbers are the same as in one pass."""
+    from torchslq.lq import lq_adjoint_solve, rollout_homogeneous
+
+    F, H, VhT = _problem((9,), 7, 3, 2, seed=11)
+    g = torch.Generator().manual_seed(2)
+    x0 = torch.randn(9, 3, generator=g, dtype=F64)
+    gx, gu = (
+        torch.randn(9, 8, 3, generator=g, dtype=F64),
+        torch.randn(9, 7, 2, generator=g, dtype=F64),
+    )
+    reg = torch.linspace(0.0, 0.1, 9, dtype=F64)
+
+    def run():
+        fac = riccati_homogeneous(F, H, VhT, reg=reg)
+        return (
+            fac,
+            rollout_homogeneous(F, fac.Kk, x0),
+            lq_adjoint_solve(F, fac.Kk, fac.Vh, fac.chol, gx, gu),
+        )
+
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = run()
+        torch.set_num_threads(3)
+        monkeypatch.setattr(compiled, "MIN_STEPS_PER_THREAD", 1)
+        calls = []
+        orig = compiled._launch
+
+        def spy(kernel, nb, T, *args):
+            calls.append(nb)
+            return orig(kernel, nb, T, *args)
+
+        monkeypatch.setattr(compiled, "_launch", spy)
+        many = run()
+    finally:
+        torch.set_num_threads(old)
+    assert calls == [9, 9, 9]  # all three kernels ran
+    assert compiled._pool_size == 3  # ... split over three threads
+    for name in ("Kk", "Vh", "chol", "failed"):
+        assert torch.equal(getattr(one[0], name), getattr(many[0], name)), name
+    for a, b in zip((*one[1], *one[2]), (*many[1], *many[2]), strict=True):
+        assert torch.equal(a, b)

@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import math
 import os
+from concurrent.futures import ThreadPoolExecutor
 
 import torch
 from torch import Tensor
@@ -84,7 +85,7 @@ if numba is not None:
 
     @numba.njit(cache=True, nogil=True)
     def _riccati_kernel(
-        F, H, VhT, reg, Hz, short_form, Kk, Vh, L, failed
+        b0, b1, F, H, VhT, reg, Hz, short_form, Kk, Vh, L, failed
     ):  # pragma: no cover - jit
         """One Riccati pass per element (see riccati_homogeneous for the equations).
 
@@ -95,8 +96,8 @@ if numba is not None:
         L ``(B, T, m, m)``, failed ``(B,)``. An element whose ``Quu + reg I`` is not
         positive definite (or not finite) at some step is marked failed and its earlier
         steps are left at zero (the torch path's values there are meaningless too).
+        Only elements ``b0 <= b < b1`` are computed (see :func:`_launch`).
         """
-        nb = failed.shape[0]
         T = Kk.shape[1]
         m = Kk.shape[2]
         n1 = Kk.shape[3]
@@ -106,7 +107,7 @@ if numba is not None:
         VF = np.empty((n1, mn1), dtype=Vh.dtype)
         M = np.empty((mn1, mn1), dtype=Vh.dtype)
         Lb = np.zeros((m, m), dtype=Vh.dtype)
-        for b in range(nb):
+        for b in range(b0, b1):
             bf = b if F.shape[0] > 1 else 0
             bh = b if H.shape[0] > 1 else 0
             bv = b if VhT.shape[0] > 1 else 0
@@ -204,15 +205,15 @@ if numba is not None:
             failed[b] = not ok
 
     @numba.njit(cache=True, nogil=True)
-    def _rollout_kernel(F, Kk, x0, x, u):  # pragma: no cover - jit
+    def _rollout_kernel(b0, b1, F, Kk, x0, x, u):  # pragma: no cover - jit
         """``u_t = Kk_t [x_t; 1]``, ``x_{t+1} = F_t[:n] [u_t; x_t; 1]`` per element.
 
         F ``(BF, T, n+1, m+n+1)``, Kk ``(BK, T, m, n+1)``, x0 ``(BX, n)`` (batches 1 or
         B); outputs x ``(B, T+1, n)``, u ``(B, T, m)``.
         """
-        nb, T, m = u.shape[0], u.shape[1], u.shape[2]
+        T, m = u.shape[1], u.shape[2]
         n = x.shape[2]
-        for b in range(nb):
+        for b in range(b0, b1):
             bf = b if F.shape[0] > 1 else 0
             bk = b if Kk.shape[0] > 1 else 0
             bx = b if x0.shape[0] > 1 else 0
@@ -238,7 +239,7 @@ if numba is not None:
                     xn[i] = s
 
     @numba.njit(cache=True, nogil=True)
-    def _adjoint_kernel(F, Kk, Vh, L, gx, gu, dx, du, dlam):  # pragma: no cover - jit
+    def _adjoint_kernel(b0, b1, F, Kk, Vh, L, gx, gu, dx, du, dlam):  # pragma: no cover - jit
         """The adjoint LQ solve of :func:`torchslq.lq.lq_adjoint_solve` per element.
 
         F ``(., T, n+1, m+n+1)``, Kk ``(., T, m, n+1)``, Vh ``(., T+1, n+1, n+1)``,
@@ -246,10 +247,10 @@ if numba is not None:
         outputs dx ``(B, T+1, n)``, du ``(B, T, m)``,
         dlam ``(B, T+1, n)`` (dlam holds the linear value terms ``v_t`` until the end).
         """
-        nb, T, m = du.shape[0], du.shape[1], du.shape[2]
+        T, m = du.shape[1], du.shape[2]
         n = dx.shape[2]
         qu = np.empty(m, dtype=dx.dtype)
-        for b in range(nb):
+        for b in range(b0, b1):
             bf = b if F.shape[0] > 1 else 0
             bk = b if Kk.shape[0] > 1 else 0
             bg = b if gx.shape[0] > 1 else 0
@@ -319,6 +320,38 @@ if numba is not None:
                     v[t, i] = s
 
 
+# Below this many element-steps per thread a pass is not split (thread hand-off costs
+# tens of microseconds).
+MIN_STEPS_PER_THREAD = 4096
+_pool: ThreadPoolExecutor | None = None
+_pool_size = 0
+
+
+def _launch(kernel, nb: int, T: int, *args) -> None:
+    """Run ``kernel(b0, b1, *args)`` over the batch ``[0, nb)``, split into contiguous
+    chunks over ``torch.get_num_threads()`` threads when the pass is large enough.
+
+    The kernels release the GIL and each element is independent, so the chunks run in
+    parallel in a plain thread pool, like the torch path's intra-op threads (numba's own
+    ``parallel=True`` threading layers were avoided: the default one aborts on
+    concurrent launches from several Python threads).
+    """
+    global _pool, _pool_size
+    threads = max(1, min(torch.get_num_threads(), nb, (nb * max(T, 1)) // MIN_STEPS_PER_THREAD))
+    if threads == 1:
+        kernel(0, nb, *args)
+        return
+    if _pool is None or _pool_size != threads:
+        if _pool is not None:
+            _pool.shutdown(wait=False)
+        _pool, _pool_size = ThreadPoolExecutor(threads, thread_name_prefix="torchslq"), threads
+    bounds = [nb * i // threads for i in range(threads + 1)]
+    futures = [_pool.submit(kernel, bounds[i], bounds[i + 1], *args) for i in range(1, threads)]
+    kernel(bounds[0], bounds[1], *args)  # the calling thread takes the first chunk
+    for f in futures:
+        f.result()
+
+
 def _flat(t: Tensor, batch: torch.Size, tail: int) -> np.ndarray:
     """``t (..., *tail dims)`` as a contiguous ``(1 or prod(batch), *tail)`` array."""
     lead = t.shape[: t.ndim - tail]
@@ -367,7 +400,10 @@ def riccati_compiled(
         if hessians is None
         else hessians.detach().contiguous().numpy()
     )
-    _riccati_kernel(
+    _launch(
+        _riccati_kernel,
+        nb,
+        T,
         _flat(F, batch, 3),
         _flat(H, batch, 3),
         _flat(VhT, batch, 2),
@@ -397,8 +433,15 @@ def rollout_compiled(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]
     nb = math.prod(batch)
     x = torch.empty(nb, T + 1, n, dtype=F.dtype)
     u = torch.empty(nb, T, m, dtype=F.dtype)
-    _rollout_kernel(
-        _flat(F, batch, 3), _flat(Kk, batch, 3), _flat(x0, batch, 1), x.numpy(), u.numpy()
+    _launch(
+        _rollout_kernel,
+        nb,
+        T,
+        _flat(F, batch, 3),
+        _flat(Kk, batch, 3),
+        _flat(x0, batch, 1),
+        x.numpy(),
+        u.numpy(),
     )
     return x.reshape(*batch, T + 1, n), u.reshape(*batch, T, m)
 
@@ -417,7 +460,10 @@ def adjoint_compiled(
     dx = torch.empty(nb, T + 1, n, dtype=F.dtype)
     du = torch.empty(nb, T, m, dtype=F.dtype)
     dlam = torch.empty(nb, T + 1, n, dtype=F.dtype)
-    _adjoint_kernel(
+    _launch(
+        _adjoint_kernel,
+        nb,
+        T,
         _flat(F, batch, 3),
         _flat(Kk, batch, 3),
         _flat(Vh, batch, 3),
