@@ -244,3 +244,30 @@ def test_threaded_launch_equals_one_thread(torch_path, monkeypatch):
         assert torch.equal(getattr(one[0], name), getattr(many[0], name)), name
     for a, b in zip((*one[1], *one[2]), (*many[1], *many[2]), strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("m", [1, 2, 3])
+@pytest.mark.parametrize("hook", [False, True])
+def test_compiled_box_pass_equals_torch_path(torch_path, m, hook):
+    """The control-limited pass (box QP per step, Tassa et al. 2014) on both paths, with
+    bounds that are active at many steps, per-element reg and (DDP) a Hessian hook."""
+    B, T, n = 6, 10, 3
+    F, H, VhT = _problem((B,), T, n, m, seed=20 + m)
+    g = torch.Generator().manual_seed(30 + m)
+    H = H.expand(B, *H.shape[1:]).clone()
+    H[..., :m, -1] = 3.0 * torch.randn(B, T, m, generator=g, dtype=F64)  # large r: clamps
+    H[..., -1, :m] = H[..., :m, -1]
+    lower = -0.3 * torch.rand(B, T, m, generator=g, dtype=F64)
+    upper = 0.3 * torch.rand(B, T, m, generator=g, dtype=F64)
+    upper[0] = float("inf")  # an element without upper bounds
+    reg = torch.linspace(0.0, 0.2, B, dtype=F64)
+    kw = {"reg": reg, "u_bounds": (lower, upper)}
+    if hook:
+        Hz = torch.randn(T, n, B, m + n, m + n, generator=g, dtype=F64)
+        kw["stage_hook"] = _HessianHook(0.005 * (Hz + Hz.mT))
+    fast, ref = _both(torch_path, F, H, VhT, **kw)
+    assert not bool(ref.failed.any())
+    assert bool(ref.clamped.any()) and not bool(ref.clamped.all())
+    assert torch.equal(fast.clamped, ref.clamped)
+    _close(fast, ref)
+    torch.testing.assert_close(fast.dV, ref.dV, rtol=1e-10, atol=1e-12)

@@ -245,3 +245,264 @@ def adjoint_kernel(b0, b1, F, Kk, Vh, L, gx, gu, dx, du, dlam):
                 for j in range(n):
                     s += Vt[i, j] * dx[b, t, j]
                 v[t, i] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
+    """Projected-Newton box QP of :func:`torchslq.lq.box_qp` for one element (same
+    iteration, same stopping rules, ``armijo = 0.1``, ``step_dec = 0.6``, 32 candidate
+    steps, ``max_iter = 100``, ``min_rel_improve = 0``). ``x`` (m,) is the warm start on
+    entry (projected here) and the solution on exit; ``clamped`` (m,) bool and ``Lf``
+    (m, m), the free-block factor (identity on clamped rows/columns), are outputs;
+    ``work`` is scratch of shape (4, m). Returns success."""
+    m = g.shape[0]
+    for i in range(m):
+        x[i] = min(max(x[i], lower[i]), upper[i])
+    if m == 1:  # closed form, as _box_qp_scalar
+        h = H[0, 0]
+        pos = h > 0
+        grad0 = g[0] + h * x[0]
+        start_clamped = (x[0] <= lower[0] and grad0 > 0) or (x[0] >= upper[0] and grad0 < 0)
+        if pos:
+            x[0] = min(max(-g[0] / h, lower[0]), upper[0])
+        grad = g[0] + h * x[0]
+        clamped[0] = (x[0] <= lower[0] and grad > 0) or (x[0] >= upper[0] and grad < 0)
+        Lf[0, 0] = math.sqrt(h) if (pos and not clamped[0]) else 1.0
+        return (pos or start_clamped) and math.isfinite(x[0])
+    grad = work[0]
+    newton = work[1]
+    xc = work[2]
+    rhs = work[3]
+    value = 0.0
+    for i in range(m):
+        s = 0.0
+        for j in range(m):
+            s += H[i, j] * x[j]
+        value += x[i] * (g[i] + 0.5 * s)
+    success = True
+    stop = False  # set after an accepted step that did not improve: refresh, then stop
+    for it in range(101):
+        # gradient, clamped set and free-block factor at the current x
+        for i in range(m):
+            s = g[i]
+            for j in range(m):
+                s += H[i, j] * x[j]
+            grad[i] = s
+        n_clamped = 0
+        gnorm2 = 0.0
+        for i in range(m):
+            c = (x[i] <= lower[i] and grad[i] > 0) or (x[i] >= upper[i] and grad[i] < 0)
+            clamped[i] = c
+            if c:
+                n_clamped += 1
+            else:
+                gnorm2 += grad[i] * grad[i]
+        indefinite = False
+        for jj in range(m):
+            for ii in range(m):
+                Lf[ii, jj] = 0.0
+        for jj in range(m):
+            if clamped[jj]:
+                Lf[jj, jj] = 1.0
+                continue
+            s = H[jj, jj]
+            for k in range(jj):
+                s -= Lf[jj, k] * Lf[jj, k]
+            if not (s > 0.0):
+                indefinite = True
+                break
+            d = math.sqrt(s)
+            Lf[jj, jj] = d
+            for ii in range(jj + 1, m):
+                if clamped[ii]:
+                    continue
+                s2 = H[ii, jj]
+                for k in range(jj):
+                    s2 -= Lf[ii, k] * Lf[jj, k]
+                Lf[ii, jj] = s2 / d
+        if indefinite:
+            success = False
+            break
+        if stop or n_clamped == m or math.sqrt(gnorm2) < tol or it == 100:
+            break
+        # Newton point on the free subspace: x_f = -H_ff^{-1} (g_f + H_fc x_c)
+        for ii in range(m):
+            if clamped[ii]:
+                rhs[ii] = 0.0
+                continue
+            s = grad[ii]
+            for jj in range(m):
+                if not clamped[jj]:
+                    s -= H[ii, jj] * x[jj]
+            rhs[ii] = s
+        for ii in range(m):  # L y = rhs
+            s = rhs[ii]
+            for k in range(ii):
+                s -= Lf[ii, k] * newton[k]
+            newton[ii] = s / Lf[ii, ii]
+        for ii in range(m - 1, -1, -1):  # L' z = y
+            s = newton[ii]
+            for k in range(ii + 1, m):
+                s -= Lf[k, ii] * newton[k]
+            newton[ii] = s / Lf[ii, ii]
+        sdotg = 0.0
+        for ii in range(m):
+            newton[ii] = x[ii] if clamped[ii] else -newton[ii]
+            sdotg += (newton[ii] - x[ii]) * grad[ii]
+        if not (sdotg < 0):
+            break  # no descent direction: x is optimal to working precision
+        # projected Armijo search, largest step first (the full step is the projected
+        # Newton point itself)
+        found = False
+        v_new = 0.0
+        for jstep in range(32):
+            step = 0.6**jstep
+            for ii in range(m):
+                xi = newton[ii] if jstep == 0 else x[ii] + step * (newton[ii] - x[ii])
+                xc[ii] = min(max(xi, lower[ii]), upper[ii])
+            v = 0.0
+            for ii in range(m):
+                s = 0.0
+                for jj in range(m):
+                    s += H[ii, jj] * xc[jj]
+                v += xc[ii] * (g[ii] + 0.5 * s)
+            if (v - value) <= 0.1 * step * sdotg:
+                found = True
+                v_new = v
+                break
+        if not found:
+            break
+        for ii in range(m):
+            x[ii] = xc[ii]
+        stop = (value - v_new) <= 0.0
+        value = v_new
+    for i in range(m):
+        if not math.isfinite(x[i]):
+            return False
+    return success
+
+
+@numba.njit(cache=True, nogil=True)
+def riccati_box_kernel(
+    b0, b1, F, H, VhT, reg, Hz, lower, upper, tol_base, Kk, Vh, L, clamped, failed, dV
+):
+    """Control-limited Riccati pass of ``riccati._riccati_box`` per element (Tassa,
+    Mansard & Todorov 2014): the feedforward term from the box QP (:func:`_box_qp`,
+    warm-started from the next step's), feedback rows of clamped controls zero, the
+    general value update with the unregularised ``Quu``. Arrays as in
+    :func:`riccati_kernel` plus lower/upper ``(BB, T, m)``, outputs clamped
+    ``(B, T, m)`` bool and dV ``(B, 2)`` (``[sum k'qu, sum k'(Quu + reg) k]``).
+    Elements ``b0 <= b < b1``; a failed box QP marks the element failed and ends it."""
+    T = Kk.shape[1]
+    m = Kk.shape[2]
+    n1 = Kk.shape[3]
+    n = n1 - 1
+    mn1 = m + n1
+    use_hz = Hz.shape[0] > 0
+    VF = np.empty((n1, mn1), dtype=Vh.dtype)
+    M = np.empty((mn1, mn1), dtype=Vh.dtype)
+    Quu_r = np.empty((m, m), dtype=Vh.dtype)
+    qu = np.empty(m, dtype=Vh.dtype)
+    k = np.empty(m, dtype=Vh.dtype)
+    cl = np.zeros(m, dtype=np.bool_)
+    Lf = np.zeros((m, m), dtype=Vh.dtype)
+    work = np.empty((4, m), dtype=Vh.dtype)
+    for b in range(b0, b1):
+        bf = b if F.shape[0] > 1 else 0
+        bh = b if H.shape[0] > 1 else 0
+        bv = b if VhT.shape[0] > 1 else 0
+        bb = b if lower.shape[0] > 1 else 0
+        r = reg[b if reg.shape[0] > 1 else 0]
+        for i in range(n1):
+            for j in range(n1):
+                Vh[b, T, i, j] = VhT[bv, i, j]
+        for i in range(m):
+            k[i] = 0.0
+        slope = 0.0
+        curv = 0.0
+        ok = True
+        for t in range(T - 1, -1, -1):
+            Vn = Vh[b, t + 1]
+            Vc = Vh[b, t]
+            Ft = F[bf, t]
+            Ht = H[bh, t]
+            Kt = Kk[b, t]
+            for i in range(n1):
+                for j in range(mn1):
+                    s = 0.0
+                    for kk in range(n1):
+                        s += Vn[i, kk] * Ft[kk, j]
+                    VF[i, j] = s
+            for i in range(mn1):
+                for j in range(i, mn1):
+                    s = Ht[i, j]
+                    for kk in range(n1):
+                        s += Ft[kk, i] * VF[kk, j]
+                    M[i, j] = s
+                    M[j, i] = s
+            if use_hz:
+                for kk in range(n):
+                    v = Vn[kk, n]
+                    Hk = Hz[t, kk, b]
+                    for i in range(mn1 - 1):
+                        for j in range(mn1 - 1):
+                            M[i, j] += v * Hk[i, j]
+            for i in range(m):
+                for j in range(m):
+                    Quu_r[i, j] = M[i, j] + (r if i == j else 0.0)
+                qu[i] = M[i, mn1 - 1]
+            qmax = 0.0
+            for i in range(m):
+                qmax = max(qmax, abs(qu[i]))
+            if not _box_qp(
+                Quu_r, qu, lower[bb, t], upper[bb, t], k, tol_base * (1.0 + qmax), cl, Lf, work
+            ):
+                ok = False
+                break
+            Lt = L[b, t]
+            for i in range(m):
+                clamped[b, t, i] = cl[i]
+                for j in range(m):
+                    Lt[i, j] = Lf[i, j]
+            # K = -(Lf Lf')^{-1} (Qux with clamped rows zero), k from the QP
+            for c in range(n):
+                for i in range(m):
+                    s = 0.0 if cl[i] else -M[i, m + c]
+                    for kk in range(i):
+                        s -= Lf[i, kk] * Kt[kk, c]
+                    Kt[i, c] = s / Lf[i, i]
+                for i in range(m - 1, -1, -1):
+                    s = Kt[i, c]
+                    for kk in range(i + 1, m):
+                        s -= Lf[kk, i] * Kt[kk, c]
+                    Kt[i, c] = s / Lf[i, i]
+            for i in range(m):
+                Kt[i, n] = k[i]
+            # Vh_t = sym(M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk)
+            for i in range(n1):
+                for j in range(i, n1):
+                    s = M[m + i, m + j]
+                    s2 = M[m + j, m + i]
+                    for p in range(m):
+                        kpi = Kt[p, i]
+                        kpj = Kt[p, j]
+                        s += kpi * M[p, m + j] + kpj * M[p, m + i]
+                        s2 += kpj * M[p, m + i] + kpi * M[p, m + j]
+                        acc = 0.0
+                        acc2 = 0.0
+                        for q in range(m):
+                            acc += M[p, q] * Kt[q, j]
+                            acc2 += M[p, q] * Kt[q, i]
+                        s += kpi * acc
+                        s2 += kpj * acc2
+                    Vc[i, j] = 0.5 * (s + s2)
+                    Vc[j, i] = 0.5 * (s + s2)
+            for i in range(m):
+                slope += k[i] * qu[i]
+                acc = 0.0
+                for j in range(m):
+                    acc += Quu_r[i, j] * k[j]
+                curv += k[i] * acc
+        failed[b] = not ok
+        dV[b, 0] = slope
+        dV[b, 1] = curv

@@ -14,11 +14,12 @@ Used automatically by :func:`riccati_homogeneous` when
   :func:`set_compiled` ``(False)``),
 * the tensors are on the CPU, float32 or float64, and nothing needs autograd (no input
   requires grad while grad mode is on, and no ``torch.func`` transform is active),
-* there are no control bounds, and the stage hook is None or carries its second-order
-  terms as a dense tensor (``stage_hook.hessians``, DDP's precomputed output Hessians).
+* the stage hook is None or carries its second-order terms as a dense tensor
+  (``stage_hook.hessians``, DDP's precomputed output Hessians).
 
-Everything else (GPU, autograd through the pass, box QPs, callable hooks) takes the torch
-path. ``tests/test_compiled_riccati.py`` checks the two against each other.
+With control bounds the control-limited pass (a box QP per step, the projected Newton of
+:func:`torchslq.lq.box_qp` ported step for step) runs compiled too. Everything else (GPU,
+autograd through the pass, callable hooks) takes the torch path. ``tests/test_compiled_riccati.py`` checks the two against each other.
 
 The kernels live in :mod:`torchslq.lq._numba_kernels`, imported on the first CPU pass
 (never by GPU-only use). numba compiles them on first use per dtype (about 2.5 s for the
@@ -42,6 +43,7 @@ __all__ = [
     "adjoint_compiled",
     "can_use_compiled",
     "compiled_available",
+    "riccati_box_compiled",
     "riccati_compiled",
     "rollout_compiled",
     "set_compiled",
@@ -161,20 +163,10 @@ def riccati_compiled(
     m = mn1 - n1
     dtype = F.dtype
     nb = math.prod(batch)
-    if reg is None:
-        reg_t = torch.zeros(1, dtype=dtype)
-    else:
-        reg_t = torch.as_tensor(reg, dtype=dtype)
-        reg_t = reg_t.reshape(1) if reg_t.numel() == 1 else reg_t.expand(batch).reshape(-1)
     Kk = torch.zeros(nb, T, m, n1, dtype=dtype)
     Vh = torch.zeros(nb, T + 1, n1, n1, dtype=dtype)
     L = torch.zeros(nb, T, m, m, dtype=dtype)
     failed = torch.zeros(nb, dtype=torch.bool)
-    Hz = (
-        np.zeros((0, 1, 1, 1, 1), dtype=Vh.numpy().dtype)
-        if hessians is None
-        else hessians.detach().contiguous().numpy()
-    )
     _launch(
         _kernels().riccati_kernel,
         nb,
@@ -182,8 +174,8 @@ def riccati_compiled(
         _flat(F, batch, 3),
         _flat(H, batch, 3),
         _flat(VhT, batch, 2),
-        reg_t.detach().contiguous().numpy(),
-        Hz,
+        _reg_array(reg, batch, dtype),
+        _hessian_array(hessians, Vh),
         reg is None,
         Kk.numpy(),
         Vh.numpy(),
@@ -254,3 +246,77 @@ def adjoint_compiled(
         du.reshape(*batch, T, m),
         dlam.reshape(*batch, T + 1, n),
     )
+
+
+def riccati_box_compiled(
+    F: Tensor,
+    H: Tensor,
+    VhT: Tensor,
+    reg: Tensor | float | None,
+    hessians: Tensor | None,
+    lower: Tensor,
+    upper: Tensor,
+    tol: float,
+    batch: torch.Size,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """The control-limited pass of ``riccati._riccati_box`` on the CPU kernel.
+
+    As :func:`riccati_compiled`, plus ``lower``/``upper`` ``(..., T, m)`` bounds on the
+    step (broadcast to ``batch``) and the box QP's tolerance scale ``tol``.
+
+    Returns:
+        ``Kk, Vh, chol, failed, clamped (*batch, T, m), dV (*batch, 2)``.
+    """
+    T, n1, mn1 = F.shape[-3], F.shape[-2], F.shape[-1]
+    m = mn1 - n1
+    dtype = F.dtype
+    nb = math.prod(batch)
+    Kk = torch.zeros(nb, T, m, n1, dtype=dtype)
+    Vh = torch.zeros(nb, T + 1, n1, n1, dtype=dtype)
+    L = torch.zeros(nb, T, m, m, dtype=dtype)
+    clamped = torch.zeros(nb, T, m, dtype=torch.bool)
+    failed = torch.zeros(nb, dtype=torch.bool)
+    dV = torch.zeros(nb, 2, dtype=dtype)
+    _launch(
+        _kernels().riccati_box_kernel,
+        nb,
+        T,
+        _flat(F, batch, 3),
+        _flat(H, batch, 3),
+        _flat(VhT, batch, 2),
+        _reg_array(reg, batch, dtype),
+        _hessian_array(hessians, Vh),
+        _flat(lower, batch, 2),
+        _flat(upper, batch, 2),
+        float(tol),
+        Kk.numpy(),
+        Vh.numpy(),
+        L.numpy(),
+        clamped.numpy(),
+        failed.numpy(),
+        dV.numpy(),
+    )
+    return (
+        Kk.reshape(*batch, T, m, n1),
+        Vh.reshape(*batch, T + 1, n1, n1),
+        L.reshape(*batch, T, m, m),
+        failed.reshape(batch),
+        clamped.reshape(*batch, T, m),
+        dV.reshape(*batch, 2),
+    )
+
+
+def _reg_array(reg: Tensor | float | None, batch: torch.Size, dtype: torch.dtype) -> np.ndarray:
+    """``reg`` as a ``(1,)`` or ``(prod(batch),)`` array (zero when None)."""
+    if reg is None:
+        return np.zeros(1, dtype=torch.empty((), dtype=dtype).numpy().dtype)
+    r = torch.as_tensor(reg, dtype=dtype)
+    r = r.reshape(1) if r.numel() == 1 else r.expand(batch).reshape(-1)
+    return r.detach().contiguous().numpy()
+
+
+def _hessian_array(hessians: Tensor | None, like: Tensor) -> np.ndarray:
+    """DDP's ``(T, n, B, m+n, m+n)`` Hessians, or an empty array of ``like``'s dtype."""
+    if hessians is None:
+        return np.zeros((0, 1, 1, 1, 1), dtype=like.numpy().dtype)
+    return hessians.detach().contiguous().numpy()

@@ -35,7 +35,12 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
-from .compiled import can_use_compiled, riccati_compiled, rollout_compiled
+from .compiled import (
+    can_use_compiled,
+    riccati_box_compiled,
+    riccati_compiled,
+    rollout_compiled,
+)
 
 StageHook = Callable[[int, Tensor], Tensor]
 
@@ -322,14 +327,26 @@ def _riccati_box(
     batch = broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
     lower = lower.expand(*batch, T, m)
     upper = upper.expand(*batch, T, m)
+    eps = torch.finfo(F.dtype).eps
+    tol = max(1e-10, 100 * eps)
+    hessians = getattr(stage_hook, "hessians", None)
+    if (
+        T > 0
+        and (stage_hook is None or hessians is not None)
+        and can_use_compiled(
+            F, H, VhT, lower, upper, *[t for t in (reg, hessians) if isinstance(t, Tensor)]
+        )
+    ):
+        Kk, Vh, chol, failed, clamped, dV = riccati_box_compiled(
+            F, H, VhT, reg, hessians, lower, upper, tol, batch
+        )
+        return RiccatiFactors(Kk=Kk, Vh=Vh, chol=chol, failed=failed, clamped=clamped, dV=dV)
     Vh = VhT.expand(*batch, n + 1, n + 1)
     eye_m = torch.eye(m, dtype=F.dtype, device=F.device)
     reg_eye = None
     if reg is not None:
         reg_t = torch.as_tensor(reg, dtype=F.dtype, device=F.device)
         reg_eye = reg_t.reshape(*reg_t.shape, 1, 1) * eye_m
-    eps = torch.finfo(F.dtype).eps
-    tol = max(1e-10, 100 * eps)
     check_every = 1 if F.device.type == "cpu" else 3  # a host sync is free on the CPU
     Vhs: list[Tensor] = [Vh] * (T + 1)
     Kks: list[Tensor] = [Vh] * T
