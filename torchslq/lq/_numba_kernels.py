@@ -11,123 +11,25 @@ import numpy as np
 
 
 @numba.njit(cache=True, nogil=True)
-def riccati_kernel(b0, b1, F, H, VhT, reg, Hz, short_form, Kk, Vh, L, failed):
-    """One Riccati pass per element (see riccati_homogeneous for the equations).
-
-    F ``(BF, T, n+1, m+n+1)``, H ``(BH, T, m+n+1, m+n+1)``, VhT ``(BV, n+1, n+1)``
-    (each batch 1 or B), reg ``(BR,)`` (1 or B), Hz ``(T, n, B, m+n, m+n)`` or an
-    empty array; ``short_form``: the value update ``M_zz + M_uz'Kk`` (no reg, as
-    the torch path) instead of the general form; outputs Kk ``(B, T, m, n+1)``, Vh ``(B, T+1, n+1, n+1)``,
-    L ``(B, T, m, m)``, failed ``(B,)``. An element whose ``Quu + reg I`` is not
-    positive definite (or not finite) at some step is marked failed and its earlier
-    steps are left at zero (the torch path's values there are meaningless too).
-    Only elements ``b0 <= b < b1`` are computed (see ``compiled._launch``).
-    """
-    T = Kk.shape[1]
-    m = Kk.shape[2]
-    n1 = Kk.shape[3]
-    n = n1 - 1
-    mn1 = m + n1
-    use_hz = Hz.shape[0] > 0
-    VF = np.empty((n1, mn1), dtype=Vh.dtype)
-    M = np.empty((mn1, mn1), dtype=Vh.dtype)
-    Lb = np.zeros((m, m), dtype=Vh.dtype)
-    for b in range(b0, b1):
-        bf = b if F.shape[0] > 1 else 0
-        bh = b if H.shape[0] > 1 else 0
-        bv = b if VhT.shape[0] > 1 else 0
-        r = reg[b if reg.shape[0] > 1 else 0]
-        for i in range(n1):
-            for j in range(n1):
-                Vh[b, T, i, j] = VhT[bv, i, j]
-        ok = True
-        for t in range(T - 1, -1, -1):
-            # 2-d views of this step's matrices (cheaper indexing than 4-d)
-            Vn = Vh[b, t + 1]
-            Vc = Vh[b, t]
-            Ft = F[bf, t]
-            Ht = H[bh, t]
-            Kt = Kk[b, t]
-            # M = H_t + F_t' Vh_{t+1} F_t (symmetric: upper triangle, mirrored)
-            for i in range(n1):
-                for j in range(mn1):
-                    s = 0.0
-                    for k in range(n1):
-                        s += Vn[i, k] * Ft[k, j]
-                    VF[i, j] = s
-            for i in range(mn1):
-                for j in range(i, mn1):
-                    s = Ht[i, j]
-                    for k in range(n1):
-                        s += Ft[k, i] * VF[k, j]
-                    M[i, j] = s
-                    M[j, i] = s
-            if use_hz:  # DDP: + v_{t+1} . f_zz on the [u; x] block
-                for k in range(n):
-                    v = Vn[k, n]
-                    Hk = Hz[t, k, b]
-                    for i in range(mn1 - 1):
-                        for j in range(mn1 - 1):
-                            M[i, j] += v * Hk[i, j]
-            # Cholesky of Quu + reg I
-            for j in range(m):
-                s = M[j, j] + r
-                for k in range(j):
-                    s -= Lb[j, k] * Lb[j, k]
-                if not (s > 0.0):  # also catches NaN
-                    ok = False
-                    break
-                d = math.sqrt(s)
-                Lb[j, j] = d
-                for i in range(j + 1, m):
-                    s2 = M[i, j]
-                    for k in range(j):
-                        s2 -= Lb[i, k] * Lb[j, k]
-                    Lb[i, j] = s2 / d
-            if not ok:
-                break
-            Lt = L[b, t]
-            for i in range(m):
-                for j in range(i + 1):
-                    Lt[i, j] = Lb[i, j]
-            # [K_t, k_t] = -(L L')^{-1} M[:m, m:]
-            for c in range(n1):
-                for i in range(m):
-                    s = -M[i, m + c]
-                    for k in range(i):
-                        s -= Lb[i, k] * Kt[k, c]
-                    Kt[i, c] = s / Lb[i, i]
-                for i in range(m - 1, -1, -1):
-                    s = Kt[i, c]
-                    for k in range(i + 1, m):
-                        s -= Lb[k, i] * Kt[k, c]
-                    Kt[i, c] = s / Lb[i, i]
-            if short_form:  # Vh_t = M_zz + M_uz'Kk, symmetrised
-                for i in range(n1):
-                    for j in range(i, n1):
-                        s = M[m + i, m + j]
-                        s2 = M[m + j, m + i]
-                        for p in range(m):
-                            s += M[p, m + i] * Kt[p, j]
-                            s2 += M[p, m + j] * Kt[p, i]
-                        Vc[i, j] = 0.5 * (s + s2)
-                        Vc[j, i] = 0.5 * (s + s2)
-                continue
-            # Vh_t = M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk (Tassa et al. 2012's form,
-            # exact for any gains, hence also with reg)
-            for i in range(n1):
-                for j in range(i, n1):
-                    s = M[m + i, m + j]
-                    for p in range(m):
-                        kpi = Kt[p, i]
-                        s += kpi * M[p, m + j] + Kt[p, j] * M[p, m + i]
-                        acc = 0.0
-                        for q in range(m):
-                            acc += M[p, q] * Kt[q, j]
-                        s += kpi * acc
-                    Vc[i, j] = s
-                    Vc[j, i] = s
-        failed[b] = not ok
+def _feedback_step(Ft, Kt, xt, ut, xn, affine):
+    """``u_t = K_t x_t + f``, ``x_{t+1} = B_t u_t + A_t x_t (+ c_t)``: with ``affine`` the
+    feedforward ``f`` is ``Kt[:, n]`` and ``c_t = Ft[:n, -1]`` is added (the LQ rollout);
+    without, ``f`` is what ``ut`` holds on entry and there is no ``c_t`` (the adjoint
+    problem's rollout)."""
+    m = ut.shape[0]
+    n = xt.shape[0]
+    for i in range(m):
+        s = Kt[i, n] if affine else ut[i]
+        for j in range(n):
+            s += Kt[i, j] * xt[j]
+        ut[i] = s
+    for i in range(n):
+        s = Ft[i, m + n] if affine else 0.0
+        for j in range(m):
+            s += Ft[i, j] * ut[j]
+        for j in range(n):
+            s += Ft[i, m + j] * xt[j]
+        xn[i] = s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -137,7 +39,7 @@ def rollout_kernel(b0, b1, F, Kk, x0, x, u):
     F ``(BF, T, n+1, m+n+1)``, Kk ``(BK, T, m, n+1)``, x0 ``(BX, n)`` (batches 1 or
     B); outputs x ``(B, T+1, n)``, u ``(B, T, m)``.
     """
-    T, m = u.shape[1], u.shape[2]
+    T = u.shape[1]
     n = x.shape[2]
     for b in range(b0, b1):
         bf = b if F.shape[0] > 1 else 0
@@ -146,23 +48,7 @@ def rollout_kernel(b0, b1, F, Kk, x0, x, u):
         for i in range(n):
             x[b, 0, i] = x0[bx, i]
         for t in range(T):
-            Ft = F[bf, t]
-            Kt = Kk[bk, t]
-            xt = x[b, t]
-            ut = u[b, t]
-            for i in range(m):
-                s = Kt[i, n]
-                for j in range(n):
-                    s += Kt[i, j] * xt[j]
-                ut[i] = s
-            xn = x[b, t + 1]
-            for i in range(n):
-                s = Ft[i, m + n]
-                for j in range(m):
-                    s += Ft[i, j] * ut[j]
-                for j in range(n):
-                    s += Ft[i, m + j] * xt[j]
-                xn[i] = s
+            _feedback_step(F[bf, t], Kk[bk, t], x[b, t], u[b, t], x[b, t + 1], True)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -219,24 +105,8 @@ def adjoint_kernel(b0, b1, F, Kk, Vh, L, gx, gu, dx, du, dlam):
         # forward: dx_0 = 0, du_t = K_t dx_t + k_t, dx_{t+1} = [B A] [du_t; dx_t]
         for i in range(n):
             dx[b, 0, i] = 0.0
-        for t in range(T):
-            Ft = F[bf, t]
-            Kt = Kk[bk, t]
-            xt = dx[b, t]
-            ut = du[b, t]
-            for i in range(m):
-                s = ut[i]
-                for j in range(n):
-                    s += Kt[i, j] * xt[j]
-                ut[i] = s
-            xn = dx[b, t + 1]
-            for i in range(n):
-                s = 0.0
-                for j in range(m):
-                    s += Ft[i, j] * ut[j]
-                for j in range(n):
-                    s += Ft[i, m + j] * xt[j]
-                xn[i] = s
+        for t in range(T):  # (du holds k_t here)
+            _feedback_step(F[bf, t], Kk[bk, t], dx[b, t], du[b, t], dx[b, t + 1], False)
         # dlam_t = V_t dx_t + v_t
         for t in range(T + 1):
             Vt = Vh[bv, t]
@@ -245,6 +115,18 @@ def adjoint_kernel(b0, b1, F, Kk, Vh, L, gx, gu, dx, du, dlam):
                 for j in range(n):
                     s += Vt[i, j] * dx[b, t, j]
                 v[t, i] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def _qp_value(H, g, x):
+    """``x'(g + H x / 2)``, the box QP's objective."""
+    v = 0.0
+    for i in range(x.shape[0]):
+        s = 0.0
+        for j in range(x.shape[0]):
+            s += H[i, j] * x[j]
+        v += x[i] * (g[i] + 0.5 * s)
+    return v
 
 
 @numba.njit(cache=True, nogil=True)
@@ -273,12 +155,7 @@ def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
     newton = work[1]
     xc = work[2]
     rhs = work[3]
-    value = 0.0
-    for i in range(m):
-        s = 0.0
-        for j in range(m):
-            s += H[i, j] * x[j]
-        value += x[i] * (g[i] + 0.5 * s)
+    value = _qp_value(H, g, x)
     success = True
     stop = False  # set after an accepted step that did not improve: refresh, then stop
     for it in range(101):
@@ -297,29 +174,7 @@ def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
                 n_clamped += 1
             else:
                 gnorm2 += grad[i] * grad[i]
-        indefinite = False
-        for jj in range(m):
-            for ii in range(m):
-                Lf[ii, jj] = 0.0
-        for jj in range(m):
-            if clamped[jj]:
-                Lf[jj, jj] = 1.0
-                continue
-            s = H[jj, jj]
-            for k in range(jj):
-                s -= Lf[jj, k] * Lf[jj, k]
-            if not (s > 0.0):
-                indefinite = True
-                break
-            d = math.sqrt(s)
-            Lf[jj, jj] = d
-            for ii in range(jj + 1, m):
-                if clamped[ii]:
-                    continue
-                s2 = H[ii, jj]
-                for k in range(jj):
-                    s2 -= Lf[ii, k] * Lf[jj, k]
-                Lf[ii, jj] = s2 / d
+        indefinite = not _cholesky(H, 0.0, clamped, Lf)
         if indefinite:
             success = False
             break
@@ -360,12 +215,7 @@ def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
             for ii in range(m):
                 xi = newton[ii] if jstep == 0 else x[ii] + step * (newton[ii] - x[ii])
                 xc[ii] = min(max(xi, lower[ii]), upper[ii])
-            v = 0.0
-            for ii in range(m):
-                s = 0.0
-                for jj in range(m):
-                    s += H[ii, jj] * xc[jj]
-                v += xc[ii] * (g[ii] + 0.5 * s)
+            v = _qp_value(H, g, xc)
             if (v - value) <= 0.1 * step * sdotg:
                 found = True
                 v_new = v
@@ -383,29 +233,117 @@ def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
 
 
 @numba.njit(cache=True, nogil=True)
-def riccati_box_kernel(
-    b0, b1, F, H, VhT, reg, Hz, lower, upper, tol_base, Kk, Vh, L, clamped, failed, dV
+def _stage_matrix(Vn, Ft, Ht, Hz, t, b, VF, M):
+    """``M = H_t + F_t' Vh_{t+1} F_t`` (upper triangle, mirrored), plus DDP's
+    ``v_{t+1} . f_zz`` on the ``[u; x]`` block when ``Hz`` is not empty."""
+    n1, mn1 = Ft.shape
+    n = n1 - 1
+    for i in range(n1):
+        for j in range(mn1):
+            s = 0.0
+            for k in range(n1):
+                s += Vn[i, k] * Ft[k, j]
+            VF[i, j] = s
+    for i in range(mn1):
+        for j in range(i, mn1):
+            s = Ht[i, j]
+            for k in range(n1):
+                s += Ft[k, i] * VF[k, j]
+            M[i, j] = s
+            M[j, i] = s
+    if Hz.shape[0] > 0:
+        for k in range(n):
+            v = Vn[k, n]
+            Hk = Hz[t, k, b]
+            for i in range(mn1 - 1):
+                for j in range(mn1 - 1):
+                    M[i, j] += v * Hk[i, j]
+
+
+@numba.njit(cache=True, nogil=True)
+def _cholesky(A, r, cl, Lb):
+    """Lower factor of ``A[:m, :m] + r I`` into ``Lb``, with the rows and columns in
+    ``cl`` replaced by the identity's (the box QP's free block); False if not positive
+    definite (or not finite)."""
+    m = Lb.shape[0]
+    for j in range(m):
+        if cl[j]:
+            for i in range(m):  # identity row and column
+                Lb[i, j] = 0.0
+                Lb[j, i] = 0.0
+            Lb[j, j] = 1.0
+            continue
+        s = A[j, j] + r
+        for k in range(j):
+            s -= Lb[j, k] * Lb[j, k]
+        if not (s > 0.0):  # also catches NaN
+            return False
+        d = math.sqrt(s)
+        Lb[j, j] = d
+        for i in range(j):
+            Lb[i, j] = 0.0  # upper triangle
+        for i in range(j + 1, m):
+            if cl[i]:
+                Lb[i, j] = 0.0
+                continue
+            s2 = A[i, j]
+            for k in range(j):
+                s2 -= Lb[i, k] * Lb[j, k]
+            Lb[i, j] = s2 / d
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _gains(Lb, M, ncols, cl, Kt):
+    """``Kt[:, c] = -(Lb Lb')^{-1} M[:m, m + c]`` for ``c < ncols``, rows in ``cl``
+    (clamped controls) given a zero right-hand side."""
+    m = Lb.shape[0]
+    for c in range(ncols):
+        for i in range(m):
+            s = 0.0 if cl[i] else -M[i, m + c]
+            for k in range(i):
+                s -= Lb[i, k] * Kt[k, c]
+            Kt[i, c] = s / Lb[i, i]
+        for i in range(m - 1, -1, -1):
+            s = Kt[i, c]
+            for k in range(i + 1, m):
+                s -= Lb[k, i] * Kt[k, c]
+            Kt[i, c] = s / Lb[i, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def riccati_kernel(
+    b0, b1, F, H, VhT, reg, Hz, short_form, lower, upper, tol_base, Kk, Vh, L, clamped, failed, dV
 ):
-    """Control-limited Riccati pass of ``riccati._riccati_box`` per element (Tassa,
-    Mansard & Todorov 2014): the feedforward term from the box QP (:func:`_box_qp`,
-    warm-started from the next step's), feedback rows of clamped controls zero, the
-    general value update with the unregularised ``Quu``. Arrays as in
-    :func:`riccati_kernel` plus lower/upper ``(BB, T, m)``, outputs clamped
-    ``(B, T, m)`` bool and dV ``(B, 2)`` (``[sum k'qu, sum k'(Quu + reg) k]``).
-    Elements ``b0 <= b < b1``; a failed box QP marks the element failed and ends it."""
+    """One Riccati pass per element (see riccati_homogeneous for the equations).
+
+    F ``(BF, T, n+1, m+n+1)``, H ``(BH, T, m+n+1, m+n+1)``, VhT ``(BV, n+1, n+1)``
+    (each batch 1 or B), reg ``(BR,)`` (1 or B), Hz ``(T, n, B, m+n, m+n)`` or empty;
+    ``short_form``: the value update ``M_zz + M_uz'Kk`` (no reg, as the torch path)
+    instead of the general form. Control-limited pass (``riccati._riccati_box``, Tassa,
+    Mansard & Todorov 2014) when lower/upper ``(BB, T, m)`` are not empty: the
+    feedforward term from the box QP (:func:`_box_qp`, warm-started from the next
+    step's, tolerance ``tol_base (1 + |qu|_inf)``), feedback rows of clamped controls
+    zero, outputs clamped ``(B, T, m)`` and dV ``(B, 2)`` (``[sum k'qu,
+    sum k'(Quu + reg) k]``). Outputs Kk ``(B, T, m, n+1)``, Vh ``(B, T+1, n+1, n+1)``,
+    L ``(B, T, m, m)``, failed ``(B,)``. An element whose factorisation fails (not
+    positive definite, or not finite) is marked failed and its earlier steps are left
+    at zero (the torch path's values there are meaningless too). Only elements
+    ``b0 <= b < b1`` are computed (see ``compiled._launch``).
+    """
     T = Kk.shape[1]
     m = Kk.shape[2]
     n1 = Kk.shape[3]
     n = n1 - 1
     mn1 = m + n1
-    use_hz = Hz.shape[0] > 0
+    boxed = lower.shape[0] > 0
     VF = np.empty((n1, mn1), dtype=Vh.dtype)
     M = np.empty((mn1, mn1), dtype=Vh.dtype)
+    Lb = np.zeros((m, m), dtype=Vh.dtype)
     Quu_r = np.empty((m, m), dtype=Vh.dtype)
     qu = np.empty(m, dtype=Vh.dtype)
     k = np.empty(m, dtype=Vh.dtype)
     cl = np.zeros(m, dtype=np.bool_)
-    Lf = np.zeros((m, m), dtype=Vh.dtype)
     work = np.empty((4, m), dtype=Vh.dtype)
     for b in range(b0, b1):
         bf = b if F.shape[0] > 1 else 0
@@ -422,87 +360,67 @@ def riccati_box_kernel(
         curv = 0.0
         ok = True
         for t in range(T - 1, -1, -1):
+            # 2-d views of this step's matrices (cheaper indexing than 4-d)
             Vn = Vh[b, t + 1]
             Vc = Vh[b, t]
-            Ft = F[bf, t]
-            Ht = H[bh, t]
             Kt = Kk[b, t]
-            for i in range(n1):
-                for j in range(mn1):
-                    s = 0.0
-                    for kk in range(n1):
-                        s += Vn[i, kk] * Ft[kk, j]
-                    VF[i, j] = s
-            for i in range(mn1):
-                for j in range(i, mn1):
-                    s = Ht[i, j]
-                    for kk in range(n1):
-                        s += Ft[kk, i] * VF[kk, j]
-                    M[i, j] = s
-                    M[j, i] = s
-            if use_hz:
-                for kk in range(n):
-                    v = Vn[kk, n]
-                    Hk = Hz[t, kk, b]
-                    for i in range(mn1 - 1):
-                        for j in range(mn1 - 1):
-                            M[i, j] += v * Hk[i, j]
-            for i in range(m):
-                for j in range(m):
-                    Quu_r[i, j] = M[i, j] + (r if i == j else 0.0)
-                qu[i] = M[i, mn1 - 1]
-            qmax = 0.0
-            for i in range(m):
-                qmax = max(qmax, abs(qu[i]))
-            if not _box_qp(
-                Quu_r, qu, lower[bb, t], upper[bb, t], k, tol_base * (1.0 + qmax), cl, Lf, work
-            ):
-                ok = False
-                break
+            _stage_matrix(Vn, F[bf, t], H[bh, t], Hz, t, b, VF, M)
+            if boxed:
+                for i in range(m):
+                    for j in range(m):
+                        Quu_r[i, j] = M[i, j] + (r if i == j else 0.0)
+                    qu[i] = M[i, mn1 - 1]
+                qmax = 0.0
+                for i in range(m):
+                    qmax = max(qmax, abs(qu[i]))
+                tol = tol_base * (1.0 + qmax)
+                if not _box_qp(Quu_r, qu, lower[bb, t], upper[bb, t], k, tol, cl, Lb, work):
+                    ok = False
+                    break
+                _gains(Lb, M, n, cl, Kt)
+                for i in range(m):
+                    Kt[i, n] = k[i]
+                    clamped[b, t, i] = cl[i]
+                    slope += k[i] * qu[i]
+                    acc = 0.0
+                    for j in range(m):
+                        acc += Quu_r[i, j] * k[j]
+                    curv += k[i] * acc
+            else:
+                if not _cholesky(M, r, cl, Lb):
+                    ok = False
+                    break
+                _gains(Lb, M, n1, cl, Kt)  # [K_t, k_t] together (cl all False)
             Lt = L[b, t]
             for i in range(m):
-                clamped[b, t, i] = cl[i]
-                for j in range(m):
-                    Lt[i, j] = Lf[i, j]
-            # K = -(Lf Lf')^{-1} (Qux with clamped rows zero), k from the QP
-            for c in range(n):
-                for i in range(m):
-                    s = 0.0 if cl[i] else -M[i, m + c]
-                    for kk in range(i):
-                        s -= Lf[i, kk] * Kt[kk, c]
-                    Kt[i, c] = s / Lf[i, i]
-                for i in range(m - 1, -1, -1):
-                    s = Kt[i, c]
-                    for kk in range(i + 1, m):
-                        s -= Lf[kk, i] * Kt[kk, c]
-                    Kt[i, c] = s / Lf[i, i]
-            for i in range(m):
-                Kt[i, n] = k[i]
-            # Vh_t = sym(M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk)
+                for j in range(i + 1):
+                    Lt[i, j] = Lb[i, j]
+            if short_form:  # Vh_t = M_zz + M_uz'Kk, symmetrised
+                for i in range(n1):
+                    for j in range(i, n1):
+                        s = M[m + i, m + j]
+                        s2 = M[m + j, m + i]
+                        for p in range(m):
+                            s += M[p, m + i] * Kt[p, j]
+                            s2 += M[p, m + j] * Kt[p, i]
+                        Vc[i, j] = 0.5 * (s + s2)
+                        Vc[j, i] = 0.5 * (s + s2)
+                continue
+            # Vh_t = M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk (Tassa et al. 2012's form,
+            # exact for any gains, hence also with reg and with clamped rows)
             for i in range(n1):
                 for j in range(i, n1):
                     s = M[m + i, m + j]
-                    s2 = M[m + j, m + i]
                     for p in range(m):
                         kpi = Kt[p, i]
-                        kpj = Kt[p, j]
-                        s += kpi * M[p, m + j] + kpj * M[p, m + i]
-                        s2 += kpj * M[p, m + i] + kpi * M[p, m + j]
+                        s += kpi * M[p, m + j] + Kt[p, j] * M[p, m + i]
                         acc = 0.0
-                        acc2 = 0.0
                         for q in range(m):
                             acc += M[p, q] * Kt[q, j]
-                            acc2 += M[p, q] * Kt[q, i]
                         s += kpi * acc
-                        s2 += kpj * acc2
-                    Vc[i, j] = 0.5 * (s + s2)
-                    Vc[j, i] = 0.5 * (s + s2)
-            for i in range(m):
-                slope += k[i] * qu[i]
-                acc = 0.0
-                for j in range(m):
-                    acc += Quu_r[i, j] * k[j]
-                curv += k[i] * acc
+                    Vc[i, j] = s
+                    Vc[j, i] = s
         failed[b] = not ok
-        dV[b, 0] = slope
-        dV[b, 1] = curv
+        if boxed:
+            dV[b, 0] = slope
+            dV[b, 1] = curv

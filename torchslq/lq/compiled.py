@@ -43,7 +43,6 @@ __all__ = [
     "adjoint_compiled",
     "can_use_compiled",
     "compiled_available",
-    "riccati_box_compiled",
     "riccati_compiled",
     "rollout_compiled",
     "set_compiled",
@@ -146,18 +145,23 @@ def riccati_compiled(
     reg: Tensor | float | None,
     hessians: Tensor | None,
     batch: torch.Size,
-) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """The unconstrained Riccati pass of :func:`riccati_homogeneous` on the CPU kernel.
+    bounds: tuple[Tensor, Tensor] | None = None,
+    box_tol: float = 0.0,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
+    """The Riccati pass of :func:`riccati_homogeneous` on the CPU kernel.
 
     Args as for :func:`riccati_homogeneous` (``F (..., T, n+1, m+n+1)``,
     ``H (..., T, m+n+1, m+n+1)``, ``VhT (..., n+1, n+1)``, ``reg`` scalar or batch-shaped),
     ``hessians``: None or ``(T, n, prod(batch), m+n, m+n)``, the dynamics' output Hessians
     in ``[u; x]`` order (added to ``M`` contracted with ``v_{t+1}``); ``batch``: the
-    broadcast batch shape. Call only where :func:`can_use_compiled` holds.
+    broadcast batch shape; ``bounds``: None, or ``(lower, upper)`` ``(..., T, m)`` on the
+    step for the control-limited pass (box QP tolerance ``box_tol (1 + |qu|_inf)``).
+    Call only where :func:`can_use_compiled` holds.
 
     Returns:
         ``Kk (*batch, T, m, n+1)``, ``Vh (*batch, T+1, n+1, n+1)``, ``chol (*batch, T, m, m)``,
-        ``failed (*batch,)``.
+        ``failed (*batch,)``, and with bounds ``clamped (*batch, T, m)``, ``dV (*batch, 2)``
+        (else None, None).
     """
     T, n1, mn1 = F.shape[-3], F.shape[-2], F.shape[-1]
     m = mn1 - n1
@@ -167,6 +171,13 @@ def riccati_compiled(
     Vh = torch.zeros(nb, T + 1, n1, n1, dtype=dtype)
     L = torch.zeros(nb, T, m, m, dtype=dtype)
     failed = torch.zeros(nb, dtype=torch.bool)
+    boxed = bounds is not None
+    clamped = torch.zeros(nb if boxed else 0, T, m, dtype=torch.bool)
+    dV = torch.zeros(nb if boxed else 0, 2, dtype=dtype)
+    if boxed:
+        lower, upper = (_flat(t, batch, 2) for t in bounds)
+    else:
+        lower = upper = np.zeros((0, 1, 1), dtype=Vh.numpy().dtype)
     _launch(
         _kernels().riccati_kernel,
         nb,
@@ -176,17 +187,24 @@ def riccati_compiled(
         _flat(VhT, batch, 2),
         _reg_array(reg, batch, dtype),
         _hessian_array(hessians, Vh),
-        reg is None,
+        reg is None and not boxed,
+        lower,
+        upper,
+        float(box_tol),
         Kk.numpy(),
         Vh.numpy(),
         L.numpy(),
+        clamped.numpy(),
         failed.numpy(),
+        dV.numpy(),
     )
     return (
         Kk.reshape(*batch, T, m, n1),
         Vh.reshape(*batch, T + 1, n1, n1),
         L.reshape(*batch, T, m, m),
         failed.reshape(batch),
+        clamped.reshape(*batch, T, m) if boxed else None,
+        dV.reshape(*batch, 2) if boxed else None,
     )
 
 
@@ -245,64 +263,6 @@ def adjoint_compiled(
         dx.reshape(*batch, T + 1, n),
         du.reshape(*batch, T, m),
         dlam.reshape(*batch, T + 1, n),
-    )
-
-
-def riccati_box_compiled(
-    F: Tensor,
-    H: Tensor,
-    VhT: Tensor,
-    reg: Tensor | float | None,
-    hessians: Tensor | None,
-    lower: Tensor,
-    upper: Tensor,
-    tol: float,
-    batch: torch.Size,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """The control-limited pass of ``riccati._riccati_box`` on the CPU kernel.
-
-    As :func:`riccati_compiled`, plus ``lower``/``upper`` ``(..., T, m)`` bounds on the
-    step (broadcast to ``batch``) and the box QP's tolerance scale ``tol``.
-
-    Returns:
-        ``Kk, Vh, chol, failed, clamped (*batch, T, m), dV (*batch, 2)``.
-    """
-    T, n1, mn1 = F.shape[-3], F.shape[-2], F.shape[-1]
-    m = mn1 - n1
-    dtype = F.dtype
-    nb = math.prod(batch)
-    Kk = torch.zeros(nb, T, m, n1, dtype=dtype)
-    Vh = torch.zeros(nb, T + 1, n1, n1, dtype=dtype)
-    L = torch.zeros(nb, T, m, m, dtype=dtype)
-    clamped = torch.zeros(nb, T, m, dtype=torch.bool)
-    failed = torch.zeros(nb, dtype=torch.bool)
-    dV = torch.zeros(nb, 2, dtype=dtype)
-    _launch(
-        _kernels().riccati_box_kernel,
-        nb,
-        T,
-        _flat(F, batch, 3),
-        _flat(H, batch, 3),
-        _flat(VhT, batch, 2),
-        _reg_array(reg, batch, dtype),
-        _hessian_array(hessians, Vh),
-        _flat(lower, batch, 2),
-        _flat(upper, batch, 2),
-        float(tol),
-        Kk.numpy(),
-        Vh.numpy(),
-        L.numpy(),
-        clamped.numpy(),
-        failed.numpy(),
-        dV.numpy(),
-    )
-    return (
-        Kk.reshape(*batch, T, m, n1),
-        Vh.reshape(*batch, T + 1, n1, n1),
-        L.reshape(*batch, T, m, m),
-        failed.reshape(batch),
-        clamped.reshape(*batch, T, m),
-        dV.reshape(*batch, 2),
     )
 
 

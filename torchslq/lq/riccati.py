@@ -35,12 +35,7 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
-from .compiled import (
-    can_use_compiled,
-    riccati_box_compiled,
-    riccati_compiled,
-    rollout_compiled,
-)
+from .compiled import can_use_compiled, riccati_compiled, rollout_compiled
 
 StageHook = Callable[[int, Tensor], Tensor]
 
@@ -228,8 +223,8 @@ def riccati_homogeneous(
             expected-improvement terms to be meaningful. See
             :func:`_riccati_box` (control-limited DDP, Tassa et al. 2014).
 
-    The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B). On the CPU without autograd or
-    bounds the pass runs as one compiled kernel (:mod:`torchslq.lq.compiled`, same
+    The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B). On the CPU without autograd the
+    pass (with or without bounds) runs as one compiled kernel (:mod:`torchslq.lq.compiled`, same
     equations); otherwise as batched torch ops per step.
     """
     T = F.shape[-3]
@@ -238,16 +233,25 @@ def riccati_homogeneous(
     batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2])
     if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
         batch = broadcast_shapes(batch, reg.shape)
+    bounds = None
     if u_bounds is not None:
-        return _riccati_box(F, H, VhT, reg, stage_hook, u_bounds, batch)
+        lower, upper = (
+            with_time(b.reshape(1) if b.ndim == 0 else b, 1, T).to(F.dtype) for b in u_bounds
+        )
+        batch = broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
+        bounds = (lower.expand(*batch, T, m), upper.expand(*batch, T, m))
     hessians = getattr(stage_hook, "hessians", None)
     if (
         T > 0
         and (stage_hook is None or hessians is not None)
-        and can_use_compiled(F, H, VhT, *[t for t in (reg, hessians) if isinstance(t, Tensor)])
+        and can_use_compiled(
+            F, H, VhT, *(bounds or ()), *[t for t in (reg, hessians) if isinstance(t, Tensor)]
+        )
     ):
-        Kk, Vh, chol, failed = riccati_compiled(F, H, VhT, reg, hessians, batch)
-        return RiccatiFactors(Kk=Kk, Vh=Vh, chol=chol, failed=failed)
+        tol = _box_tol(F.dtype)
+        return RiccatiFactors(*riccati_compiled(F, H, VhT, reg, hessians, batch, bounds, tol))
+    if bounds is not None:
+        return _riccati_box(F, H, VhT, reg, stage_hook, bounds, batch)
     Vh = VhT.expand(*batch, n + 1, n + 1)
     eye_m = torch.eye(m, dtype=F.dtype, device=F.device)
     if reg is not None:
@@ -302,7 +306,8 @@ def _riccati_box(
     u_bounds: tuple[Tensor, Tensor],
     batch: torch.Size,
 ) -> RiccatiFactors:
-    """Control-limited backward pass (Tassa, Mansard & Todorov 2014, Section III).
+    """Control-limited backward pass (Tassa, Mansard & Todorov 2014, Section III), torch
+    path (bounds ``u_bounds = (lower, upper)`` already expanded to ``(*batch, T, m)``).
 
     At each step the feedforward term solves the box QP
     ``k_t = argmin 1/2 k'(Q_uu + reg I)k + k'Q_u`` s.t. ``lower_t <= k <= upper_t``
@@ -321,26 +326,8 @@ def _riccati_box(
     T = F.shape[-3]
     n = F.shape[-2] - 1
     m = F.shape[-1] - n - 1
-    lower, upper = (
-        with_time(b.reshape(1) if b.ndim == 0 else b, 1, T).to(F.dtype) for b in u_bounds
-    )
-    batch = broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
-    lower = lower.expand(*batch, T, m)
-    upper = upper.expand(*batch, T, m)
-    eps = torch.finfo(F.dtype).eps
-    tol = max(1e-10, 100 * eps)
-    hessians = getattr(stage_hook, "hessians", None)
-    if (
-        T > 0
-        and (stage_hook is None or hessians is not None)
-        and can_use_compiled(
-            F, H, VhT, lower, upper, *[t for t in (reg, hessians) if isinstance(t, Tensor)]
-        )
-    ):
-        Kk, Vh, chol, failed, clamped, dV = riccati_box_compiled(
-            F, H, VhT, reg, hessians, lower, upper, tol, batch
-        )
-        return RiccatiFactors(Kk=Kk, Vh=Vh, chol=chol, failed=failed, clamped=clamped, dV=dV)
+    lower, upper = u_bounds  # (*batch, T, m), see riccati_homogeneous
+    tol = _box_tol(F.dtype)
     Vh = VhT.expand(*batch, n + 1, n + 1)
     eye_m = torch.eye(m, dtype=F.dtype, device=F.device)
     reg_eye = None
@@ -401,6 +388,11 @@ def _riccati_box(
         ),
         dV=torch.stack([slope, curv], dim=-1),
     )
+
+
+def _box_tol(dtype: torch.dtype) -> float:
+    """Scale of the box QPs' stopping tolerance (times ``1 + |qu|_inf`` per step)."""
+    return max(1e-10, 100 * torch.finfo(dtype).eps)
 
 
 def rollout_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
