@@ -14,7 +14,8 @@ faster).
   and a per-element ``reg`` (what iLQR/DDP pass), shapes ``(B, T, n, m)``;
 * ``solve``: whole solves, the settings of ``benchmarks/peers.py`` (``tol = 1e-6``,
   ``compact=True``): the unicycle (T = 20, B = 512) with DDP and ILQR, the cart-pole
-  swing-up (T = 50, B = 64) with DDP; the iteration counts and final costs of both paths
+  swing-up (T = 50, B = 64) with DDP, and with ``|u| <= 8`` (the control-limited pass,
+  box QPs) with ILQR and DDP; the iteration counts and final costs of both paths
   are printed beside the times (they differ only by rounding).
 
 Results go to ``--out`` (``compiled_riccati.{json,md}``).
@@ -96,9 +97,10 @@ def _unicycle(B: int):
 def bench_solves(cases, repeats, rows):
     from torchslq.tasks import cartpole_swingup
 
-    for name, B, solver_cls in cases:
+    for name, B, solver_cls, bounds in cases:
         problem, x0 = _unicycle(B) if name == "unicycle" else cartpole_swingup(B)
-        solver = solver_cls(max_iter=500, tol=1e-6, progress=False, compact=True)
+        kw = {} if bounds is None else {"u_min": -bounds, "u_max": bounds}
+        solver = solver_cls(max_iter=500, tol=1e-6, progress=False, compact=True, **kw)
         times, out = _alternate(lambda s=solver, p=problem, x=x0: s.solve(p, x), repeats)
         extra = {
             f"{'compiled' if f else 'torch'}_iters": f"{out[f].iterations.float().mean():.2f}/{int(out[f].iterations.max())}"
@@ -107,7 +109,10 @@ def bench_solves(cases, repeats, rows):
         extra["cost_rel_diff"] = float(
             ((out[True].cost - out[False].cost).abs() / out[False].cost.abs()).max()
         )
-        rows.append(_row("solve", f"{name} B={B} {solver_cls.__name__}", times, extra))
+        label = f"{name} B={B} {solver_cls.__name__}" + (
+            "" if bounds is None else f" |u|<={bounds:g}"
+        )
+        rows.append(_row("solve", label, times, extra))
 
 
 def _row(kind, case, times, extra=None):
@@ -142,7 +147,7 @@ def main() -> None:
     torch.set_num_threads(1)
     if args.quick:
         shapes = [(64, 20, 3, 2)]
-        cases = [("unicycle", 64, ts.DDP)]
+        cases = [("unicycle", 64, ts.DDP, None)]
     else:
         shapes = [
             (1, 50, 4, 1),
@@ -151,7 +156,13 @@ def main() -> None:
             (512, 50, 4, 1),
             (1024, 100, 12, 4),
         ]
-        cases = [("unicycle", 512, ts.DDP), ("unicycle", 512, ts.ILQR), ("cartpole", 64, ts.DDP)]
+        cases = [
+            ("unicycle", 512, ts.DDP, None),
+            ("unicycle", 512, ts.ILQR, None),
+            ("cartpole", 64, ts.DDP, None),
+            ("cartpole", 64, ts.ILQR, 8.0),
+            ("cartpole", 64, ts.DDP, 8.0),
+        ]
     load0 = os.getloadavg()
     rows: list[dict] = []
     bench_passes(shapes, args.repeats, rows)
