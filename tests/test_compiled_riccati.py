@@ -271,3 +271,16 @@ def test_compiled_box_pass_equals_torch_path(torch_path, m, hook):
     assert torch.equal(fast.clamped, ref.clamped)
     _close(fast, ref)
     torch.testing.assert_close(fast.dV, ref.dV, rtol=1e-10, atol=1e-12)
+
+
+def test_torch_compile_traces_the_torch_path():
+    """Under torch.compile the tensors are fake: the traced graph must be the torch
+    path's, whole (fullgraph=True fails on a graph break, e.g. a numba call). (Today
+    both the is_compiling and the functorch-stack checks route tracing there.)"""
+    from torchslq.lq import rollout_homogeneous
+
+    F, H, VhT = _problem((3,), 5, 2, 1)
+    Kk = riccati_homogeneous(F, H, VhT).Kk
+    x0 = torch.randn(3, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
+    f = torch.compile(lambda F, Kk, x0: rollout_homogeneous(F, Kk, x0)[0], fullgraph=True)
+    torch.testing.assert_close(f(F, Kk, x0), rollout_homogeneous(F, Kk, x0)[0])

@@ -13,7 +13,8 @@ Used automatically by :func:`riccati_homogeneous` when
 * numba is importable and not disabled (``TORCHSLQ_COMPILED=0`` in the environment or
   :func:`set_compiled` ``(False)``),
 * the tensors are on the CPU, float32 or float64, and nothing needs autograd (no input
-  requires grad while grad mode is on, and no ``torch.func`` transform is active),
+  requires grad while grad mode is on, and no ``torch.func`` transform is active) and
+  no ``torch.compile`` tracing is under way,
 * the stage hook is None or carries its second-order terms as a dense tensor
   (``stage_hook.hessians``, DDP's precomputed output Hessians).
 
@@ -92,7 +93,10 @@ def can_use_compiled(*tensors: Tensor) -> bool:
     for t in tensors:
         if t.device.type != "cpu" or t.dtype != dtype or (grad and t.requires_grad):
             return False
-    # inside torch.func transforms tensors are wrappers without storage for numpy
+    # inside torch.func transforms tensors are wrappers without storage for numpy, and
+    # under torch.compile tracing they are fake: the torch path is what gets traced
+    if torch.compiler.is_compiling():
+        return False
     return torch._C._functorch.peek_interpreter_stack() is None
 
 
