@@ -284,3 +284,33 @@ def test_torch_compile_traces_the_torch_path():
     x0 = torch.randn(3, 2, generator=torch.Generator().manual_seed(1), dtype=F64)
     f = torch.compile(lambda F, Kk, x0: rollout_homogeneous(F, Kk, x0)[0], fullgraph=True)
     torch.testing.assert_close(f(F, Kk, x0), rollout_homogeneous(F, Kk, x0)[0])
+
+
+def test_threaded_launch_after_fork(monkeypatch):
+    """A forked child (e.g. a DataLoader worker) inherits the parent's thread pool object
+    but none of its threads: its threaded passes must still finish (a new pool)."""
+    import multiprocessing as mp
+
+    monkeypatch.setattr(compiled, "MIN_STEPS_PER_THREAD", 1)
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        F, H, VhT = _problem((4,), 6, 2, 1)
+        ref = riccati_homogeneous(F, H, VhT).Kk  # creates the parent's pool
+        assert compiled._pool is not None
+        ctx = mp.get_context("fork")
+        q = ctx.Queue()
+        child = ctx.Process(target=_child_pass, args=(F, H, VhT, q))
+        child.start()
+        child.join(timeout=60)
+        hung = child.is_alive()
+        if hung:
+            child.kill()
+        assert not hung, "threaded pass in a forked child did not finish"
+        torch.testing.assert_close(torch.from_numpy(q.get(timeout=5)), ref, rtol=0, atol=0)
+    finally:
+        torch.set_num_threads(old)
+
+
+def _child_pass(F, H, VhT, q):
+    q.put(riccati_homogeneous(F, H, VhT).Kk.numpy())  # plain pickle, no shared memory

@@ -105,6 +105,7 @@ def can_use_compiled(*tensors: Tensor) -> bool:
 MIN_STEPS_PER_THREAD = 4096
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
+_pool_pid = 0  # a forked child inherits the pool object but not its threads
 
 
 def _launch(kernel, nb: int, T: int, *args) -> None:
@@ -116,15 +117,16 @@ def _launch(kernel, nb: int, T: int, *args) -> None:
     ``parallel=True`` threading layers were avoided: the default one aborts on
     concurrent launches from several Python threads).
     """
-    global _pool, _pool_size
+    global _pool, _pool_size, _pool_pid
     threads = max(1, min(torch.get_num_threads(), nb, (nb * max(T, 1)) // MIN_STEPS_PER_THREAD))
     if threads == 1:
         kernel(0, nb, *args)
         return
-    if _pool is None or _pool_size != threads:
-        if _pool is not None:
+    if _pool is None or _pool_size != threads or _pool_pid != os.getpid():
+        if _pool is not None and _pool_pid == os.getpid():
             _pool.shutdown(wait=False)
-        _pool, _pool_size = ThreadPoolExecutor(threads, thread_name_prefix="torchslq"), threads
+        _pool = ThreadPoolExecutor(threads, thread_name_prefix="torchslq")
+        _pool_size, _pool_pid = threads, os.getpid()
     bounds = [nb * i // threads for i in range(threads + 1)]
     futures = [_pool.submit(kernel, bounds[i], bounds[i + 1], *args) for i in range(1, threads)]
     kernel(bounds[0], bounds[1], *args)  # the calling thread takes the first chunk
