@@ -116,11 +116,22 @@ def test_compiled_reports_the_same_failures(torch_path):
     torch.testing.assert_close(fast.Kk[2, 6:], ref.Kk[2, 6:], rtol=1e-10, atol=1e-12)
 
 
-def test_compiled_float32(torch_path):
+@pytest.mark.parametrize("bounded", [False, True])
+def test_compiled_float32(torch_path, bounded):
     F, H, VhT = _problem((6,), 15, 4, 2)
-    fast32 = riccati_homogeneous(F.float(), H.float(), VhT.float(), reg=1e-3)
-    ref64 = riccati_homogeneous(F, H, VhT, reg=1e-3)
+    kw = {"reg": 1e-3}
+    if bounded:
+        kw["u_bounds"] = (torch.tensor(-0.05, dtype=F64), torch.tensor(0.05, dtype=F64))
+    kw32 = dict(kw)
+    if bounded:
+        kw32["u_bounds"] = tuple(b.float() for b in kw["u_bounds"])
+    fast32 = riccati_homogeneous(F.float(), H.float(), VhT.float(), **kw32)
+    with torch_path:
+        ref64 = riccati_homogeneous(F, H, VhT, **kw)
     assert fast32.Kk.dtype == torch.float32
+    if bounded:
+        assert bool(ref64.clamped.any())
+        assert torch.equal(fast32.clamped, ref64.clamped)
     torch.testing.assert_close(fast32.Kk.double(), ref64.Kk, rtol=1e-3, atol=1e-4)
 
 
