@@ -1,6 +1,7 @@
 """The batched LQ (Riccati) kernel shared by every solver."""
 
 from .boxqp import BoxQPResult, box_qp
+from .compiled import compiled_available, set_compiled
 from .dare import dare, dare_gain, dare_residual
 from .riccati import (
     RiccatiFactors,
@@ -18,6 +19,7 @@ __all__ = [
     "LQRSolution",
     "RiccatiFactors",
     "box_qp",
+    "compiled_available",
     "dare",
     "dare_gain",
     "dare_residual",
@@ -30,4 +32,5 @@ __all__ = [
     "riccati_homogeneous",
     "rollout_homogeneous",
     "rollout_linear",
+    "set_compiled",
 ]
