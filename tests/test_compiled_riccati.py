@@ -325,3 +325,22 @@ def test_threaded_launch_after_fork(monkeypatch):
 
 def _child_pass(F, H, VhT, q):
     q.put(riccati_homogeneous(F, H, VhT).Kk.numpy())  # plain pickle, no shared memory
+
+
+def test_kernels_that_fail_to_load_fall_back_to_torch(torch_path, monkeypatch):
+    """If numba cannot load the kernels (no writable cache directory, a numba/numpy
+    mismatch, ...), passes warn once and take the torch path instead of failing."""
+
+    def broken():
+        raise RuntimeError("cannot cache function: no locator available")
+
+    monkeypatch.setattr(compiled, "_kernels_module", None)
+    monkeypatch.setattr(compiled, "_kernels_error", None)
+    monkeypatch.setattr(compiled, "_import_kernels", broken)
+    F, H, VhT = _problem((3,), 6, 2, 1)
+    with pytest.warns(RuntimeWarning, match="could not be loaded"):
+        fac = riccati_homogeneous(F, H, VhT)
+    assert not compiled.compiled_available()
+    with torch_path:
+        ref = riccati_homogeneous(F, H, VhT)
+    assert torch.equal(fac.Kk, ref.Kk)  # bit-identical: the same (torch) path

@@ -33,6 +33,7 @@ from __future__ import annotations
 import importlib.util
 import math
 import os
+import warnings
 from concurrent.futures import ThreadPoolExecutor
 from types import ModuleType
 
@@ -54,20 +55,37 @@ _enabled = os.environ.get("TORCHSLQ_COMPILED", "1").strip().lower() not in ("0",
 
 _HAVE_NUMBA = importlib.util.find_spec("numba") is not None
 _kernels_module: ModuleType | None = None
+_kernels_error: str | None = None  # why the kernels could not be loaded, once tried
 
 
 def compiled_available() -> bool:
-    """Whether the compiled CPU kernels are installed (numba) and enabled."""
-    return _HAVE_NUMBA and _enabled
+    """Whether the compiled CPU kernels are installed (numba), enabled and loadable."""
+    return _HAVE_NUMBA and _enabled and _kernels_error is None
 
 
-def _kernels() -> ModuleType:
-    """The numba kernels, imported on first use (see :mod:`torchslq.lq._numba_kernels`)."""
-    global _kernels_module
-    if _kernels_module is None:
-        from . import _numba_kernels
+def _import_kernels() -> ModuleType:
+    from . import _numba_kernels
 
-        _kernels_module = _numba_kernels
+    return _numba_kernels
+
+
+def _kernels() -> ModuleType | None:
+    """The numba kernels, imported on first use (see :mod:`torchslq.lq._numba_kernels`);
+    None (with one warning, and the torch path from then on) if that fails, e.g. when
+    numba can neither write nor find a cache directory or its version does not match
+    the installed numpy."""
+    global _kernels_module, _kernels_error
+    if _kernels_module is None and _kernels_error is None:
+        try:
+            _kernels_module = _import_kernels()
+        except Exception as err:  # noqa: BLE001 - any failure means: use the torch path
+            _kernels_error = f"{type(err).__name__}: {err}"
+            warnings.warn(
+                "torchslq: the compiled CPU LQ kernels could not be loaded, using the torch "
+                f"path ({_kernels_error})",
+                RuntimeWarning,
+                stacklevel=3,
+            )
     return _kernels_module
 
 
@@ -97,7 +115,9 @@ def can_use_compiled(*tensors: Tensor) -> bool:
     # under torch.compile tracing they are fake: the torch path is what gets traced
     if torch.compiler.is_compiling():
         return False
-    return torch._C._functorch.peek_interpreter_stack() is None
+    if torch._C._functorch.peek_interpreter_stack() is not None:
+        return False
+    return _kernels() is not None
 
 
 # Below this many element-steps per thread a pass is not split (thread hand-off costs
