@@ -224,8 +224,9 @@ def riccati_homogeneous(
             :func:`_riccati_box` (control-limited DDP, Tassa et al. 2014).
 
     The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B). On the CPU without autograd the
-    pass (with or without bounds) runs as one compiled kernel (:mod:`torchslq.lq.compiled`, same
-    equations); otherwise as batched torch ops per step.
+    pass (with or without bounds) runs as one compiled kernel
+    (:mod:`torchslq.lq.compiled`, same equations); otherwise as batched torch ops per
+    step.
     """
     T = F.shape[-3]
     n = F.shape[-2] - 1
