@@ -130,10 +130,10 @@ def _qp_value(H, g, x):
 
 
 @numba.njit(cache=True, nogil=True)
-def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
+def _box_qp(H, g, lower, upper, x, tol, opts, clamped, Lf, work):
     """Projected-Newton box QP of :func:`torchslq.lq.box_qp` for one element (same
-    iteration, same stopping rules, ``armijo = 0.1``, ``step_dec = 0.6``, 32 candidate
-    steps, ``max_iter = 100``, ``min_rel_improve = 0``). ``x`` (m,) is the warm start on
+    iteration, same stopping rules, ``min_rel_improve = 0``; ``opts = (max_iter, armijo,
+    step_dec, n_steps)``, box_qp's defaults). ``x`` (m,) is the warm start on
     entry (projected here) and the solution on exit; ``clamped`` (m,) bool and ``Lf``
     (m, m), the free-block factor (identity on clamped rows/columns), are outputs;
     ``work`` is scratch of shape (4, m). Returns success."""
@@ -158,7 +158,8 @@ def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
     value = _qp_value(H, g, x)
     success = True
     stop = False  # set after an accepted step that did not improve: refresh, then stop
-    for it in range(101):
+    max_iter, armijo, step_dec, n_steps = opts
+    for it in range(max_iter + 1):
         # gradient, clamped set and free-block factor at the current x
         for i in range(m):
             s = g[i]
@@ -178,7 +179,7 @@ def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
         if indefinite:
             success = False
             break
-        if stop or n_clamped == m or math.sqrt(gnorm2) < tol or it == 100:
+        if stop or n_clamped == m or math.sqrt(gnorm2) < tol or it == max_iter:
             break
         # Newton point on the free subspace: x_f = -H_ff^{-1} (g_f + H_fc x_c)
         for ii in range(m):
@@ -210,13 +211,13 @@ def _box_qp(H, g, lower, upper, x, tol, clamped, Lf, work):
         # Newton point itself)
         found = False
         v_new = 0.0
-        for jstep in range(32):
-            step = 0.6**jstep
+        for jstep in range(n_steps):
+            step = step_dec**jstep
             for ii in range(m):
                 xi = newton[ii] if jstep == 0 else x[ii] + step * (newton[ii] - x[ii])
                 xc[ii] = min(max(xi, lower[ii]), upper[ii])
             v = _qp_value(H, g, xc)
-            if (v - value) <= 0.1 * step * sdotg:
+            if (v - value) <= armijo * step * sdotg:
                 found = True
                 v_new = v
                 break
@@ -313,7 +314,24 @@ def _gains(Lb, M, ncols, cl, Kt):
 
 @numba.njit(cache=True, nogil=True)
 def riccati_kernel(
-    b0, b1, F, H, VhT, reg, Hz, short_form, lower, upper, tol_base, Kk, Vh, L, clamped, failed, dV
+    b0,
+    b1,
+    F,
+    H,
+    VhT,
+    reg,
+    Hz,
+    short_form,
+    lower,
+    upper,
+    tol_base,
+    box_opts,
+    Kk,
+    Vh,
+    L,
+    clamped,
+    failed,
+    dV,
 ):
     """One Riccati pass per element (see riccati_homogeneous for the equations).
 
@@ -323,7 +341,7 @@ def riccati_kernel(
     instead of the general form. Control-limited pass (``riccati._riccati_box``, Tassa,
     Mansard & Todorov 2014) when lower/upper ``(BB, T, m)`` are not empty: the
     feedforward term from the box QP (:func:`_box_qp`, warm-started from the next
-    step's, tolerance ``tol_base (1 + |qu|_inf)``), feedback rows of clamped controls
+    step's, tolerance ``tol_base (1 + |qu|_inf)``, ``box_opts`` as for :func:`_box_qp`), feedback rows of clamped controls
     zero, outputs clamped ``(B, T, m)`` and dV ``(B, 2)`` (``[sum k'qu,
     sum k'(Quu + reg) k]``). Outputs Kk ``(B, T, m, n+1)``, Vh ``(B, T+1, n+1, n+1)``,
     L ``(B, T, m, m)``, failed ``(B,)``. An element whose factorisation fails (not
@@ -374,7 +392,9 @@ def riccati_kernel(
                 for i in range(m):
                     qmax = max(qmax, abs(qu[i]))
                 tol = tol_base * (1.0 + qmax)
-                if not _box_qp(Quu_r, qu, lower[bb, t], upper[bb, t], k, tol, cl, Lb, work):
+                if not _box_qp(
+                    Quu_r, qu, lower[bb, t], upper[bb, t], k, tol, box_opts, cl, Lb, work
+                ):
                     ok = False
                     break
                 _gains(Lb, M, n, cl, Kt)

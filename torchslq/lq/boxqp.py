@@ -38,6 +38,10 @@ from .._shapes import broadcast_shapes
 
 __all__ = ["BoxQPResult", "box_qp"]
 
+# box_qp's defaults; the compiled control-limited Riccati pass (torchslq/lq/_numba_kernels.py)
+# receives the same values
+MAX_ITER, ARMIJO, STEP_DEC, N_STEPS = 100, 0.1, 0.6, 32
+
 
 @dataclass
 class BoxQPResult:
@@ -100,11 +104,11 @@ def box_qp(
     lower: Tensor,
     upper: Tensor,
     x0: Tensor | None = None,
-    max_iter: int = 100,
+    max_iter: int = MAX_ITER,
     tol: float | Tensor = 1e-10,
-    armijo: float = 0.1,
-    step_dec: float = 0.6,
-    n_steps: int = 32,
+    armijo: float = ARMIJO,
+    step_dec: float = STEP_DEC,
+    n_steps: int = N_STEPS,
     min_rel_improve: float = 0.0,
     check_every: int = 1,
 ) -> BoxQPResult:

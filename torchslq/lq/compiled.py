@@ -5,8 +5,8 @@ ops per step. On the CPU with small matrices (``n, m`` up to a few tens) those o
 dispatch-bound: each costs a few microseconds whatever the batch, and the two LAPACK
 calls per step loop over the batch's tiny matrices one by one. This module runs the same
 recursion (same equations, same outputs) as a single numba-compiled loop over batch and
-time, with the matrices of one step in registers/L1. Measured 2-3x faster per pass on
-the benchmark shapes (``benchmarks/compiled_riccati.py``).
+time, with the matrices of one step in registers/L1: 1.5-2.3x faster per pass at
+B = 64-1024 and 16-18x at B = 1 (``benchmarks/compiled_riccati.py``, one run).
 
 Used automatically by :func:`riccati_homogeneous` when
 
@@ -20,7 +20,8 @@ Used automatically by :func:`riccati_homogeneous` when
 
 With control bounds the control-limited pass (a box QP per step, the projected Newton of
 :func:`torchslq.lq.box_qp` ported step for step) runs compiled too. Everything else (GPU,
-autograd through the pass, callable hooks) takes the torch path. ``tests/test_compiled_riccati.py`` checks the two against each other.
+autograd through the pass, callable hooks) takes the torch path.
+``tests/test_compiled_riccati.py`` checks the two against each other.
 
 The kernels live in :mod:`torchslq.lq._numba_kernels`, imported on the first CPU pass
 (never by GPU-only use). numba compiles them on first use per dtype (about 2.5 s for the
@@ -40,6 +41,8 @@ from types import ModuleType
 import numpy as np
 import torch
 from torch import Tensor
+
+from . import boxqp
 
 __all__ = [
     "adjoint_compiled",
@@ -203,7 +206,7 @@ def riccati_compiled(
     if boxed:
         lower, upper = (_flat(t, batch, 2) for t in bounds)
     else:
-        lower = upper = np.zeros((0, 1, 1), dtype=Vh.numpy().dtype)
+        lower = upper = np.zeros((0, 1, 1), dtype=_np_dtype(dtype))
     _launch(
         _kernels().riccati_kernel,
         nb,
@@ -212,11 +215,12 @@ def riccati_compiled(
         _flat(H, batch, 3),
         _flat(VhT, batch, 2),
         _reg_array(reg, batch, dtype),
-        _hessian_array(hessians, Vh),
+        _hessian_array(hessians, dtype),
         reg is None and not boxed,
         lower,
         upper,
         float(box_tol),
+        (boxqp.MAX_ITER, boxqp.ARMIJO, boxqp.STEP_DEC, boxqp.N_STEPS),
         Kk.numpy(),
         Vh.numpy(),
         L.numpy(),
@@ -295,14 +299,19 @@ def adjoint_compiled(
 def _reg_array(reg: Tensor | float | None, batch: torch.Size, dtype: torch.dtype) -> np.ndarray:
     """``reg`` as a ``(1,)`` or ``(prod(batch),)`` array (zero when None)."""
     if reg is None:
-        return np.zeros(1, dtype=torch.empty((), dtype=dtype).numpy().dtype)
+        return np.zeros(1, dtype=_np_dtype(dtype))
     r = torch.as_tensor(reg, dtype=dtype)
     r = r.reshape(1) if r.numel() == 1 else r.expand(batch).reshape(-1)
     return r.detach().contiguous().numpy()
 
 
-def _hessian_array(hessians: Tensor | None, like: Tensor) -> np.ndarray:
-    """DDP's ``(T, n, B, m+n, m+n)`` Hessians, or an empty array of ``like``'s dtype."""
+def _hessian_array(hessians: Tensor | None, dtype: torch.dtype) -> np.ndarray:
+    """DDP's ``(T, n, B, m+n, m+n)`` Hessians, or an empty array of ``dtype``."""
     if hessians is None:
-        return np.zeros((0, 1, 1, 1, 1), dtype=like.numpy().dtype)
+        return np.zeros((0, 1, 1, 1, 1), dtype=_np_dtype(dtype))
     return hessians.detach().contiguous().numpy()
+
+
+def _np_dtype(dtype: torch.dtype) -> np.dtype:
+    """The numpy dtype of a torch float dtype (for the kernels' empty placeholders)."""
+    return np.float32 if dtype == torch.float32 else np.float64
