@@ -151,7 +151,9 @@ def test_ddp_converges_quadratically(near_optimum, mode):
     """Near the optimum the gradient-norm ratios g_{k+1}/g_k^2 stay bounded while
     g_k -> 0 (quadratic convergence); iLQR's ratios g_{k+1}/g_k do not go to 0."""
     problem, x0, ref, u = near_optimum
-    res = ts.DDP(second_order=mode, progress=False, max_iter=50, tol=1e-11).solve(problem, x0, u)
+    # tol 1e-10: this problem's gradient reaches its round-off floor near 1e-11 (where
+    # steps stop being full and g creeps down by ~2x per iteration, on either kernel)
+    res = ts.DDP(second_order=mode, progress=False, max_iter=50, tol=1e-10).solve(problem, x0, u)
     assert bool(res.converged.all())
     torch.testing.assert_close(res.u, ref.u, rtol=1e-6, atol=1e-7)
     for b in range(x0.shape[0]):

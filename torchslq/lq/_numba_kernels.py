@@ -239,19 +239,32 @@ def _stage_matrix(Vn, Ft, Ht, Hz, t, b, VF, M):
     ``v_{t+1} . f_zz`` on the ``[u; x]`` block when ``Hz`` is not empty."""
     n1, mn1 = Ft.shape
     n = n1 - 1
+    # row-times-matrix (axpy) order over row views: the innermost loops run along
+    # contiguous rows, which LLVM vectorises (a dot-product order strides down columns
+    # and is latency-bound); all of M is formed (cheaper than a triangle's ragged loops),
+    # then the upper triangle is mirrored so that M is exactly symmetric
     for i in range(n1):
+        vi = VF[i]
         for j in range(mn1):
-            s = 0.0
-            for k in range(n1):
-                s += Vn[i, k] * Ft[k, j]
-            VF[i, j] = s
+            vi[j] = 0.0
+        for k in range(n1):
+            a = Vn[i, k]
+            fk = Ft[k]
+            for j in range(mn1):
+                vi[j] += a * fk[j]
     for i in range(mn1):
-        for j in range(i, mn1):
-            s = Ht[i, j]
-            for k in range(n1):
-                s += Ft[k, i] * VF[k, j]
-            M[i, j] = s
-            M[j, i] = s
+        mi = M[i]
+        hi = Ht[i]
+        for j in range(mn1):
+            mi[j] = hi[j]
+        for k in range(n1):
+            a = Ft[k, i]
+            vk = VF[k]
+            for j in range(mn1):
+                mi[j] += a * vk[j]
+    for i in range(mn1):
+        for j in range(i + 1, mn1):
+            M[j, i] = M[i, j]
     if Hz.shape[0] > 0:
         for k in range(n):
             v = Vn[k, n]
@@ -297,19 +310,35 @@ def _cholesky(A, r, cl, Lb):
 @numba.njit(cache=True, nogil=True)
 def _gains(Lb, M, ncols, cl, Kt):
     """``Kt[:, c] = -(Lb Lb')^{-1} M[:m, m + c]`` for ``c < ncols``, rows in ``cl``
-    (clamped controls) given a zero right-hand side."""
+    (clamped controls) given a zero right-hand side. Substitutions on whole rows of
+    ``Kt`` (all columns at once: contiguous, vectorised inner loops)."""
     m = Lb.shape[0]
-    for c in range(ncols):
-        for i in range(m):
-            s = 0.0 if cl[i] else -M[i, m + c]
-            for k in range(i):
-                s -= Lb[i, k] * Kt[k, c]
-            Kt[i, c] = s / Lb[i, i]
-        for i in range(m - 1, -1, -1):
-            s = Kt[i, c]
-            for k in range(i + 1, m):
-                s -= Lb[k, i] * Kt[k, c]
-            Kt[i, c] = s / Lb[i, i]
+    for i in range(m):
+        ki = Kt[i]
+        if cl[i]:
+            for c in range(ncols):
+                ki[c] = 0.0
+        else:
+            for c in range(ncols):
+                ki[c] = -M[i, m + c]
+        for k in range(i):
+            a = Lb[i, k]
+            kk = Kt[k]
+            for c in range(ncols):
+                ki[c] -= a * kk[c]
+        d = 1.0 / Lb[i, i]
+        for c in range(ncols):
+            ki[c] *= d
+    for i in range(m - 1, -1, -1):
+        ki = Kt[i]
+        for k in range(i + 1, m):
+            a = Lb[k, i]
+            kk = Kt[k]
+            for c in range(ncols):
+                ki[c] -= a * kk[c]
+        d = 1.0 / Lb[i, i]
+        for c in range(ncols):
+            ki[c] *= d
 
 
 @numba.njit(cache=True, nogil=True)
@@ -363,6 +392,7 @@ def riccati_kernel(
     k = np.empty(m, dtype=Vh.dtype)
     cl = np.zeros(m, dtype=np.bool_)
     work = np.empty((4, m), dtype=Vh.dtype)
+    W = np.empty((m, n1), dtype=Vh.dtype)
     for b in range(b0, b1):
         bf = b if F.shape[0] > 1 else 0
         bh = b if H.shape[0] > 1 else 0
@@ -415,31 +445,49 @@ def riccati_kernel(
             for i in range(m):
                 for j in range(i + 1):
                     Lt[i, j] = Lb[i, j]
-            if short_form:  # Vh_t = M_zz + M_uz'Kk, symmetrised
+            if short_form:  # Vh_t = M_zz + M_uz'Kk, symmetrised (row order)
+                for i in range(n1):
+                    vi = Vc[i]
+                    for j in range(n1):
+                        vi[j] = M[m + i, m + j]
+                    for p in range(m):
+                        a = M[p, m + i]
+                        kp = Kt[p]
+                        for j in range(n1):
+                            vi[j] += a * kp[j]
                 for i in range(n1):
                     for j in range(i, n1):
-                        s = M[m + i, m + j]
-                        s2 = M[m + j, m + i]
-                        for p in range(m):
-                            s += M[p, m + i] * Kt[p, j]
-                            s2 += M[p, m + j] * Kt[p, i]
-                        Vc[i, j] = 0.5 * (s + s2)
-                        Vc[j, i] = 0.5 * (s + s2)
+                        s = 0.5 * (Vc[i, j] + Vc[j, i])
+                        Vc[i, j] = s
+                        Vc[j, i] = s
                 continue
             # Vh_t = M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk (Tassa et al. 2012's form,
-            # exact for any gains, hence also with reg and with clamped rows)
+            # exact for any gains, hence also with reg and with clamped rows), as
+            # M_zz + Kk'W + M_uz'Kk with W = Quu Kk + M_uz; row (axpy) order, the upper
+            # triangle mirrored
+            for p in range(m):
+                wp = W[p]
+                for j in range(n1):
+                    wp[j] = M[p, m + j]
+                for q in range(m):
+                    a = M[p, q]
+                    kq = Kt[q]
+                    for j in range(n1):
+                        wp[j] += a * kq[j]
             for i in range(n1):
-                for j in range(i, n1):
-                    s = M[m + i, m + j]
-                    for p in range(m):
-                        kpi = Kt[p, i]
-                        s += kpi * M[p, m + j] + Kt[p, j] * M[p, m + i]
-                        acc = 0.0
-                        for q in range(m):
-                            acc += M[p, q] * Kt[q, j]
-                        s += kpi * acc
-                    Vc[i, j] = s
-                    Vc[j, i] = s
+                vi = Vc[i]
+                for j in range(n1):
+                    vi[j] = M[m + i, m + j]
+                for p in range(m):
+                    a = Kt[p, i]
+                    c = M[p, m + i]
+                    wp = W[p]
+                    kp = Kt[p]
+                    for j in range(n1):
+                        vi[j] += a * wp[j] + c * kp[j]
+            for i in range(n1):
+                for j in range(i + 1, n1):
+                    Vc[j, i] = Vc[i, j]
         failed[b] = not ok
         if boxed:
             dV[b, 0] = slope
