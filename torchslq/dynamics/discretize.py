@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from .base import ContinuousDynamics, Dynamics, identity_like
 
 __all__ = ["discretize", "DiscretizedDynamics"]
@@ -57,21 +58,24 @@ class DiscretizedDynamics(Dynamics):
         if self.method == "euler":
             fx, fu = f.jacobians(x, u)
             return eye + dt * fx, dt * fu
-        # stage i: k_i = f(x + a_i dt k_{i-1}, u); dk_i = f_x (I dx + a_i dt dk_{i-1}) + f_u du
-        k, dkx, dku = None, None, None
-        acc_x, acc_u = 0.0, 0.0
-        for a, w in ((0.0, 1.0), (0.5, 2.0), (0.5, 2.0), (1.0, 1.0)):
-            xi = x if k is None else x + a * dt * k
+        # stage i: k_i = f(x + a_i dt k_{i-1}, u), so with z = (x, u) and f_z = [f_x | f_u]
+        # dk_i/dz = f_z + a_i dt f_x dk_{i-1}/dz: one product per stage on the joint
+        # (n, n + m) block (this chain runs on every linearisation, (rows, n, n + m)
+        # tensors, and its cost is the number of tiny batched products and adds)
+        n = x.shape[-1]
+        k, dk, acc = None, None, None
+        stages = ((0.0, 1.0), (0.5, 2.0), (0.5, 2.0), (1.0, 1.0))
+        for i, (a, w) in enumerate(stages):
+            xi = x if k is None else torch.add(x, k, alpha=a * dt)
             fx, fu = f.jacobians(xi, u)
-            if k is None:
-                dkx, dku = fx, fu
-            else:
-                dkx = fx @ (eye + a * dt * dkx)
-                dku = fx @ (a * dt * dku) + fu
-            k = f(xi, u)
-            acc_x = acc_x + w * dkx
-            acc_u = acc_u + w * dku
-        return eye + (dt / 6.0) * acc_x, (dt / 6.0) * acc_u
+            lead = broadcast_shapes(fx.shape[:-2], fu.shape[:-2])
+            fz = torch.cat([fx.expand(*lead, *fx.shape[-2:]), fu.expand(*lead, *fu.shape[-2:])], -1)
+            dk = fz if dk is None else torch.add(fz, fx @ dk, alpha=a * dt)
+            acc = dk if acc is None else torch.add(acc, dk, alpha=w)
+            if i < len(stages) - 1:  # the last stage's k is not needed
+                k = f(xi, u)
+        A = torch.add(eye, acc[..., :n], alpha=dt / 6.0)
+        return A, acc[..., n:] * (dt / 6.0)
 
 
 def discretize(dynamics: ContinuousDynamics, dt: float, method: str = "rk4") -> DiscretizedDynamics:
