@@ -589,3 +589,55 @@ def test_stall_iters_validation():
 
     with pytest.raises(ValueError, match="stall_iters"):
         ts.ILQR(stall_iters=-1)
+
+
+@pytest.mark.parametrize("solver_cls", ["ILQR", "DDP-costate", "DDP"])
+def test_final_pass_is_skipped_without_changing_the_solve(monkeypatch, solver_cls):
+    """At the iteration where the gradient test stops every running element, iLQR/DDP
+    skip the second-order terms and the Riccati pass (their step would be discarded).
+    Same iterates, costs, statuses, iterations and gains as computing that pass, and
+    one pass fewer per solve (counted)."""
+    import torchslq.solvers.ilqr as ilqr_mod
+    from torchslq import DDP
+
+    make = {
+        "ILQR": lambda: ILQR(**PEND_SOLVER),
+        "DDP-costate": lambda: DDP(second_order="costate", **PEND_SOLVER),
+        "DDP": lambda: DDP(**PEND_SOLVER),
+    }[solver_cls]
+    calls = {"n": 0}
+    real = ilqr_mod.riccati_backward
+
+    def counting(*a, **k):
+        calls["n"] += 1
+        return real(*a, **k)
+
+    monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
+    x0 = PEND_X0[:1]
+    skipped = make().solve(pendulum_nonconvex(), x0)
+    n_skipped = calls["n"]
+    calls["n"] = 0
+    # the reference: no element ever counts as stopped before its pass
+    monkeypatch.setattr(ILQR, "_converged_by_gradient", lambda self, grad: None)
+    full = make().solve(pendulum_nonconvex(), x0)
+    n_full = calls["n"]
+    assert bool(full.converged.all()) and bool(skipped.converged.all())
+    assert n_skipped == n_full - 1  # the last pass (no restarts on this problem)
+    assert torch.equal(skipped.iterations, full.iterations)
+    assert torch.equal(skipped.status, full.status)
+    assert torch.equal(skipped.u, full.u) and torch.equal(skipped.cost, full.cost)
+    torch.testing.assert_close(skipped.grad_norm, full.grad_norm, rtol=0, atol=0)
+    # gains: those of the last step taken (one iterate before the final point, whose
+    # gradient was still above tol), close to the final point's
+    assert bool(torch.isfinite(skipped.K).all()) and bool((skipped.K != 0).any())
+    assert rel_err(skipped.K, full.K) < 5e-3
+
+
+def test_converged_initial_guess_still_gets_gains():
+    """An element already converged at the initial guess stops at iteration 0, where
+    the pass is never skipped: its gains are the pass's at that point, not zeros."""
+    ref = pendulum_batch()
+    r = ILQR(**PEND_SOLVER).solve(pendulum_nonconvex(), PEND_X0, ref.u)
+    assert bool((r.iterations == 0).all()) and bool(r.converged.all())
+    assert bool((r.K != 0).any(dim=(1, 2, 3)).all())
+    torch.testing.assert_close(r.K, ref.K, rtol=1e-3, atol=1e-4)

@@ -61,6 +61,24 @@ def active_bounds(u: Tensor, lo: Tensor, hi: Tensor, rtol: float | None = None) 
     return torch.where(at_hi & ~at_lo, torch.ones_like(out), out)
 
 
+def _no_step(x: Tensor, u: Tensor, grad: Tensor) -> dict[str, Tensor]:
+    """:meth:`ILQR.direction`'s output when every running element already passes the
+    gradient test: no step, and the solve loop keeps the previous gains."""
+    Bsz, T, m = u.shape
+    zeros = grad.new_zeros(Bsz)
+    return {
+        "du": torch.zeros_like(u),
+        "K": u.new_zeros(Bsz, T, m, x.shape[-1]),
+        "k": torch.zeros_like(u),
+        "grad": grad,
+        "slope": zeros,
+        "curvature": zeros,
+        "failed": torch.zeros(Bsz, dtype=torch.bool, device=u.device),
+        "dx": torch.zeros_like(x),
+        "keep_gains": torch.zeros(Bsz, dtype=torch.bool, device=u.device),
+    }
+
+
 def _merge_factors(mask: Tensor, a: RiccatiFactors, b: RiccatiFactors) -> RiccatiFactors:
     """Per element: ``a``'s factors where ``mask`` (``(B,)`` bool), else ``b``'s."""
 
@@ -254,13 +272,19 @@ class ILQR(SLQ):
         A, B = linearize(problem.transition, x[:, :T], u, method=self.options.linearize_method)
         e = self._expansion(problem, x, u)
         grad, lam = costate_gradient(A, B, e.lx, e.lu)
-        hook = self._second_order(problem, x, u, lam, e)
         if getattr(self, "_running", None) is None or self._running.shape[0] != x.shape[0]:
             self._running = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
         mu = getattr(self, "_mu", None)
         if mu is None or mu.shape[0] != x.shape[0]:
             self._begin(x[:, 0])
         lo, hi = getattr(self, "_lo", None), getattr(self, "_hi", None)
+        if lo is not None:
+            grad = u - torch.minimum(torch.maximum(u - grad, lo), hi)  # projected gradient
+        done = self._converged_by_gradient(grad)
+        if done is not None and bool((done | ~self._running).all()):
+            # every step would be discarded: skip the second-order terms and the pass
+            return _no_step(x, u, grad)
+        hook = self._second_order(problem, x, u, lam, e)
         u_bounds = None if lo is None else (lo - u, hi - u)  # bounds on δu at ū = u
 
         def backward_pass(stage_hook, idx: Tensor | None = None, reg: Tensor | None = None):
@@ -321,7 +345,6 @@ class ILQR(SLQ):
             slope = -curv  # k'Qu = -k'Quu k
         else:
             slope, curv = fac.dV[..., 0], fac.dV[..., 1]
-            grad = u - torch.minimum(torch.maximum(u - grad, lo), hi)  # projected gradient
         return {
             "du": k,  # feedforward direction: the line search adds alpha * k
             "K": fac.K,
@@ -332,6 +355,7 @@ class ILQR(SLQ):
             "failed": failed,
             "dx": torch.zeros_like(x),
             **({} if fac.clamped is None else {"clamped": fac.clamped}),
+            **({} if done is None else {"keep_gains": ~done}),
         }
 
     def _retry_failed(self, backward_pass, hook, fac: RiccatiFactors, bad: Tensor):

@@ -26,7 +26,9 @@ class SolverResult:
             strings.
         converged: ``(B,)`` bool, ``status == CONVERGED``.
         K: ``(B, T, m, n)`` feedback gains of the last LQ step; k: ``(B, T, m)`` its
-            feedforward terms.
+            feedforward terms. (iLQR/DDP skip the pass at a point where the gradient
+            test stops the element, so there they are the gains of its last step taken,
+            at the point before the final one; the same in a batch as alone.)
         history: per-iteration tensors of shape ``(B, iters+1)``: ``"cost"``,
             ``"grad_norm"``, ``"step"`` (step size accepted at that iteration, 0 for
             iteration 0 and for finished elements) and ``"time"`` (``(iters+1,)``

@@ -220,11 +220,13 @@ class SLQ:
                 xs, us, Js, x0s = (_take(t, idx) for t in (x, u, J, x0))
                 run = _take(running, idx)
                 self._running = run  # read by subclasses' direction() (e.g. iLQR retries)
+                self._iteration = it
                 d = self.direction(problem, xs, us)
                 gn = d["grad"].flatten(1).norm(dim=1)
                 grad_norm = _put(grad_norm, idx, torch.where(run, gn, _take(grad_norm, idx)))
-                K = _put(K, idx, torch.where(run[:, None, None, None], d["K"], _take(K, idx)))
-                k = _put(k, idx, torch.where(run[:, None, None], d["k"], _take(k, idx)))
+                new_gains = run if "keep_gains" not in d else run & d["keep_gains"]
+                K = _put(K, idx, torch.where(new_gains[:, None, None, None], d["K"], _take(K, idx)))
+                k = _put(k, idx, torch.where(new_gains[:, None, None], d["k"], _take(k, idx)))
                 small_grad = gn < o.tol
                 small_step = d["du"].flatten(1).norm(dim=1) < step_tol * us.flatten(1).norm(dim=1)
                 done = {
@@ -285,6 +287,7 @@ class SLQ:
                 bar.update(1)
                 bar.set_postfix(running=n_running, refresh=False)
             bar.close()
+            self._iteration = 0
             status = status.masked_fill(status == Status.RUNNING, int(Status.MAX_ITER))
 
         result = SolverResult(
@@ -308,6 +311,20 @@ class SLQ:
         if logger is not None:
             logger.log_result(result, problem)
         return result.squeeze_batch() if unbatched else result
+
+    def _converged_by_gradient(self, grad: Tensor) -> Tensor | None:
+        """``(B,)`` mask of the working set's elements (``grad (B, T, m)``) that the solve
+        loop will stop at this iteration whatever the step (gradient test, ``stop``
+        "grad" or "either"), or None when every step is needed (other ``stop`` tests,
+        and the first iteration: the result's gains ``K`` must come from a pass). A subclass may
+        skip computing their step (iLQR/DDP: the second-order terms and the Riccati pass
+        when every running element is in the mask); the loop then keeps their gains
+        from the previous iteration (``d["keep_gains"]``), in a batch as in a single
+        solve."""
+        o = self.options
+        if o.stop not in ("grad", "either") or getattr(self, "_iteration", 0) == 0:
+            return None
+        return grad.flatten(1).norm(dim=1) < o.tol
 
     def _begin(self, x0: Tensor) -> None:
         """Per-solve state of subclasses (e.g. iLQR's regularisation); none for SLQ."""
