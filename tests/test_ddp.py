@@ -68,7 +68,11 @@ def test_dynamics_hessians_in_time_chunks_equal_one_call(monkeypatch):
 
     lin = sys.modules["torchslq.dynamics.linearize"]
     mc = torch.tensor([[1.0], [1.5], [0.7]], dtype=F64)  # per element, (B, 1)
-    dyn = ts.discretize(CartPole(mc=mc), 0.05)
+    model = ts.discretize(CartPole(mc=mc), 0.05)
+
+    def dyn(x, u):  # a plain callable: the automatic-differentiation path (chunked)
+        return model(x, u)
+
     g = torch.Generator().manual_seed(3)
     x = torch.randn(3, 11, 4, generator=g, dtype=F64)
     u = torch.randn(3, 11, 1, generator=g, dtype=F64)

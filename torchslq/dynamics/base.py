@@ -40,6 +40,21 @@ class Dynamics(nn.Module):
     def has_analytic_jacobians(self) -> bool:
         return type(self).jacobians is not Dynamics.jacobians
 
+    def vhp(self, x: Tensor, u: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Analytic second derivatives weighted by ``s``: the Hessian blocks of
+        ``s · f(x, u)``, ``(Hxx (..., n, n), Huu (..., m, m), Hux (..., m, n))``; optional.
+
+        ``s (..., n)`` may have extra leading dims that broadcast against ``x``'s (e.g.
+        ``(k, *lead, n)`` for ``k`` weight vectors at once). When overridden,
+        :func:`torchslq.dynamics.dynamics_vhp` and
+        :func:`~torchslq.dynamics.dynamics_hessians` (DDP's second-order terms, the MPC
+        layer's exact implicit gradients) use it instead of automatic differentiation."""
+        raise NotImplementedError
+
+    @property
+    def has_analytic_vhp(self) -> bool:
+        return type(self).vhp is not Dynamics.vhp
+
 
 class ContinuousDynamics(nn.Module):
     """Continuous-time dynamics ``xdot = f(x, u, t)``.
@@ -63,6 +78,18 @@ class ContinuousDynamics(nn.Module):
     @property
     def has_analytic_jacobians(self) -> bool:
         return type(self).jacobians is not ContinuousDynamics.jacobians
+
+    def vhp(
+        self, x: Tensor, u: Tensor, s: Tensor, t: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Analytic Hessian blocks of ``s · f(x, u)`` (as :meth:`Dynamics.vhp`; ``s`` may
+        carry extra leading dims); optional. With analytic :meth:`jacobians` too,
+        :func:`torchslq.discretize` chains them through its integration scheme."""
+        raise NotImplementedError
+
+    @property
+    def has_analytic_vhp(self) -> bool:
+        return type(self).vhp is not ContinuousDynamics.vhp
 
 
 def state_control_dims(dynamics: nn.Module) -> tuple[int, int]:

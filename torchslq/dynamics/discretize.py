@@ -54,28 +54,84 @@ class DiscretizedDynamics(Dynamics):
     def jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """Exact Jacobians of the integration step from the continuous model's ones."""
         f, dt = self.continuous, self.dt
-        eye = identity_like(x, x.shape[-1])
         if self.method == "euler":
             fx, fu = f.jacobians(x, u)
-            return eye + dt * fx, dt * fu
+            return identity_like(x, x.shape[-1]) + dt * fx, dt * fu
+        A, B, _ = self._rk4_chain(x, u)
+        return A, B
+
+    def _rk4_chain(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor, list]:
+        """RK4 step Jacobians ``(A, B)`` and, per stage ``i``, ``(a_i, xi_i, f_x(xi_i, u),
+        dk_{i-1}/dz)`` (the last None for the first stage), for :meth:`vhp`."""
+        f, dt = self.continuous, self.dt
         # stage i: k_i = f(x + a_i dt k_{i-1}, u), so with z = (x, u) and f_z = [f_x | f_u]
         # dk_i/dz = f_z + a_i dt f_x dk_{i-1}/dz: one product per stage on the joint
         # (n, n + m) block (this chain runs on every linearisation, (rows, n, n + m)
         # tensors, and its cost is the number of tiny batched products and adds)
         n = x.shape[-1]
         k, dk, acc = None, None, None
-        stages = ((0.0, 1.0), (0.5, 2.0), (0.5, 2.0), (1.0, 1.0))
-        for i, (a, w) in enumerate(stages):
+        stages = []
+        for i, (a, w) in enumerate(_RK4):
             xi = x if k is None else torch.add(x, k, alpha=a * dt)
             fx, fu = f.jacobians(xi, u)
+            stages.append((a, xi, fx, dk))
             lead = broadcast_shapes(fx.shape[:-2], fu.shape[:-2])
             fz = torch.cat([fx.expand(*lead, *fx.shape[-2:]), fu.expand(*lead, *fu.shape[-2:])], -1)
             dk = fz if dk is None else torch.add(fz, fx @ dk, alpha=a * dt)
             acc = dk if acc is None else torch.add(acc, dk, alpha=w)
-            if i < len(stages) - 1:  # the last stage's k is not needed
+            if i < len(_RK4) - 1:  # the last stage's k is not needed
                 k = f(xi, u)
-        A = torch.add(eye, acc[..., :n], alpha=dt / 6.0)
-        return A, acc[..., n:] * (dt / 6.0)
+        A = torch.add(identity_like(x, n), acc[..., :n], alpha=dt / 6.0)
+        return A, acc[..., n:] * (dt / 6.0), stages
+
+    @property
+    def has_analytic_vhp(self) -> bool:
+        c = self.continuous
+        return c.has_analytic_vhp and (self.method == "euler" or c.has_analytic_jacobians)
+
+    def vhp(self, x: Tensor, u: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """Hessian blocks of ``s · step(x, u)`` from the continuous model's analytic
+        :meth:`~ContinuousDynamics.vhp` and :meth:`~ContinuousDynamics.jacobians`
+        (``s (..., n)``, extra leading dims allowed; returns ``(Hxx, Huu, Hux)``).
+
+        RK4 (``step = x + sum_i c_i k_i``, ``k_i = f(zeta_i)``, ``zeta_i = (x + a_i dt
+        k_{i-1}, u)``): the second-order chain rule through the stages collapses into
+        ``sum_i Z_i' (mu_i · f_zz(zeta_i)) Z_i`` with ``Z_i = d zeta_i / dz`` and adjoint
+        weights ``mu_4 = c_4 s``, ``mu_{i-1} = c_{i-1} s + a_i dt f_x(zeta_i)' mu_i``: one
+        continuous VHP per stage, never the third-order tensor."""
+        f, dt = self.continuous, self.dt
+        if not self.has_analytic_vhp:
+            raise NotImplementedError(
+                f"{type(f).__name__} has no analytic vhp (and jacobians) to chain"
+            )
+        if self.method == "euler":
+            return tuple(dt * h for h in f.vhp(x, u, s))
+        n = x.shape[-1]
+        _, _, stages = self._rk4_chain(x, u)
+        weights = [dt / 6.0 * w for _, w in _RK4]
+        mu = weights[3] * s
+        Hxx = Huu = Hux = None
+        for i in range(3, -1, -1):
+            a, xi, fx, dk_prev = stages[i]
+            hxx, huu, hux = f.vhp(xi, u, mu)
+            if dk_prev is not None:
+                # Z_i = [[P, Q], [0, I]]: P = I + a dt dk_x, Q = a dt dk_u
+                P = torch.add(identity_like(xi, n), dk_prev[..., :n], alpha=a * dt)
+                Q = dk_prev[..., n:] * (a * dt)
+                t1 = torch.add(hxx @ Q, hux.mT)  # (n, m)
+                hux_i = t1.mT @ P
+                huu = torch.add(huu, torch.add(Q.mT @ t1, hux @ Q))
+                hxx, hux = P.mT @ hxx @ P, hux_i
+            Hxx = hxx if Hxx is None else Hxx + hxx
+            Huu = huu if Huu is None else Huu + huu
+            Hux = hux if Hux is None else Hux + hux
+            if i > 0:
+                mu = torch.add(weights[i - 1] * s, (fx.mT @ mu.unsqueeze(-1))[..., 0], alpha=a * dt)
+        return Hxx, Huu, Hux
+
+
+# (a_i, w_i): stage i is evaluated at x + a_i dt k_{i-1}, and weighs w_i dt / 6
+_RK4 = ((0.0, 1.0), (0.5, 2.0), (0.5, 2.0), (1.0, 1.0))
 
 
 def discretize(dynamics: ContinuousDynamics, dt: float, method: str = "rk4") -> DiscretizedDynamics:

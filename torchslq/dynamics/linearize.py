@@ -163,8 +163,10 @@ def dynamics_vhp(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Second-order dynamics terms ``s' f_xx``, ``s' f_uu``, ``s' f_ux`` (the DDP terms).
 
-    The Hessian of ``s · f(x, u)`` for every row, by ``n + m`` forward-mode products of
-    its gradient (reverse-over-reverse, ``vmap`` over the basis): the ``n x n x n``
+    The Hessian of ``s · f(x, u)`` for every row: the dynamics' analytic
+    :meth:`~torchslq.Dynamics.vhp` when it has one (e.g. a :func:`torchslq.discretize`
+    of a model with analytic ``jacobians`` and ``vhp``), else ``n + m`` products of its
+    gradient (reverse-over-reverse, ``vmap`` over the basis): the ``n x n x n``
     second-derivative tensor of ``f`` is never formed.
 
     Args:
@@ -177,6 +179,9 @@ def dynamics_vhp(
     f = as_transition(dynamics)
     n, m = x.shape[-1], u.shape[-1]
     x, u, s = x.detach(), u.detach(), s.detach()
+    if getattr(f, "has_analytic_vhp", False):
+        with torch.no_grad():
+            return _analytic_vhp(f, x, u, s)
     parts = _in_time_chunks(lambda *t: dynamics_vhp(f, *t), x, u, s)
     if parts is not None:  # outputs (..., T, ., .): time is dim x.ndim - 2
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 2) for i in range(3))
@@ -193,11 +198,25 @@ def dynamics_vhp(
     return Hx[..., :n], Hu[..., n:], Hu[..., :n]
 
 
+def _analytic_vhp(f, x: Tensor, u: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """The model's own :meth:`~torchslq.Dynamics.vhp`, at full shape ``(*lead, ., .)``
+    with ``lead`` the broadcast of ``s``'s and ``x``'s leading dims."""
+    n, m = x.shape[-1], u.shape[-1]
+    lead = torch.broadcast_shapes(s.shape[:-1], x.shape[:-1])
+    Hxx, Huu, Hux = f.vhp(x, u, s)
+    return (
+        Hxx.expand(*lead, n, n).contiguous(),
+        Huu.expand(*lead, m, m).contiguous(),
+        Hux.expand(*lead, m, n).contiguous(),
+    )
+
+
 def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """Second derivatives of every output of ``f``: ``f_i,xx``, ``f_i,uu``, ``f_i,ux``.
 
-    ``n`` vector-Hessian products (:func:`dynamics_vhp`, reverse-over-reverse) with the
-    output basis vectors, batched by ``vmap``. (Forward-mode derivatives of analytic
+    ``n`` vector-Hessian products (:func:`dynamics_vhp`: the analytic ``vhp`` with the
+    output basis as one extra leading dim, or reverse-over-reverse batched by ``vmap``)
+    with the output basis vectors. (Forward-mode derivatives of analytic
     Jacobians were tried for the RK4-chained cart-pole and measured 1.7x slower.)
 
     Args:
@@ -209,6 +228,12 @@ def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor,
     """
     n = x.shape[-1]
     f = as_transition(dynamics)
+    if getattr(f, "has_analytic_vhp", False):
+        # the output basis as n weight vectors at once (an extra leading dim)
+        basis = torch.eye(n, dtype=x.dtype, device=x.device)
+        basis = basis.reshape(n, *([1] * (x.ndim - 1)), n)
+        with torch.no_grad():
+            return _analytic_vhp(f, x.detach(), u.detach(), basis)
     parts = _in_time_chunks(lambda *t: dynamics_hessians(f, *t), x, u)
     if parts is not None:  # outputs (n, ..., T, ., .): time is dim x.ndim - 1
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 1) for i in range(3))

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from ..dynamics import ContinuousDynamics
 from ._common import get_param, lead_shape, set_param, stack_matrix, stack_vector
 
@@ -88,6 +89,55 @@ class CartPole(ContinuousDynamics):
         )
         B = stack_matrix([[0.0], [0.0], [1.0 / D], [-c / (l * D)]], lead, x)
         return A, B
+
+    def vhp(
+        self, x: Tensor, u: Tensor, s: Tensor, t: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Hessian blocks of ``s · f``: only the accelerations are curved, in ``(th, thd,
+        F)``. Each is a quotient ``q = N / D`` (``D`` depends on ``th`` only), so
+        ``q_ab = (N_ab - q_a D_b - q_b D_a - q D_ab) / D`` from the numerators' second
+        derivatives (``theta_ddot = N2 / (l D)``)."""
+        sdd, thdd, (mc, mp, l, g, th, thd, F, sn, c, D) = self._accel(x, u)
+        w1, w2 = s[..., 2], s[..., 3]
+        dD = 2.0 * mp * sn * c
+        ddD = 2.0 * mp * (c * c - sn * sn)
+        c2, w2l = c * c - sn * sn, w2 / l
+        r = thdd * l  # N2 / D
+        # numerator derivatives (a = th, b = thd, F)
+        N1a = mp * (l * thd * thd * c + g * c2)
+        N1b = 2.0 * mp * l * sn * thd
+        N1aa = -mp * (l * thd * thd * sn + 4.0 * g * sn * c)
+        N1ab = 2.0 * mp * l * c * thd
+        N1bb = 2.0 * mp * l * sn
+        N2a = F * sn - mp * l * thd * thd * c2 - (mc + mp) * g * c
+        N2b = -2.0 * mp * l * thd * c * sn
+        N2aa = F * c + 4.0 * mp * l * thd * thd * sn * c + (mc + mp) * g * sn
+        N2ab = -2.0 * mp * l * thd * c2
+        N2bb = -2.0 * mp * l * c * sn
+        # first derivatives of the quotients (q = sdd, r = N2 / D)
+        qa, qb, qF = (N1a - sdd * dD) / D, N1b / D, 1.0 / D
+        ra, rb, rF = (N2a - r * dD) / D, N2b / D, -c / D
+        # second derivatives (D_b = D_F = 0)
+        qaa = (N1aa - 2.0 * qa * dD - sdd * ddD) / D
+        qab = (N1ab - qb * dD) / D
+        qaF = -qF * dD / D
+        qbb = N1bb / D
+        raa = (N2aa - 2.0 * ra * dD - r * ddD) / D
+        rab = (N2ab - rb * dD) / D
+        raF = (sn - rF * dD) / D
+        rbb = N2bb / D
+        h_aa = w1 * qaa + w2l * raa
+        h_ab = w1 * qab + w2l * rab
+        h_bb = w1 * qbb + w2l * rbb
+        h_aF = w1 * qaF + w2l * raF
+        lead = broadcast_shapes(lead_shape(x, u, mc, mp, l, g), s.shape[:-1])
+        z = 0.0
+        Hxx = stack_matrix(
+            [[z, z, z, z], [z, h_aa, z, h_ab], [z, z, z, z], [z, h_ab, z, h_bb]], lead, x
+        )
+        Huu = x.new_zeros(*lead, 1, 1)
+        Hux = stack_matrix([[z, h_aF, z, z]], lead, x)
+        return Hxx, Huu, Hux
 
     def momentum(self, x: Tensor) -> Tensor:
         """Horizontal momentum ``(mc + mp) s_dot + mp l cos(th) th_dot`` (kg m/s)."""

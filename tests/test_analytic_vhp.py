@@ -1,0 +1,150 @@
+"""Analytic second derivatives (``vhp``) of the models and their chain through
+:func:`torchslq.discretize`, against automatic differentiation of the same step."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchslq as ts
+from torchslq.dynamics import ContinuousDynamics, dynamics_hessians, dynamics_vhp
+from torchslq.systems import CartPole
+
+F64 = torch.float64
+
+
+def _models():
+    g = torch.Generator().manual_seed(0)
+    per_elem = torch.rand(3, 1, generator=g, dtype=F64) + 0.5  # (B, 1) parameters
+    return {
+        "cartpole": CartPole(),
+        "cartpole-per-element-mc": CartPole(mc=per_elem),
+    }
+
+
+def _data(n, m, seed=1, B=3, T=4):
+    g = torch.Generator().manual_seed(seed)
+    x = 0.8 * torch.randn(B, T, n, generator=g, dtype=F64)
+    u = torch.randn(B, T, m, generator=g, dtype=F64)
+    s = torch.randn(B, T, n, generator=g, dtype=F64)
+    return x, u, s
+
+
+@pytest.mark.parametrize("name", list(_models()))
+def test_continuous_vhp_matches_the_hessian_of_each_row(name):
+    """The model's vhp == torch.func.hessian of s · f on single rows."""
+    model = _models()[name]
+    n, m = model.state_dim, model.control_dim
+    x, u, s = _data(n, m)
+    Hxx, Huu, Hux = model.vhp(x, u, s)
+    for b, t in ((0, 0), (2, 3), (1, 2)):
+
+        def sf(z, b=b, t=t):
+            xb = x.clone()
+            ub = u.clone()
+            xb[b, t], ub[b, t] = z[:n], z[n:]
+            return (s[b, t] * model(xb, ub)[b, t]).sum()
+
+        H = torch.func.hessian(sf)(torch.cat([x[b, t], u[b, t]]))
+        torch.testing.assert_close(Hxx[b, t], H[:n, :n], rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(Huu.expand(3, 4, m, m)[b, t], H[n:, n:], rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(Hux.expand(3, 4, m, n)[b, t], H[n:, :n], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("method", ["rk4", "euler"])
+@pytest.mark.parametrize("name", list(_models()))
+def test_discretized_vhp_and_hessians_match_automatic_differentiation(name, method):
+    """The chained analytic second derivatives of the integration step (RK4's stage
+    adjoints) == reverse-over-reverse through the same step."""
+    dyn = ts.discretize(_models()[name], 0.07, method)
+    assert dyn.has_analytic_vhp
+    n, m = dyn.state_dim, dyn.control_dim
+    x, u, s = _data(n, m, seed=2)
+
+    def autodiff(a, b):  # a plain callable: no analytic vhp to find
+        return dyn(a, b)
+
+    for got, ref in zip(dynamics_vhp(dyn, x, u, s), dynamics_vhp(autodiff, x, u, s), strict=True):
+        assert got.shape == ref.shape
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    hess = dynamics_hessians(dyn, x, u)
+    for got, ref in zip(hess, dynamics_hessians(autodiff, x, u), strict=True):
+        assert got.shape == ref.shape
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    assert float(hess[0].abs().max()) > 1e-3  # a curved model: the check is not 0 == 0
+
+
+def test_vhp_takes_several_weight_vectors_at_once():
+    dyn = ts.discretize(CartPole(), 0.05)
+    x, u, _ = _data(4, 1, seed=3)
+    S = torch.randn(5, 3, 4, 4, generator=torch.Generator().manual_seed(4), dtype=F64)
+    Hxx, Huu, Hux = dyn.vhp(x, u, S)
+    assert Hxx.shape == (5, 3, 4, 4, 4)
+    for k in (0, 4):
+        torch.testing.assert_close(Hxx[k], dyn.vhp(x, u, S[k])[0], rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(Hux[k], dyn.vhp(x, u, S[k])[2], rtol=1e-12, atol=1e-14)
+
+
+class _VhpOnly(ContinuousDynamics):
+    """A curved model with an analytic vhp but no analytic Jacobians."""
+
+    state_dim, control_dim = 2, 1
+
+    def forward(self, x, u, t=None):
+        return torch.stack([x[..., 1], torch.sin(x[..., 0]) * u[..., 0]], -1)
+
+    def vhp(self, x, u, s, t=None):
+        sn, c, w = torch.sin(x[..., 0]), torch.cos(x[..., 0]), s[..., 1]
+        z = torch.zeros_like(sn * w)
+        Hxx = torch.stack([torch.stack([-sn * u[..., 0] * w, z], -1), torch.stack([z, z], -1)], -2)
+        return Hxx, z[..., None, None], torch.stack([c * w, z], -1).unsqueeze(-2)
+
+
+def test_rk4_needs_analytic_jacobians_too():
+    """RK4's chain needs the stages' Jacobians: without them the step falls back to
+    automatic differentiation (and says so when asked directly); Euler does not."""
+    x, u, s = _data(2, 1, seed=5)
+    rk4, euler = ts.discretize(_VhpOnly(), 0.1), ts.discretize(_VhpOnly(), 0.1, "euler")
+    assert not rk4.has_analytic_vhp and euler.has_analytic_vhp
+    with pytest.raises(NotImplementedError, match="analytic vhp"):
+        rk4.vhp(x, u, s)
+    for dyn in (rk4, euler):
+        got = dynamics_vhp(dyn, x, u, s)
+        ref = dynamics_vhp(lambda a, b, dyn=dyn: dyn(a, b), x, u, s)
+        for a, b in zip(got, ref, strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_ddp_with_analytic_second_derivatives_equals_automatic_differentiation():
+    """The same DDP solve (value and costate modes) whichever way f_zz is computed."""
+    from torchslq.tasks import cartpole_swingup
+
+    class Autodiff(ts.Dynamics):  # the same step and Jacobians, f_zz by autodiff
+        def __init__(self, step):
+            super().__init__()
+            self.step, self.state_dim, self.control_dim = step, step.state_dim, step.control_dim
+
+        def forward(self, x, u):
+            return self.step(x, u)
+
+        def jacobians(self, x, u):
+            return self.step.jacobians(x, u)
+
+    problem, x0 = cartpole_swingup(3, horizon=30)
+    auto = ts.Problem(Autodiff(problem.dynamics), problem.cost, problem.horizon)
+    assert problem.dynamics.has_analytic_vhp and not auto.dynamics.has_analytic_vhp
+    for mode in ("value", "costate"):
+        # the first iterations: the same iterates up to round-off
+        solver = ts.DDP(second_order=mode, max_iter=8, progress=False)
+        a, b = solver.solve(problem, x0), solver.solve(auto, x0)
+        assert torch.equal(a.iterations, b.iterations)
+        torch.testing.assert_close(a.u, b.u, rtol=1e-7, atol=1e-8)
+        torch.testing.assert_close(a.history["cost"], b.history["cost"], rtol=1e-9, atol=0)
+    # a whole solve: the same minimiser (round-off can move the last gradient test
+    # across tol by an iteration)
+    solver = ts.DDP(max_iter=200, tol=1e-8, progress=False)
+    a, b = solver.solve(problem, x0), solver.solve(auto, x0)
+    assert bool(a.converged.all()) and bool(b.converged.all())
+    assert int((a.iterations - b.iterations).abs().max()) <= 1
+    torch.testing.assert_close(a.u, b.u, rtol=1e-7, atol=1e-8)
+    torch.testing.assert_close(a.cost, b.cost, rtol=1e-12, atol=0)
