@@ -41,7 +41,8 @@ Problems (float64, ``torch.set_num_threads(1)``, OMP/MKL threads 1, crocoddyl
   ``[10, 1]``: ``l = 1/2 (100 |x|^2 + |u|^2)``, terminal ``1/2 100 |x_T|^2``, Euler step
   ``[x + cos(th) v dt, y + sin(th) v dt, th + w dt]``), T = 20, ``x0 ~ U[-1, 1]^3`` (seed
   0), crocoddyl ``SolverDDP`` / ``SolverFDDP`` looped over the batch, beside the same
-  model written as a torchslq ``Dynamics`` + ``QuadraticCost`` (ILQR, DDP).
+  model as torchslq's :class:`torchslq.systems.Unicycle` (analytic Jacobians and second
+  derivatives) + ``QuadraticCost`` (ILQR, DDP).
 
 Checks and timing: every solver's controls are rolled out through torchslq's model and
 costed by torchslq's cost; each instance's cost is compared with the reference
@@ -80,7 +81,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
-from torchslq import DDP, ILQR, SLQ, Dynamics, Problem, QuadraticCost  # noqa: E402
+from torchslq import DDP, ILQR, SLQ, Problem, QuadraticCost  # noqa: E402
+from torchslq.systems import Unicycle  # noqa: E402
 from torchslq.tasks import cartpole_swingup  # noqa: E402
 
 DT, T_CP, MC, MP, L, G = 0.05, 50, 1.0, 0.1, 0.5, 9.81
@@ -334,38 +336,9 @@ def mpc_cartpole(problem: Problem, x0: torch.Tensor, method: str):
 
 
 # ---------------------------------------------------------------------------- unicycle
-class TorchUnicycle(Dynamics):
-    """crocoddyl's ``ActionModelUnicycle`` step: ``[x + cos(th) v dt, y + sin(th) v dt,
-    th + w dt]`` (explicit Euler, dt = 0.1), with analytic Jacobians."""
-
-    state_dim, control_dim = 3, 2
-
-    def __init__(self, dt: float = 0.1):
-        super().__init__()
-        self.dt = dt
-
-    def forward(self, x, u):
-        th, v, w = x[..., 2], u[..., 0], u[..., 1]
-        return torch.stack(
-            [
-                x[..., 0] + torch.cos(th) * v * self.dt,
-                x[..., 1] + torch.sin(th) * v * self.dt,
-                th + w * self.dt,
-            ],
-            -1,
-        )
-
-    def jacobians(self, x, u):
-        th, v = x[..., 2], u[..., 0]
-        c, s, dt = torch.cos(th), torch.sin(th), self.dt
-        A = torch.eye(3, dtype=x.dtype).expand(*x.shape[:-1], 3, 3).clone()
-        A[..., 0, 2] = -s * v * dt
-        A[..., 1, 2] = c * v * dt
-        Bm = x.new_zeros(*x.shape[:-1], 3, 2)
-        Bm[..., 0, 0] = c * dt
-        Bm[..., 1, 0] = s * dt
-        Bm[..., 2, 1] = dt
-        return A, Bm
+# crocoddyl's ActionModelUnicycle step, with analytic Jacobians and second derivatives
+# (crocoddyl's own model is analytic C++); kept under its old name for older scripts
+TorchUnicycle = Unicycle
 
 
 def unicycle_problem(B: int, seed: int = 0, T: int = 20):

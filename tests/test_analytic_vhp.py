@@ -148,3 +148,20 @@ def test_ddp_with_analytic_second_derivatives_equals_automatic_differentiation()
     assert int((a.iterations - b.iterations).abs().max()) <= 1
     torch.testing.assert_close(a.u, b.u, rtol=1e-7, atol=1e-8)
     torch.testing.assert_close(a.cost, b.cost, rtol=1e-12, atol=0)
+
+
+def test_unicycle_derivatives_match_automatic_differentiation():
+    from torchslq.systems import Unicycle
+
+    dyn = Unicycle(0.1)
+    x, u, s = _data(3, 2, seed=6)
+    A, B = dyn.jacobians(x, u)
+    Ar, Br = ts.linearize(lambda a, b: dyn(a, b), x, u)
+    torch.testing.assert_close(A, Ar, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(B, Br, rtol=1e-12, atol=1e-14)
+    got, ref = dynamics_hessians(dyn, x, u), dynamics_hessians(lambda a, b: dyn(a, b), x, u)
+    for a, b in zip(got, ref, strict=True):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-14)
+    assert float(got[0].abs().max()) > 1e-3 and float(got[2].abs().max()) > 1e-3
+    with pytest.raises(ValueError, match="dt"):
+        Unicycle(0.0)

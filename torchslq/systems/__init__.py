@@ -3,7 +3,8 @@
 Continuous time (discretise with :func:`torchslq.discretize`): :class:`Pendulum`,
 :class:`CartPole`, :class:`PendulumCartTrain` (GoPRONTO 2022, Section V).
 Discrete time, in the Euler form of Sideris & Bobrow (2005):
-:class:`DragVehicle` (Section 4.1) and :class:`Hopper` (Section 4.2).
+:class:`DragVehicle` (Section 4.1) and :class:`Hopper` (Section 4.2); :class:`Unicycle`
+(crocoddyl's ``ActionModelUnicycle`` step).
 
 All parameters may be per-element tensors broadcasting against ``x[..., 0]`` (e.g.
 ``(B, 1)`` for inputs ``(B, T, n)``).
@@ -15,6 +16,7 @@ from .hopper import Hopper
 from .mass_chain import MassChain
 from .pendulum import Pendulum
 from .pendulum_cart_train import PendulumCartTrain, PendulumCartTrainRK4
+from .unicycle import Unicycle
 
 __all__ = [
     "CartPole",
@@ -24,4 +26,5 @@ __all__ = [
     "Pendulum",
     "PendulumCartTrain",
     "PendulumCartTrainRK4",
+    "Unicycle",
 ]
