@@ -380,8 +380,8 @@ def _row(res, j):
     return r
 
 
-def test_nan_element_does_not_slow_the_others(monkeypatch):
-    """DESIGN.md: a failed element never stops, slows or poisons the others."""
+def _count_riccati_passes(monkeypatch) -> dict[str, int]:
+    """Count iLQR/DDP's Riccati passes: ``calls["n"]``."""
     import torchslq.solvers.ilqr as ilqr_mod
 
     calls = {"n": 0}
@@ -392,6 +392,12 @@ def test_nan_element_does_not_slow_the_others(monkeypatch):
         return orig(*args, **kwargs)
 
     monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
+    return calls
+
+
+def test_nan_element_does_not_slow_the_others(monkeypatch):
+    """DESIGN.md: a failed element never stops, slows or poisons the others."""
+    calls = _count_riccati_passes(monkeypatch)
     base = discretize(Pendulum(damping=0.1), PEND_DT, "rk4")
     x0 = PEND_X0[1:3]
     solver = ILQR(tol=1e-6, max_iter=3, progress=False)
@@ -597,7 +603,6 @@ def test_final_pass_is_skipped_without_changing_the_solve(monkeypatch, solver_cl
     skip the second-order terms and the Riccati pass (their step would be discarded).
     Same iterates, costs, statuses, iterations and gains as computing that pass, and
     one pass fewer per solve (counted)."""
-    import torchslq.solvers.ilqr as ilqr_mod
     from torchslq import DDP
 
     make = {
@@ -605,14 +610,7 @@ def test_final_pass_is_skipped_without_changing_the_solve(monkeypatch, solver_cl
         "DDP-costate": lambda: DDP(second_order="costate", **PEND_SOLVER),
         "DDP": lambda: DDP(**PEND_SOLVER),
     }[solver_cls]
-    calls = {"n": 0}
-    real = ilqr_mod.riccati_backward
-
-    def counting(*a, **k):
-        calls["n"] += 1
-        return real(*a, **k)
-
-    monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
+    calls = _count_riccati_passes(monkeypatch)
     x0 = PEND_X0[:1]
     skipped = make().solve(pendulum_nonconvex(), x0)
     n_skipped = calls["n"]

@@ -313,32 +313,31 @@ def _gains(Lb, M, ncols, cl, Kt):
     (clamped controls) given a zero right-hand side. Substitutions on whole rows of
     ``Kt`` (all columns at once: contiguous, vectorised inner loops)."""
     m = Lb.shape[0]
-    for i in range(m):
+    for i in range(m):  # forward: Lb y = -M[:m, m:]
         ki = Kt[i]
-        if cl[i]:
-            for c in range(ncols):
-                ki[c] = 0.0
-        else:
-            for c in range(ncols):
-                ki[c] = -M[i, m + c]
-        for k in range(i):
-            a = Lb[i, k]
-            kk = Kt[k]
-            for c in range(ncols):
-                ki[c] -= a * kk[c]
-        d = 1.0 / Lb[i, i]
         for c in range(ncols):
-            ki[c] *= d
-    for i in range(m - 1, -1, -1):
+            ki[c] = 0.0 if cl[i] else -M[i, m + c]
+        for k in range(i):
+            _row_update(ki, Lb[i, k], Kt[k], ncols)
+        _row_scale(ki, 1.0 / Lb[i, i], ncols)
+    for i in range(m - 1, -1, -1):  # backward: Lb' Kt = y
         ki = Kt[i]
         for k in range(i + 1, m):
-            a = Lb[k, i]
-            kk = Kt[k]
-            for c in range(ncols):
-                ki[c] -= a * kk[c]
-        d = 1.0 / Lb[i, i]
-        for c in range(ncols):
-            ki[c] *= d
+            _row_update(ki, Lb[k, i], Kt[k], ncols)
+        _row_scale(ki, 1.0 / Lb[i, i], ncols)
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_update(dst, a, src, ncols):
+    """``dst[:ncols] -= a * src[:ncols]``."""
+    for c in range(ncols):
+        dst[c] -= a * src[c]
+
+
+@numba.njit(cache=True, nogil=True)
+def _row_scale(dst, d, ncols):
+    for c in range(ncols):
+        dst[c] *= d
 
 
 @numba.njit(cache=True, nogil=True)
