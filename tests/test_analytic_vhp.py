@@ -115,20 +115,23 @@ def test_rk4_needs_analytic_jacobians_too():
             torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
 
 
+class Autodiff(ts.Dynamics):
+    """The same step and Jacobians as ``step``; second derivatives by autodiff."""
+
+    def __init__(self, step):
+        super().__init__()
+        self.step, self.state_dim, self.control_dim = step, step.state_dim, step.control_dim
+
+    def forward(self, x, u):
+        return self.step(x, u)
+
+    def jacobians(self, x, u):
+        return self.step.jacobians(x, u)
+
+
 def test_ddp_with_analytic_second_derivatives_equals_automatic_differentiation():
     """The same DDP solve (value and costate modes) whichever way f_zz is computed."""
     from torchslq.tasks import cartpole_swingup
-
-    class Autodiff(ts.Dynamics):  # the same step and Jacobians, f_zz by autodiff
-        def __init__(self, step):
-            super().__init__()
-            self.step, self.state_dim, self.control_dim = step, step.state_dim, step.control_dim
-
-        def forward(self, x, u):
-            return self.step(x, u)
-
-        def jacobians(self, x, u):
-            return self.step.jacobians(x, u)
 
     problem, x0 = cartpole_swingup(3, horizon=30)
     auto = ts.Problem(Autodiff(problem.dynamics), problem.cost, problem.horizon)
@@ -165,3 +168,46 @@ def test_unicycle_derivatives_match_automatic_differentiation():
     assert float(got[0].abs().max()) > 1e-3 and float(got[2].abs().max()) > 1e-3
     with pytest.raises(ValueError, match="dt"):
         Unicycle(0.0)
+
+
+def test_mpc_exact_implicit_gradients_with_analytic_second_derivatives(monkeypatch):
+    """The MPC layer's exact backward (Hessian of the Lagrangian) through CartPole.vhp:
+    the same gradients w.r.t. a learnable model parameter and x0 as with autodiff f_zz,
+    and the analytic path is really taken."""
+    from torch import nn
+
+    calls = {"n": 0}
+    real = CartPole.vhp
+
+    def counting(self, *a, **k):
+        calls["n"] += 1
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(CartPole, "vhp", counting)
+    Q = torch.diag(torch.tensor([1.0, 10.0, 0.1, 0.1], dtype=F64))
+    x_ref = torch.tensor([0.0, 3.0, 0.0, 0.0], dtype=F64)
+    g = torch.Generator().manual_seed(7)
+    wx, wu = (
+        torch.randn(2, 21, 4, generator=g, dtype=F64),
+        torch.randn(2, 20, 1, generator=g, dtype=F64),
+    )
+    grads = []
+    for analytic in (True, False):
+        mc = nn.Parameter(torch.tensor(1.2, dtype=F64))
+        step = ts.discretize(CartPole(mc=mc), 0.05)
+        dyn = step if analytic else Autodiff(step)
+        cost = ts.QuadraticCost(Q, 0.1 * torch.eye(1, dtype=F64), 10 * Q, x_ref=x_ref)
+        # (iLQR never uses f_zz: both runs reach the same point, only the backward differs)
+        solver = ts.ILQR(max_iter=500, tol=1e-9, progress=False)
+        mpc = ts.MPC(dyn, cost, 20, solver=solver, backward="implicit", warm_start=False)
+        x0 = torch.tensor([[0.1, 2.5, 0.0, 0.3], [-0.2, 2.8, 0.1, 0.0]], dtype=F64)
+        x0.requires_grad_(True)
+        n0 = calls["n"]
+        x, u = mpc(x0)
+        assert bool(mpc.last_result.converged.all())
+        assert (calls["n"] > n0) == analytic
+        ((wx * x).sum() + (wu * u).sum()).backward()
+        grads.append((mc.grad.clone(), x0.grad.clone()))
+    for a, b in zip(*grads, strict=True):
+        assert float(b.abs().max()) > 1e-3
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
