@@ -344,3 +344,87 @@ def test_kernels_that_fail_to_load_fall_back_to_torch(torch_path, monkeypatch):
     with torch_path:
         ref = riccati_homogeneous(F, H, VhT)
     assert torch.equal(fac.Kk, ref.Kk)  # bit-identical: the same (torch) path
+
+
+def _pieces_cases():
+    g = torch.Generator().manual_seed(11)
+    B, T, n, m = 5, 7, 4, 2
+
+    def rnd(*s):
+        return torch.randn(*s, generator=g, dtype=F64)
+
+    def spd(*lead, k):
+        G = rnd(*lead, k, k)
+        return G @ G.mT / k + 0.5 * torch.eye(k, dtype=F64)
+
+    return {
+        "shared Q R, per-element q r": dict(
+            A=0.5 * rnd(B, T, n, n), B=rnd(B, T, n, m), Q=spd(T + 1, k=n), R=spd(T, k=m),
+            q=rnd(B, T + 1, n), r=rnd(B, T, m),
+        ),
+        "per element, with S and c, unsymmetric Q": dict(
+            A=0.5 * rnd(B, T, n, n), B=rnd(B, T, n, m), Q=spd(B, T + 1, k=n) + 0.3 * rnd(n, n),
+            R=spd(B, T, k=m), q=rnd(B, T + 1, n), r=rnd(B, T, m), S=0.1 * rnd(B, T, m, n),
+            c=rnd(B, T, n),
+        ),
+        "constants without time dims": dict(
+            A=0.5 * rnd(B, T, n, n), B=rnd(n, m), Q=spd(k=n), R=spd(k=m)
+        ),
+        "time dims of 1, 2-d batch": dict(
+            A=0.5 * rnd(2, 3, T, n, n), B=rnd(3, 1, n, m), Q=spd(1, k=n), R=spd(1, k=m),
+            q=rnd(2, 1, 1, n),
+        ),
+    }  # fmt: skip
+
+
+@pytest.mark.parametrize("case", list(_pieces_cases()))
+@pytest.mark.parametrize("extra", ["none", "reg", "bounds"])
+def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeypatch, case, extra):
+    """riccati_backward on the CPU hands the LQ data to the kernel, which assembles each
+    step's homogeneous F_t, H_t itself: the same factors as the torch path (and bitwise
+    as the kernel fed with the F, H built by homogeneous_dynamics/_cost), and the
+    homogeneous tensors are never built."""
+    from torchslq.lq import riccati
+
+    kw = _pieces_cases()[case]
+    batch = torch.broadcast_shapes(kw["A"].shape[:-3], kw["B"].shape[:-3])
+    kw |= {
+        "none": {},
+        "reg": {"reg": torch.linspace(0.0, 0.4, batch.numel(), dtype=F64).reshape(batch)},
+        "bounds": {"u_bounds": (-0.3 * torch.ones(1, dtype=F64), 0.3 * torch.ones(1, dtype=F64))},
+    }[extra]
+    with torch_path:
+        ref = ts.riccati_backward(**kw)
+    T = kw["A"].shape[-3]
+
+    def forbidden(*a, **k):
+        raise AssertionError("homogeneous tensors built on the compiled path")
+
+    with monkeypatch.context() as mp:
+        mp.setattr(riccati, "homogeneous_cost", forbidden)
+        mp.setattr(riccati, "homogeneous_dynamics", forbidden)
+        fast = ts.riccati_backward(**kw)
+    assert fast.Kk.shape == ref.Kk.shape == (*batch, T, 2, 5)
+    _close(fast, ref)
+    if extra == "bounds":
+        assert torch.equal(fast.clamped, ref.clamped)
+        # (without linear terms the feedforward is zero and no bound binds)
+        assert bool(fast.clamped.any()) == ("q" in kw or "r" in kw)
+    # the kernel fed with the homogeneous tensors gives the same bits
+    F = riccati.homogeneous_dynamics(kw["A"], kw["B"], riccati.with_time(kw.get("c"), 1, T))
+    H, VhT = riccati.homogeneous_cost(
+        riccati.with_time(kw["Q"], 2, T + 1),
+        riccati.with_time(kw["R"], 2, T),
+        riccati.with_time(kw.get("q"), 1, T + 1),
+        riccati.with_time(kw.get("r"), 1, T),
+        riccati.with_time(kw.get("S"), 2, T),
+    )
+    homog = riccati_homogeneous(F, H, VhT, kw.get("reg"), u_bounds=kw.get("u_bounds"))
+    assert torch.equal(fast.Kk, homog.Kk) and torch.equal(fast.Vh, homog.Vh)
+
+
+def test_riccati_backward_shape_errors_come_from_the_torch_path():
+    A = torch.randn(3, 5, 2, 2, dtype=F64)
+    B = torch.randn(3, 5, 2, 1, dtype=F64)
+    with pytest.raises(RuntimeError):
+        ts.riccati_backward(A, B, torch.eye(2, dtype=F64).expand(4, 2, 2), torch.eye(1, dtype=F64))

@@ -341,6 +341,75 @@ def _row_scale(dst, d, ncols):
 
 
 @numba.njit(cache=True, nogil=True)
+def _idx(a, b, t):
+    """Batch and time index into a piece of shape ``(1 or B, 1 or T, ...)``."""
+    return (b if a.shape[0] > 1 else 0), (t if a.shape[1] > 1 else 0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _assemble_stage(pieces, b, t, Fs, Hs):
+    """``F_t = [[B, A, c], [0, 0, 1]]`` into ``Fs`` (its last row is set once by the
+    caller) and the upper triangle of ``H_t = [[R, S, r], [S', Q, q], [r', q', 0]]``
+    into ``Hs`` (all that :func:`_stage_matrix` reads: it mirrors ``M``'s upper
+    triangle), with the symmetric parts of ``Q`` and ``R`` (as
+    :func:`torchslq.lq.riccati.homogeneous_cost`)."""
+    A, Bm, c, Q, R, S, q, r = pieces
+    n = A.shape[2]
+    m = Bm.shape[3]
+    ba, ta = _idx(A, b, t)
+    bb, tb = _idx(Bm, b, t)
+    for i in range(n):
+        for j in range(m):
+            Fs[i, j] = Bm[bb, tb, i, j]
+        for j in range(n):
+            Fs[i, m + j] = A[ba, ta, i, j]
+    if c.shape[0] > 0:
+        bc, tc = _idx(c, b, t)
+        for i in range(n):
+            Fs[i, m + n] = c[bc, tc, i]
+    bq, tq = _idx(Q, b, t)
+    br, tr = _idx(R, b, t)
+    for i in range(m):
+        for j in range(m):
+            Hs[i, j] = 0.5 * (R[br, tr, i, j] + R[br, tr, j, i])
+    for i in range(n):
+        for j in range(n):
+            Hs[m + i, m + j] = 0.5 * (Q[bq, tq, i, j] + Q[bq, tq, j, i])
+    if S.shape[0] > 0:
+        bs, ts = _idx(S, b, t)
+        for i in range(m):
+            for j in range(n):
+                Hs[i, m + j] = S[bs, ts, i, j]
+    if r.shape[0] > 0:
+        bl, tl = _idx(r, b, t)
+        for i in range(m):
+            Hs[i, m + n] = r[bl, tl, i]
+    if q.shape[0] > 0:
+        bl, tl = _idx(q, b, t)
+        for i in range(n):
+            Hs[m + i, m + n] = q[bl, tl, i]
+
+
+@numba.njit(cache=True, nogil=True)
+def _assemble_terminal(pieces, b, T, Vt):
+    """``Vh_T = [[Q_T, q_T], [q_T', 0]]`` (symmetric part of ``Q_T``) into ``Vt``."""
+    Q, q = pieces[3], pieces[6]
+    n = Q.shape[2]
+    bq, tq = _idx(Q, b, T)
+    for i in range(n + 1):
+        for j in range(n + 1):
+            Vt[i, j] = 0.0
+    for i in range(n):
+        for j in range(n):
+            Vt[i, j] = 0.5 * (Q[bq, tq, i, j] + Q[bq, tq, j, i])
+    if q.shape[0] > 0:
+        bl, tl = _idx(q, b, T)
+        for i in range(n):
+            Vt[i, n] = q[bl, tl, i]
+            Vt[n, i] = q[bl, tl, i]
+
+
+@numba.njit(cache=True, nogil=True)
 def riccati_kernel(
     b0,
     b1,
@@ -360,6 +429,7 @@ def riccati_kernel(
     clamped,
     failed,
     dV,
+    pieces,
 ):
     """One Riccati pass per element (see riccati_homogeneous for the equations).
 
@@ -376,6 +446,11 @@ def riccati_kernel(
     positive definite, or not finite) is marked failed and its earlier steps are left
     at zero (the torch path's values there are meaningless too). Only elements
     ``b0 <= b < b1`` are computed (see ``compiled._launch``).
+
+    ``pieces``: when ``F`` is empty, the LQ data as ``(A, B, c, Q, R, S, q, r)`` (each
+    ``(1 or B, 1 or T (T+1 for Q, q), ...)``, ``c, S, q, r`` possibly empty for zero);
+    each step's ``F_t``, ``H_t`` and the terminal ``Vh_T`` are then assembled in scratch
+    (:func:`_assemble_stage`) instead of being read from tensors built beforehand.
     """
     T = Kk.shape[1]
     m = Kk.shape[2]
@@ -392,15 +467,22 @@ def riccati_kernel(
     cl = np.zeros(m, dtype=np.bool_)
     work = np.empty((4, m), dtype=Vh.dtype)
     W = np.empty((m, n1), dtype=Vh.dtype)
+    assembled = F.shape[0] == 0
+    Fs = np.zeros((n1, mn1), dtype=Vh.dtype)
+    Fs[n, mn1 - 1] = 1.0  # the homogeneous row [0 ... 0 1]
+    Hs = np.zeros((mn1, mn1), dtype=Vh.dtype)
     for b in range(b0, b1):
         bf = b if F.shape[0] > 1 else 0
         bh = b if H.shape[0] > 1 else 0
         bv = b if VhT.shape[0] > 1 else 0
         bb = b if lower.shape[0] > 1 else 0
         r = reg[b if reg.shape[0] > 1 else 0]
-        for i in range(n1):
-            for j in range(n1):
-                Vh[b, T, i, j] = VhT[bv, i, j]
+        if assembled:
+            _assemble_terminal(pieces, b, T, Vh[b, T])
+        else:
+            for i in range(n1):
+                for j in range(n1):
+                    Vh[b, T, i, j] = VhT[bv, i, j]
         for i in range(m):
             k[i] = 0.0
         slope = 0.0
@@ -411,7 +493,11 @@ def riccati_kernel(
             Vn = Vh[b, t + 1]
             Vc = Vh[b, t]
             Kt = Kk[b, t]
-            _stage_matrix(Vn, F[bf, t], H[bh, t], Hz, t, b, VF, M)
+            if assembled:
+                _assemble_stage(pieces, b, t, Fs, Hs)
+                _stage_matrix(Vn, Fs, Hs, Hz, t, b, VF, M)
+            else:
+                _stage_matrix(Vn, F[bf, t], H[bh, t], Hz, t, b, VF, M)
             if boxed:
                 for i in range(m):
                     for j in range(m):

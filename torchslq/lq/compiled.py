@@ -45,6 +45,7 @@ from torch import Tensor
 from . import boxqp
 
 __all__ = [
+    "PIECE_NDIMS",
     "adjoint_compiled",
     "can_use_compiled",
     "compiled_available",
@@ -167,15 +168,20 @@ def _flat(t: Tensor, batch: torch.Size, tail: int) -> np.ndarray:
     return t.detach().contiguous().numpy()
 
 
+# array ndims of the kernel's ``pieces`` (A, B, c, Q, R, S, q, r), batch and time dims included
+PIECE_NDIMS = (4, 4, 3, 4, 4, 4, 3, 3)
+
+
 def riccati_compiled(
-    F: Tensor,
-    H: Tensor,
-    VhT: Tensor,
+    F: Tensor | None,
+    H: Tensor | None,
+    VhT: Tensor | None,
     reg: Tensor | float | None,
     hessians: Tensor | None,
     batch: torch.Size,
     bounds: tuple[Tensor, Tensor] | None = None,
     box_tol: float = 0.0,
+    pieces: tuple[Tensor | None, ...] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
     """The Riccati pass of :func:`riccati_homogeneous` on the CPU kernel.
 
@@ -185,6 +191,10 @@ def riccati_compiled(
     in ``[u; x]`` order (added to ``M`` contracted with ``v_{t+1}``); ``batch``: the
     broadcast batch shape; ``bounds``: None, or ``(lower, upper)`` ``(..., T, m)`` on the
     step for the control-limited pass (box QP tolerance ``box_tol (1 + |qu|_inf)``).
+    ``pieces``: instead of ``F, H, VhT`` (then None), the LQ data of
+    :func:`riccati_backward` ``(A, B, c, Q, R, S, q, r)``, each with a time dim of 1 or
+    ``T`` (``T + 1`` for ``Q, q``) and ``c, S, q, r`` possibly None: the kernel assembles
+    each step's homogeneous matrices itself, so they are never materialised.
     Call only where :func:`can_use_compiled` holds.
 
     Returns:
@@ -192,9 +202,26 @@ def riccati_compiled(
         ``failed (*batch,)``, and with bounds ``clamped (*batch, T, m)``, ``dV (*batch, 2)``
         (else None, None).
     """
-    T, n1, mn1 = F.shape[-3], F.shape[-2], F.shape[-1]
+    dtype = F.dtype if pieces is None else pieces[0].dtype
+    npd = _np_dtype(dtype)
+    if pieces is None:
+        T, n1, mn1 = F.shape[-3], F.shape[-2], F.shape[-1]
+        arrays = (_flat(F, batch, 3), _flat(H, batch, 3), _flat(VhT, batch, 2))
+        piece_arrays = tuple(np.zeros((0,) * d, dtype=npd) for d in PIECE_NDIMS)
+    else:
+        A, Bm = pieces[0], pieces[1]
+        T, n1 = A.shape[-3], A.shape[-1] + 1
+        mn1 = n1 + Bm.shape[-1]
+        arrays = (
+            np.zeros((0, 1, 1, 1), npd),
+            np.zeros((0, 1, 1, 1), npd),
+            np.zeros((0, 1, 1), npd),
+        )
+        piece_arrays = tuple(
+            np.zeros((0,) * d, dtype=npd) if p is None else _flat(p, batch, d - 1)
+            for p, d in zip(pieces, PIECE_NDIMS, strict=True)
+        )
     m = mn1 - n1
-    dtype = F.dtype
     nb = math.prod(batch)
     Kk = torch.zeros(nb, T, m, n1, dtype=dtype)
     Vh = torch.zeros(nb, T + 1, n1, n1, dtype=dtype)
@@ -206,14 +233,12 @@ def riccati_compiled(
     if boxed:
         lower, upper = (_flat(t, batch, 2) for t in bounds)
     else:
-        lower = upper = np.zeros((0, 1, 1), dtype=_np_dtype(dtype))
+        lower = upper = np.zeros((0, 1, 1), dtype=npd)
     _launch(
         _kernels().riccati_kernel,
         nb,
         T,
-        _flat(F, batch, 3),
-        _flat(H, batch, 3),
-        _flat(VhT, batch, 2),
+        *arrays,
         _reg_array(reg, batch, dtype),
         _hessian_array(hessians, dtype),
         reg is None and not boxed,
@@ -227,6 +252,7 @@ def riccati_compiled(
         clamped.numpy(),
         failed.numpy(),
         dV.numpy(),
+        piece_arrays,
     )
     return (
         Kk.reshape(*batch, T, m, n1),

@@ -35,7 +35,7 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
-from .compiled import can_use_compiled, riccati_compiled, rollout_compiled
+from .compiled import PIECE_NDIMS, can_use_compiled, riccati_compiled, rollout_compiled
 
 StageHook = Callable[[int, Tensor], Tensor]
 
@@ -234,13 +234,7 @@ def riccati_homogeneous(
     batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2])
     if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
         batch = broadcast_shapes(batch, reg.shape)
-    bounds = None
-    if u_bounds is not None:
-        lower, upper = (
-            with_time(b.reshape(1) if b.ndim == 0 else b, 1, T).to(F.dtype) for b in u_bounds
-        )
-        batch = broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
-        bounds = (lower.expand(*batch, T, m), upper.expand(*batch, T, m))
+    bounds, batch = _normalize_bounds(u_bounds, T, m, F.dtype, batch)
     hessians = getattr(stage_hook, "hessians", None)
     if (
         T > 0
@@ -391,6 +385,52 @@ def _riccati_box(
     )
 
 
+def _normalize_bounds(
+    u_bounds: tuple[Tensor, Tensor] | None, T: int, m: int, dtype: torch.dtype, batch
+) -> tuple[tuple[Tensor, Tensor] | None, torch.Size]:
+    """``(lower, upper)`` expanded to ``(*batch, T, m)`` (the batch grown by theirs)."""
+    if u_bounds is None:
+        return None, batch
+    lower, upper = (with_time(b.reshape(1) if b.ndim == 0 else b, 1, T).to(dtype) for b in u_bounds)
+    batch = broadcast_shapes(batch, lower.shape[:-2], upper.shape[:-2])
+    return (lower.expand(*batch, T, m), upper.expand(*batch, T, m)), batch
+
+
+def _compiled_pieces_pass(
+    A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds
+) -> RiccatiFactors | None:
+    """:func:`riccati_backward` on the compiled kernel straight from the LQ data (its
+    homogeneous ``F``, ``H`` are assembled per step inside the kernel, never built), or
+    None where the compiled path does not apply (the caller takes the torch path)."""
+    T, m = A.shape[-3], B.shape[-1]
+    hessians = getattr(stage_hook, "hessians", None)
+    if T == 0 or (stage_hook is not None and hessians is None):
+        return None
+    pieces, shapes = [], []
+    for p, nd, steps in zip(
+        (A, B, c, Q, R, S, q, r), PIECE_NDIMS, (T, T, T, T + 1, T, T, T + 1, T), strict=True
+    ):
+        if p is not None:
+            tail = nd - 2  # the matrix or vector dims
+            if p.ndim == tail:
+                p = p.unsqueeze(0)  # no time dim: constant over the horizon
+            if p.ndim < tail + 1 or p.shape[-tail - 1] not in (1, steps):
+                return None  # let the torch path report the shape error
+            shapes.append(p.shape[: p.ndim - tail - 1])
+        pieces.append(p)
+    batch = broadcast_shapes(*shapes)
+    if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
+        batch = broadcast_shapes(batch, reg.shape)
+    bounds, batch = _normalize_bounds(u_bounds, T, m, A.dtype, batch)
+    extra = [t for t in (reg, hessians) if isinstance(t, Tensor)]
+    if not can_use_compiled(*[p for p in pieces if p is not None], *(bounds or ()), *extra):
+        return None
+    out = riccati_compiled(
+        None, None, None, reg, hessians, batch, bounds, _box_tol(A.dtype), pieces=tuple(pieces)
+    )
+    return RiccatiFactors(*out)
+
+
 def _box_tol(dtype: torch.dtype) -> float:
     """Scale of the box QPs' stopping tolerance (times ``1 + |qu|_inf`` per step)."""
     return max(1e-10, 100 * torch.finfo(dtype).eps)
@@ -444,6 +484,9 @@ def riccati_backward(
     ``(lower, upper)`` on ``u_t``, each broadcastable to ``(B, T, m)``) are passed to
     :func:`riccati_homogeneous`. No input validation: this is the inner-loop entry point.
     """
+    fac = _compiled_pieces_pass(A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds)
+    if fac is not None:
+        return fac
     T = A.shape[-3]
     F = homogeneous_dynamics(A, B, with_time(c, 1, T))
     H, VhT = homogeneous_cost(
