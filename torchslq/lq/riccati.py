@@ -404,8 +404,8 @@ def _compiled_pieces_pass(
     None where the compiled path does not apply (the caller takes the torch path)."""
     T, m = A.shape[-3], B.shape[-1]
     hessians = getattr(stage_hook, "hessians", None)
-    if T == 0 or (stage_hook is not None and hessians is None):
-        return None
+    if A.device.type != "cpu" or T == 0 or (stage_hook is not None and hessians is None):
+        return None  # (the cheap tests first: GPU passes pay nothing here)
     pieces, shapes = [], []
     for p, nd, steps in zip(
         (A, B, c, Q, R, S, q, r), PIECE_NDIMS, (T, T, T, T + 1, T, T, T + 1, T), strict=True
