@@ -13,6 +13,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import jacfwd, jacrev, vjp, vmap
 
+from .._shapes import broadcast_shapes
 from .base import Dynamics, state_control_dims
 
 __all__ = ["linearize", "dynamics_vhp", "dynamics_hessians", "LearnedDynamics", "as_transition"]
@@ -202,7 +203,7 @@ def _analytic_vhp(f, x: Tensor, u: Tensor, s: Tensor) -> tuple[Tensor, Tensor, T
     """The model's own :meth:`~torchslq.Dynamics.vhp`, at full shape ``(*lead, ., .)``
     with ``lead`` the broadcast of ``s``'s and ``x``'s leading dims."""
     n, m = x.shape[-1], u.shape[-1]
-    lead = torch.broadcast_shapes(s.shape[:-1], x.shape[:-1])
+    lead = broadcast_shapes(s.shape[:-1], x.shape[:-1])
     Hxx, Huu, Hux = f.vhp(x, u, s)
     return (
         Hxx.expand(*lead, n, n).contiguous(),

@@ -42,6 +42,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from . import boxqp
 
 __all__ = [
@@ -270,7 +271,7 @@ def rollout_compiled(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]
     T, n1 = F.shape[-3], F.shape[-2]
     m = Kk.shape[-2]
     n = n1 - 1
-    batch = torch.broadcast_shapes(F.shape[:-3], Kk.shape[:-3], x0.shape[:-1])
+    batch = broadcast_shapes(F.shape[:-3], Kk.shape[:-3], x0.shape[:-1])
     nb = math.prod(batch)
     x = torch.empty(nb, T + 1, n, dtype=F.dtype)
     u = torch.empty(nb, T, m, dtype=F.dtype)
@@ -294,7 +295,7 @@ def adjoint_compiled(
     call only where :func:`can_use_compiled` holds."""
     T, m = gu.shape[-2], gu.shape[-1]
     n = gx.shape[-1]
-    batch = torch.broadcast_shapes(
+    batch = broadcast_shapes(
         F.shape[:-3], Kk.shape[:-3], Vh.shape[:-3], chol.shape[:-3], gx.shape[:-2], gu.shape[:-2]
     )
     nb = math.prod(batch)

@@ -22,9 +22,9 @@ from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
-import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from ..dynamics.linearize import dynamics_hessians, dynamics_vhp
 from ..lq.riccati import StageHook
 from .ilqr import ILQR
@@ -137,7 +137,7 @@ def _block(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor:
     concatenations wrote most of them twice: 2.6x slower for the unicycle's
     ``(T, n, B, 5, 5)`` blocks)."""
     m, n = Hux.shape[-2], Hux.shape[-1]
-    lead = torch.broadcast_shapes(Hxx.shape[:-2], Huu.shape[:-2], Hux.shape[:-2])
+    lead = broadcast_shapes(Hxx.shape[:-2], Huu.shape[:-2], Hux.shape[:-2])
     out = Hxx.new_empty(*lead, m + n, m + n)
     out[..., :m, :m] = Huu
     out[..., :m, m:] = Hux

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
 from ..dynamics import Dynamics
 
 __all__ = ["Unicycle"]
@@ -45,7 +46,7 @@ class Unicycle(Dynamics):
     def jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         th, v = x[..., 2], u[..., 0]
         c, s, dt = torch.cos(th), torch.sin(th), self.dt
-        lead = torch.broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
         A = torch.eye(3, dtype=x.dtype, device=x.device).expand(*lead, 3, 3).clone()
         A[..., 0, 2] = -s * v * dt
         A[..., 1, 2] = c * v * dt
@@ -63,7 +64,7 @@ class Unicycle(Dynamics):
         sx, sy = s[..., 0], s[..., 1]
         h_tt = -(sx * c + sy * sn) * v * dt
         h_vt = (sy * c - sx * sn) * dt
-        lead = torch.broadcast_shapes(h_tt.shape, h_vt.shape)
+        lead = broadcast_shapes(h_tt.shape, h_vt.shape)
         Hxx = x.new_zeros(*lead, 3, 3)
         Hxx[..., 2, 2] = h_tt
         Hux = x.new_zeros(*lead, 2, 3)
