@@ -232,9 +232,7 @@ def riccati_homogeneous(
     n = F.shape[-2] - 1
     m = F.shape[-1] - n - 1
     batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2])
-    if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
-        batch = broadcast_shapes(batch, reg.shape)
-    bounds, batch = _normalize_bounds(u_bounds, T, m, F.dtype, batch)
+    bounds, batch = _pass_batch(batch, reg, u_bounds, T, m, F.dtype)
     hessians = getattr(stage_hook, "hessians", None)
     if (
         T > 0
@@ -385,10 +383,13 @@ def _riccati_box(
     )
 
 
-def _normalize_bounds(
-    u_bounds: tuple[Tensor, Tensor] | None, T: int, m: int, dtype: torch.dtype, batch
+def _pass_batch(
+    batch, reg, u_bounds: tuple[Tensor, Tensor] | None, T: int, m: int, dtype: torch.dtype
 ) -> tuple[tuple[Tensor, Tensor] | None, torch.Size]:
-    """``(lower, upper)`` expanded to ``(*batch, T, m)`` (the batch grown by theirs)."""
+    """A pass's batch shape (the data's ``batch`` grown by a per-element ``reg`` and by
+    the bounds') and the bounds ``(lower, upper)`` expanded to ``(*batch, T, m)``."""
+    if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
+        batch = broadcast_shapes(batch, reg.shape)
     if u_bounds is None:
         return None, batch
     lower, upper = (with_time(b.reshape(1) if b.ndim == 0 else b, 1, T).to(dtype) for b in u_bounds)
@@ -418,10 +419,7 @@ def _compiled_pieces_pass(
                 return None  # let the torch path report the shape error
             shapes.append(p.shape[: p.ndim - tail - 1])
         pieces.append(p)
-    batch = broadcast_shapes(*shapes)
-    if reg is not None and torch.is_tensor(reg) and reg.ndim > 0:
-        batch = broadcast_shapes(batch, reg.shape)
-    bounds, batch = _normalize_bounds(u_bounds, T, m, A.dtype, batch)
+    bounds, batch = _pass_batch(broadcast_shapes(*shapes), reg, u_bounds, T, m, A.dtype)
     extra = [t for t in (reg, hessians) if isinstance(t, Tensor)]
     if not can_use_compiled(*[p for p in pieces if p is not None], *(bounds or ()), *extra):
         return None
