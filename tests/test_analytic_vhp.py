@@ -211,3 +211,44 @@ def test_mpc_exact_implicit_gradients_with_analytic_second_derivatives(monkeypat
     for a, b in zip(*grads, strict=True):
         assert float(b.abs().max()) > 1e-3
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize(
+    "shapes",
+    [
+        ((3, 4), (3, 4), (3, 4)),  # s per point (DDP's costate mode)
+        ((3, 4), (3, 4), (5, 1, 1)),  # extra leading weight dim (all output Hessians)
+        ((1, 4), (1, 4), (3, 4)),  # one trajectory, several weights per point
+        ((3, 4), (3, 1), (1, 4)),  # broadcast controls and weights
+    ],
+)
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_rk4_congruence_matches_the_torch_chain(shapes, dtype, monkeypatch):
+    """The chained second derivatives with each stage's congruence on the CPU kernel ==
+    the same chain written with torch products (the kernel must have run)."""
+    import sys
+
+    from torchslq.lq import compiled
+
+    if not compiled.compiled_available():
+        pytest.skip("numba kernels not available")
+    disc = sys.modules["torchslq.dynamics.discretize"]
+    g = torch.Generator().manual_seed(4)
+    xs, us, ss = shapes
+    model = CartPole(mc=torch.tensor(1.3, dtype=F64))
+    dyn = ts.discretize(model, 0.07).to(dtype)
+    x = (0.8 * torch.randn(*xs, 4, generator=g, dtype=F64)).to(dtype)
+    u = torch.randn(*us, 1, generator=g, dtype=F64).to(dtype)
+    s = torch.randn(*ss, 4, generator=g, dtype=F64).to(dtype)
+    calls = []
+    real = disc.stage_congruence_compiled
+    monkeypatch.setattr(disc, "stage_congruence_compiled", lambda *a: calls.append(1) or real(*a))
+    fast = dyn.vhp(x, u, s)
+    assert len(calls) == 3  # the three stages whose argument depends on an earlier one
+    monkeypatch.setattr(disc, "can_use_compiled", lambda *t: False)
+    slow = dyn.vhp(x, u, s)
+    tol = 1e-12 if dtype == torch.float64 else 2e-5
+    for a, b in zip(fast, slow, strict=True):
+        b = b.expand_as(a)
+        assert a.dtype == dtype
+        assert (a - b).abs().max() <= tol * (1 + b.abs().max())

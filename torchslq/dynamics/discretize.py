@@ -6,6 +6,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
+from ..lq.compiled import can_use_compiled, stage_congruence_compiled
 from .base import ContinuousDynamics, Dynamics, identity_like
 
 __all__ = ["discretize", "DiscretizedDynamics"]
@@ -126,7 +127,13 @@ class DiscretizedDynamics(Dynamics):
         for i in range(3, -1, -1):
             a, xi, fx, dk_prev = stages[i]
             hxx, huu, hux = f.vhp(xi, u, mu)
-            if dk_prev is not None:
+            if dk_prev is not None and can_use_compiled(hxx, huu, hux, dk_prev):
+                # the congruence on the CPU kernel: the same products as below, but
+                # without ~10 tiny batched matmuls (each broadcasting over the weight
+                # vectors by a copy) per stage
+                Hxx, Huu, Hux = _accumulator(Hxx, Huu, Hux, hxx, huu, hux, dk_prev)
+                stage_congruence_compiled((Hxx, Huu, Hux), (hxx, huu, hux), dk_prev, a * dt)
+            elif dk_prev is not None:
                 # Z_i = [[P, Q], [0, I]]: P = I + a dt dk_x, Q = a dt dk_u
                 P = torch.add(identity_like(xi, n), dk_prev[..., :n], alpha=a * dt)
                 Q = dk_prev[..., n:] * (a * dt)
@@ -134,12 +141,31 @@ class DiscretizedDynamics(Dynamics):
                 hux_i = t1.mT @ P
                 huu = torch.add(huu, torch.add(Q.mT @ t1, hux @ Q))
                 hxx, hux = P.mT @ hxx @ P, hux_i
-            Hxx = hxx if Hxx is None else Hxx + hxx
-            Huu = huu if Huu is None else Huu + huu
-            Hux = hux if Hux is None else Hux + hux
+            if dk_prev is None or Hxx is None or not can_use_compiled(hxx, huu, hux, dk_prev):
+                Hxx = hxx if Hxx is None else Hxx + hxx
+                Huu = huu if Huu is None else Huu + huu
+                Hux = hux if Hux is None else Hux + hux
             if i > 0:
                 mu = torch.add(weights[i - 1] * s, (fx.mT @ mu.unsqueeze(-1))[..., 0], alpha=a * dt)
         return Hxx, Huu, Hux
+
+
+def _accumulator(Hxx, Huu, Hux, hxx, huu, hux, dk) -> tuple[Tensor, Tensor, Tensor]:
+    """The running sums ``(Hxx, Huu, Hux)`` as fresh contiguous tensors of the full
+    broadcast shape of this stage's blocks (zeros, plus the sums so far), to be added
+    to in place by :func:`stage_congruence_compiled`."""
+    n, m = hxx.shape[-1], huu.shape[-1]
+    parts = (hxx, huu, hux, dk) + (() if Hxx is None else (Hxx, Huu, Hux))
+    lead = broadcast_shapes(*(p.shape[:-2] for p in parts))
+    out = []
+    for old, (r, c) in zip((Hxx, Huu, Hux), ((n, n), (m, m), (m, n)), strict=True):
+        if old is None:
+            out.append(hxx.new_zeros(*lead, r, c))
+        elif old.shape == (*lead, r, c) and old.is_contiguous():
+            out.append(old)  # the previous stage's accumulator: add to it in place
+        else:
+            out.append(old.expand(*lead, r, c).clone())
+    return tuple(out)
 
 
 # (a_i, w_i): stage i is evaluated at x + a_i dt k_{i-1}, and weighs w_i dt / 6

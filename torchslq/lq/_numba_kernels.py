@@ -577,3 +577,86 @@ def riccati_kernel(
         if boxed:
             dV[b, 0] = slope
             dV[b, 1] = curv
+
+
+@numba.njit(cache=True, nogil=True)
+def stage_congruence_kernel(j0, j1, hxx, huu, hux, dk, scale, Hxx, Huu, Hux):
+    """One RK4 stage's term of the chained second derivatives (``discretize``'s vhp):
+    with ``P = I + scale dk[:, :n]`` and ``Q = scale dk[:, n:]`` (``Z = [[P, Q], [0, I]]``
+    = d zeta / dz of the stage's argument), add ``Z' [[hxx, hux'], [hux, huu]] Z``:
+
+    ``Hxx += P' hxx P``, ``Hux += (hxx Q + hux')' P``,
+    ``Huu += huu + Q' (hxx Q + hux') + hux Q``.
+
+    hxx ``(J, n, n)``, huu ``(J, m, m)``, hux ``(J, m, n)`` and the outputs are rows
+    ``j = e R + r`` of ``E`` weight vectors times ``R`` points; dk ``(R, n, n+m)`` is
+    shared by the ``E`` rows of point ``r``. Rows ``j0 <= j < j1`` (see ``_launch``).
+    """
+    R = dk.shape[0]
+    n = hxx.shape[1]
+    m = huu.shape[1]
+    P = np.empty((n, n), dtype=hxx.dtype)
+    Q = np.empty((n, m), dtype=hxx.dtype)
+    HP = np.empty((n, n), dtype=hxx.dtype)
+    t1 = np.empty((n, m), dtype=hxx.dtype)
+    r_prev = -1
+    for j in range(j0, j1):
+        r = j % R
+        if r != r_prev:
+            D = dk[r]
+            for a in range(n):
+                for b in range(n):
+                    P[a, b] = scale * D[a, b]
+                P[a, a] += 1.0
+                for k in range(m):
+                    Q[a, k] = scale * D[a, n + k]
+            r_prev = r
+        h = hxx[j]
+        g = hux[j]
+        # HP = hxx P and t1 = hxx Q + hux', row by row
+        for a in range(n):
+            hp = HP[a]
+            ta = t1[a]
+            for b in range(n):
+                hp[b] = 0.0
+            for k in range(m):
+                ta[k] = g[k, a]
+            for c in range(n):
+                hac = h[a, c]
+                pc = P[c]
+                qc = Q[c]
+                for b in range(n):
+                    hp[b] += hac * pc[b]
+                for k in range(m):
+                    ta[k] += hac * qc[k]
+        # Hxx += P' HP: symmetric (hxx is, and so is every earlier stage's sum), so the
+        # upper triangle is computed and mirrored
+        O = Hxx[j]
+        for c in range(n):
+            pc = P[c]
+            hc = HP[c]
+            for a in range(n):
+                pca = pc[a]
+                oa = O[a]
+                for b in range(a, n):
+                    oa[b] += pca * hc[b]
+        for a in range(n):
+            for b in range(a + 1, n):
+                O[b, a] = O[a, b]
+        # Hux += t1' P, Huu += huu + Q' t1 + hux Q
+        G = Hux[j]
+        U = Huu[j]
+        hu = huu[j]
+        for k in range(m):
+            gk = G[k]
+            uk = U[k]
+            for a in range(n):
+                tak = t1[a, k]
+                pa = P[a]
+                for b in range(n):
+                    gk[b] += tak * pa[b]
+            for l in range(m):
+                s = hu[k, l]
+                for a in range(n):
+                    s += Q[a, k] * t1[a, l] + g[k, a] * Q[a, l]
+                uk[l] += s

@@ -53,6 +53,7 @@ __all__ = [
     "riccati_compiled",
     "rollout_compiled",
     "set_compiled",
+    "stage_congruence_compiled",
 ]
 
 _enabled = os.environ.get("TORCHSLQ_COMPILED", "1").strip().lower() not in ("0", "false", "no")
@@ -321,6 +322,36 @@ def adjoint_compiled(
         du.reshape(*batch, T, m),
         dlam.reshape(*batch, T + 1, n),
     )
+
+
+def stage_congruence_compiled(
+    acc: tuple[Tensor, Tensor, Tensor],
+    h: tuple[Tensor, Tensor, Tensor],
+    dk: Tensor,
+    scale: float,
+) -> None:
+    """``acc += Z' h Z`` for one RK4 stage of
+    :meth:`torchslq.dynamics.DiscretizedDynamics.vhp` on the CPU kernel (in place).
+
+    ``acc = (Hxx, Huu, Hux)``: contiguous ``(*L, n, n)``, ``(*L, m, m)``, ``(*L, m, n)``;
+    ``h``: the stage's Hessian blocks, broadcastable to those; ``dk (*Ld, n, n+m)`` with
+    ``Z = [[I + scale dk_x, scale dk_u], [0, I]]``, ``Ld`` a suffix of ``L`` (or
+    broadcastable to ``L``). Call only where :func:`can_use_compiled` holds.
+    """
+    Hxx = acc[0]
+    L = Hxx.shape[:-2]
+    Ld = dk.shape[:-2]
+    if len(Ld) > len(L) or tuple(L[len(L) - len(Ld) :]) != tuple(Ld):
+        dk = dk.expand(*L, *dk.shape[-2:])  # not one block per point: one per row
+    R = math.prod(dk.shape[:-2])
+    J = math.prod(L)
+    flat = tuple(
+        t.expand(*L, *a.shape[-2:]).reshape(J, *a.shape[-2:]).contiguous().numpy()
+        for t, a in zip(h, acc, strict=True)
+    )
+    outs = tuple(a.view(J, *a.shape[-2:]).numpy() for a in acc)
+    d = dk.reshape(R, *dk.shape[-2:]).contiguous().numpy()
+    _launch(_kernels().stage_congruence_kernel, J, 1, *flat, d, float(scale), *outs)
 
 
 def _reg_array(reg: Tensor | float | None, batch: torch.Size, dtype: torch.dtype) -> np.ndarray:
