@@ -428,3 +428,92 @@ def test_riccati_backward_shape_errors_come_from_the_torch_path():
     B = torch.randn(3, 5, 2, 1, dtype=F64)
     with pytest.raises(RuntimeError):
         ts.riccati_backward(A, B, torch.eye(2, dtype=F64).expand(4, 2, 2), torch.eye(1, dtype=F64))
+
+
+def _feedback_data(Na, B, T, n, m, dtype=F64, seed=3):
+    g = torch.Generator().manual_seed(seed)
+
+    def r(*s):
+        return torch.randn(*s, generator=g, dtype=F64).to(dtype)
+
+    return {
+        "x0": r(Na, B, n) if Na else r(B, n),
+        "x_nom": r(B, T + 1, n),
+        "u_nom": r(B, T, m),
+        "K": 0.3 * r(B, T, m, n),
+        "k": r(B, T, m),
+        "alpha": torch.rand(Na, B, generator=g, dtype=F64).to(dtype) if Na else r(B),
+    }
+
+
+@pytest.mark.parametrize(
+    "case", ["alphas", "one-alpha", "bounds", "time-shared-bounds", "gopronto-x_nom", "float32"]
+)
+def test_compiled_closed_loop_rollout_equals_torch_path(torch_path, case):
+    """rollout_closed_loop with the feedback on the CPU kernel == the torch path (the same
+    order of operations, so the same bits), for candidate steps, bounds, a nominal
+    trajectory of T states (GoPRONTO's projection) and float32."""
+    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.systems import Unicycle
+
+    dtype = torch.float32 if case == "float32" else F64
+    B, T, n, m = 5, 7, 3, 2
+    d = _feedback_data(0 if case == "one-alpha" else 4, B, T, n, m, dtype)
+    kw = {}
+    if case == "bounds":
+        kw = {
+            "u_min": -0.5 * torch.ones(B, T, m, dtype=dtype),
+            "u_max": 0.4 * torch.ones(B, T, m, dtype=dtype),
+        }
+    if case == "time-shared-bounds":  # one (T, m) bound for every element, no upper
+        lo = torch.tensor([-0.3, -0.6], dtype=dtype).expand(1, T, m)
+        kw = {"u_min": lo, "u_max": None}
+    if case == "gopronto-x_nom":
+        d["x_nom"] = d["x_nom"][:, :T]
+    f = Unicycle(0.1).to(dtype)
+    calls = []
+    kernel = compiled._kernels().feedback_kernel
+    real = compiled.closed_loop_feedback_compiled
+
+    def counting(*a):
+        calls.append(1)
+        return real(*a)
+
+    import sys
+
+    mod = sys.modules["torchslq.solvers.rollout"]
+    old = mod.closed_loop_feedback_compiled
+    mod.closed_loop_feedback_compiled = counting
+    try:
+        xf, uf = rollout_closed_loop(f, **d, **kw)
+    finally:
+        mod.closed_loop_feedback_compiled = old
+    assert calls and kernel is not None
+    with torch_path:
+        xr, ur = rollout_closed_loop(f, **d, **kw)
+    assert xf.shape == xr.shape and uf.shape == ur.shape
+    tol = 0.0 if dtype == F64 else 1e-6
+    assert float((xf - xr).abs().max()) <= tol and float((uf - ur).abs().max()) <= tol
+    if kw.get("u_min") is not None:
+        assert bool((uf >= kw["u_min"] - 1e-12).all()) and bool((uf < -0.29).any())
+
+
+def test_closed_loop_rollout_keeps_the_graph_of_a_model_that_needs_it(torch_path):
+    """A model whose parameters require grad: the rollout falls back to torch ops and
+    its output is differentiable, with the torch path's gradient."""
+    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.systems import CartPole
+
+    d = _feedback_data(2, 3, 6, 4, 1)
+    grads = []
+    for ctx in (None, torch_path):
+        mc = torch.tensor(1.0, dtype=F64, requires_grad=True)
+        f = ts.discretize(CartPole(mc=mc), 0.05)
+        if ctx is None:
+            x, u = rollout_closed_loop(f, **d)
+        else:
+            with ctx:
+                x, u = rollout_closed_loop(f, **d)
+        assert x.requires_grad and u.requires_grad
+        grads.append(torch.autograd.grad((x.sum() + u.sum()), mc)[0])
+    torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=0)

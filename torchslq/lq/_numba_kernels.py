@@ -660,3 +660,32 @@ def stage_congruence_kernel(j0, j1, hxx, huu, hux, dk, scale, Hxx, Huu, Hux):
                 for a in range(n):
                     s += Q[a, k] * t1[a, l] + g[k, a] * Q[a, l]
                 uk[l] += s
+
+
+@numba.njit(cache=True, nogil=True)
+def feedback_kernel(t, x, xn, K, lo, hi, u):
+    """``u[r, t] += K[b, t] (x[r] - xn[b, t])``, then clamped into ``[lo, hi]`` (when
+    not empty): the feedback of a closed-loop rollout at step ``t`` for rows ``r`` of
+    ``x (R, n)``, ``b = r % B``; ``u (R, T, m)`` holds the feedforward on entry.
+    xn ``(B, T, n)``, K ``(B, T, m, n)``, lo, hi ``(B, T, m)`` or empty."""
+    R, n = x.shape
+    B = xn.shape[0]
+    m = u.shape[2]
+    bounded = lo.shape[0] > 0
+    for r in range(R):
+        b = r % B
+        Kt = K[b, t]
+        xr = x[r]
+        xnr = xn[b, t]
+        ur = u[r, t]
+        for i in range(m):
+            # the feedback summed first, then the feedforward added: the torch path's
+            # order of operations (ff + (x - xn) @ K')
+            s = 0.0
+            Ki = Kt[i]
+            for j in range(n):
+                s += Ki[j] * (xr[j] - xnr[j])
+            s += ur[i]
+            if bounded:
+                s = min(max(s, lo[b, t, i]), hi[b, t, i])
+            ur[i] = s

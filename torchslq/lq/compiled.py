@@ -48,6 +48,7 @@ from . import boxqp
 __all__ = [
     "PIECE_NDIMS",
     "adjoint_compiled",
+    "closed_loop_feedback_compiled",
     "can_use_compiled",
     "compiled_available",
     "riccati_compiled",
@@ -322,6 +323,41 @@ def adjoint_compiled(
         du.reshape(*batch, T, m),
         dlam.reshape(*batch, T + 1, n),
     )
+
+
+def closed_loop_feedback_compiled(
+    x_nom: Tensor, K: Tensor, u: Tensor, u_min: Tensor | None, u_max: Tensor | None
+):
+    """The feedback step of :func:`torchslq.solvers.rollout_closed_loop` on the CPU
+    kernel: returns ``step(t, x_t)`` which adds ``K_t (x_t - x_nom_t)`` to ``u[..., t, :]``
+    in place and clamps it into the bounds.
+
+    ``x_nom (B, T, n)`` (the first ``T`` nominal states), ``K (B, T, m, n)``,
+    ``u (..., B, T, m)`` contiguous (the
+    feedforward on entry), bounds None or broadcastable to ``(B, T, m)``; ``x_t``
+    ``(..., B, 1, n)``. One kernel call per step instead of a broadcast batched matmul
+    (which copies ``K_t`` for every candidate step) and three elementwise ops. Call only
+    where :func:`can_use_compiled` holds for all of them.
+    """
+    Bsz, T, m, n = K.shape[-4:]
+    xn = x_nom.detach().contiguous().numpy()
+    Kn = K.detach().contiguous().numpy()
+    un = u.view(-1, T, m).numpy()
+    if u_min is None and u_max is None:
+        lo = hi = np.zeros((0, 1, 1), dtype=un.dtype)
+    else:
+        inf = torch.tensor(float("inf"), dtype=u.dtype)
+        lo, hi = (
+            (inf if h else -inf).expand(Bsz, T, m) if b is None else b.expand(Bsz, T, m)
+            for b, h in ((u_min, False), (u_max, True))
+        )
+        lo, hi = (b.detach().contiguous().numpy() for b in (lo, hi))
+    kernel = _kernels().feedback_kernel
+
+    def step(t: int, xt: Tensor) -> None:
+        kernel(t, xt.detach().reshape(-1, n).numpy(), xn, Kn, lo, hi, un)
+
+    return step
 
 
 def stage_congruence_compiled(

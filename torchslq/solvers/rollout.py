@@ -7,6 +7,9 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
+from .._shapes import broadcast_shapes
+from ..lq.compiled import can_use_compiled, closed_loop_feedback_compiled
+
 __all__ = ["rollout", "rollout_closed_loop", "costate_gradient"]
 
 
@@ -47,6 +50,11 @@ def rollout_closed_loop(
     Returns:
         ``x (..., B, T+1, n)`` and ``u (..., B, T, m)``.
     """
+    bounds = tuple(b for b in (u_min, u_max) if b is not None)
+    if can_use_compiled(x0, x_nom, u_nom, K, k, alpha, *bounds):
+        out = _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max)
+        if out is not None:
+            return out
     T = u_nom.shape[-2]
     # everything that does not depend on the new states is formed for all steps at
     # once, time-major, so that each step is a handful of small ops (rollouts are
@@ -68,6 +76,34 @@ def rollout_closed_loop(
         xs.append(xt)
         us.append(ut)
     return torch.cat(xs, dim=-2), torch.cat(us, dim=-2)
+
+
+def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max):
+    """:func:`rollout_closed_loop` with the feedback of each step on the CPU kernel
+    (:func:`~torchslq.lq.compiled.closed_loop_feedback_compiled`): the controls are
+    written into one buffer holding the feedforward, so a step is the kernel call and
+    the model. None when the model's states need autograd (the kernel would cut the
+    graph): the caller then takes the torch path."""
+    T, m, n = u_nom.shape[-2], u_nom.shape[-1], x0.shape[-1]
+    Bsz = broadcast_shapes(x_nom.shape[:-2], u_nom.shape[:-2], K.shape[:-3], k.shape[:-2])
+    if len(Bsz) != 1:
+        return None
+    (B,) = Bsz
+    lead = broadcast_shapes(alpha.shape, x0.shape[:-1], (B,))
+    u = (u_nom + alpha[..., None, None] * k).expand(*lead, T, m).contiguous()
+    feedback = closed_loop_feedback_compiled(
+        x_nom[..., :T, :].expand(B, T, n), K.expand(B, T, m, n), u, u_min, u_max
+    )
+    grad = torch.is_grad_enabled()
+    xt = x0.expand(*lead, n).unsqueeze(-2)
+    xs = [xt]
+    for t in range(T):
+        if grad and xt.requires_grad:
+            return None
+        feedback(t, xt)
+        xt = f(xt, u[..., t : t + 1, :])
+        xs.append(xt)
+    return torch.cat(xs, dim=-2), u
 
 
 def costate_gradient(
