@@ -213,10 +213,12 @@ def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
     retry, measured by wrapping the kernel), and the batch still equals one-by-one
     solves (so the rows put back are the right ones). Trying the next values of mu side
     by side in one pass (the default) gives the same solution bit for bit, in fewer
-    passes."""
+    passes. (These are the restarts of the torch path: on the compiled CPU path the
+    kernel restarts the element itself, tested below, so it is switched off here.)"""
     import torchslq.solvers.ilqr as ilqr_mod
     from torchslq.tasks import cartpole_swingup
 
+    monkeypatch.setattr(ilqr_mod.ILQR, "_restarts", lambda self: None)
     problem, x0 = cartpole_swingup(4, seed=3)
     rows_per_pass: list[int] = []
     kernel = ilqr_mod.riccati_backward
@@ -232,6 +234,7 @@ def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
     assert any(0 < r < x0.shape[0] for r in rows_per_pass), rows_per_pass
     monkeypatch.undo()
     # side by side (the default): the same solution to the last bit, in fewer passes
+    monkeypatch.setattr(ilqr_mod.ILQR, "_restarts", lambda self: None)
     passes_one_by_one = len(rows_per_pass)
     rows_per_pass.clear()
     monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
@@ -244,3 +247,39 @@ def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
         single = solver.solve(problem, x0[b])
         torch.testing.assert_close(single.u, batch.u[b], rtol=1e-9, atol=1e-11)
         assert int(single.iterations) == int(batch.iterations[b])
+
+
+@pytest.mark.parametrize("solver_name", ["DDP", "DDP-bounded"])
+def test_restarts_inside_the_compiled_kernel_equal_the_repeated_passes(monkeypatch, solver_name):
+    """On the CPU the Riccati kernel restarts a failed element itself with the next values
+    of the same mu schedule: the solve is the same to the last bit as with the restarts
+    made by repeating passes from Python, and no pass is repeated (one per iteration,
+    plus none), while the repeated-pass version needed extra passes on this problem."""
+    import torchslq.solvers.ilqr as ilqr_mod
+    from torchslq.tasks import cartpole_swingup
+
+    problem, x0 = cartpole_swingup(6, seed=3)
+    kw = dict(progress=False, max_iter=25, tol=1e-8)
+    if solver_name == "DDP":
+        solver = ts.DDP(**kw)
+    else:  # the control-limited pass (box QPs) in the kernel
+        solver = ts.DDP(u_min=-3.0, u_max=3.0, **kw)
+    passes = []
+    kernel = ilqr_mod.riccati_backward
+
+    def counting(*args, **kwargs):
+        out = kernel(*args, **kwargs)
+        passes.append(out.reg is not None)
+        return out
+
+    monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
+    inside = solver.solve(problem, x0)
+    n_inside, restarted_inside = len(passes), all(passes)
+    passes.clear()
+    monkeypatch.setattr(ilqr_mod.ILQR, "_restarts", lambda self: None)
+    repeated = solver.solve(problem, x0)
+    assert restarted_inside  # every pass ran on the kernel with restarts
+    for name in ("u", "x", "K", "cost", "iterations", "status"):
+        assert torch.equal(getattr(inside, name), getattr(repeated, name)), name
+    assert n_inside <= int(inside.iterations.max()) + 1  # one pass per iteration
+    assert len(passes) > n_inside, (len(passes), n_inside)  # restarts were needed

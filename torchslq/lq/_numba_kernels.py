@@ -430,6 +430,10 @@ def riccati_kernel(
     failed,
     dV,
     pieces,
+    restart_opts,
+    mu_io,
+    delta_io,
+    may_restart,
 ):
     """One Riccati pass per element (see riccati_homogeneous for the equations).
 
@@ -451,6 +455,14 @@ def riccati_kernel(
     ``(1 or B, 1 or T (T+1 for Q, q), ...)``, ``c, S, q, r`` possibly empty for zero);
     each step's ``F_t``, ``H_t`` and the terminal ``Vh_T`` are then assembled in scratch
     (:func:`_assemble_stage`) instead of being read from tensors built beforehand.
+
+    Restarts (Tassa et al.'s schedule, as ``ILQR._retry_failed``) when ``mu_io`` is not
+    empty: element ``b`` starts with ``reg = mu_io[b]``; when its pass fails (not positive
+    definite, or non-finite gains) and ``may_restart[b]``, ``delta := max(f, delta f)``,
+    ``reg := max(floor, reg delta)`` (``restart_opts = (f, floor, mu_max, max_restarts)``)
+    and the pass is repeated, until it succeeds, ``reg > mu_max`` (that pass is still
+    made) or ``max_restarts`` restarts were made; the last ``reg``, ``delta`` are written
+    back to ``mu_io``, ``delta_io`` (``(B,)``).
     """
     T = Kk.shape[1]
     m = Kk.shape[2]
@@ -471,112 +483,163 @@ def riccati_kernel(
     Fs = np.zeros((n1, mn1), dtype=Vh.dtype)
     Fs[n, mn1 - 1] = 1.0  # the homogeneous row [0 ... 0 1]
     Hs = np.zeros((mn1, mn1), dtype=Vh.dtype)
+    restarting = mu_io.shape[0] > 0
     for b in range(b0, b1):
         bf = b if F.shape[0] > 1 else 0
         bh = b if H.shape[0] > 1 else 0
         bv = b if VhT.shape[0] > 1 else 0
         bb = b if lower.shape[0] > 1 else 0
         r = reg[b if reg.shape[0] > 1 else 0]
+        delta = 0.0
+        if restarting:
+            r = mu_io[b]
+            delta = delta_io[b]
+        restarts = 0
+        while True:
+            ok, slope, curv = _element_pass(
+                b, bf, bh, bv, bb, r, F, H, VhT, Hz, short_form, lower, upper, tol_base,
+                box_opts, Kk, Vh, L, clamped, pieces, assembled, boxed, VF, M, Lb, Quu_r,
+                qu, k, cl, work, W, Fs, Hs,
+            )  # fmt: skip
+            if not restarting:
+                break
+            if ok:
+                ok = _finite(Kk[b])
+            if ok or not may_restart[b] or r > restart_opts[2] or restarts >= restart_opts[3]:
+                break
+            delta = max(restart_opts[0], delta * restart_opts[0])
+            r = max(restart_opts[1], r * delta)
+            restarts += 1
+            # a fresh pass leaves zeros below a failing step: so does a repeated one
+            Kk[b] = 0.0
+            L[b] = 0.0
+            Vh[b, :T] = 0.0
+        failed[b] = not ok
+        if restarting:
+            mu_io[b] = r
+            delta_io[b] = delta
+        if boxed:
+            dV[b, 0] = slope
+            dV[b, 1] = curv
+
+
+@numba.njit(cache=True, nogil=True)
+def _finite(a):
+    """Whether every entry of ``a`` is finite."""
+    for v in a.ravel():
+        if not np.isfinite(v):
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _element_pass(
+    b, bf, bh, bv, bb, r, F, H, VhT, Hz, short_form, lower, upper, tol_base, box_opts,
+    Kk, Vh, L, clamped, pieces, assembled, boxed, VF, M, Lb, Quu_r, qu, k, cl, work, W,
+    Fs, Hs,
+):  # fmt: skip
+    """The pass of element ``b`` with regularisation ``r`` (the body of
+    :func:`riccati_kernel`); returns ``(ok, slope, curv)``."""
+    T = Kk.shape[1]
+    m = Kk.shape[2]
+    n1 = Kk.shape[3]
+    n = n1 - 1
+    mn1 = m + n1
+    if assembled:
+        _assemble_terminal(pieces, b, T, Vh[b, T])
+    else:
+        for i in range(n1):
+            for j in range(n1):
+                Vh[b, T, i, j] = VhT[bv, i, j]
+    for i in range(m):
+        k[i] = 0.0
+    slope = 0.0
+    curv = 0.0
+    ok = True
+    for t in range(T - 1, -1, -1):
+        # 2-d views of this step's matrices (cheaper indexing than 4-d)
+        Vn = Vh[b, t + 1]
+        Vc = Vh[b, t]
+        Kt = Kk[b, t]
         if assembled:
-            _assemble_terminal(pieces, b, T, Vh[b, T])
+            _assemble_stage(pieces, b, t, Fs, Hs)
+            _stage_matrix(Vn, Fs, Hs, Hz, t, b, VF, M)
         else:
-            for i in range(n1):
-                for j in range(n1):
-                    Vh[b, T, i, j] = VhT[bv, i, j]
-        for i in range(m):
-            k[i] = 0.0
-        slope = 0.0
-        curv = 0.0
-        ok = True
-        for t in range(T - 1, -1, -1):
-            # 2-d views of this step's matrices (cheaper indexing than 4-d)
-            Vn = Vh[b, t + 1]
-            Vc = Vh[b, t]
-            Kt = Kk[b, t]
-            if assembled:
-                _assemble_stage(pieces, b, t, Fs, Hs)
-                _stage_matrix(Vn, Fs, Hs, Hz, t, b, VF, M)
-            else:
-                _stage_matrix(Vn, F[bf, t], H[bh, t], Hz, t, b, VF, M)
-            if boxed:
-                for i in range(m):
-                    for j in range(m):
-                        Quu_r[i, j] = M[i, j] + (r if i == j else 0.0)
-                    qu[i] = M[i, mn1 - 1]
-                qmax = 0.0
-                for i in range(m):
-                    qmax = max(qmax, abs(qu[i]))
-                tol = tol_base * (1.0 + qmax)
-                if not _box_qp(
-                    Quu_r, qu, lower[bb, t], upper[bb, t], k, tol, box_opts, cl, Lb, work
-                ):
-                    ok = False
-                    break
-                _gains(Lb, M, n, cl, Kt)
-                for i in range(m):
-                    Kt[i, n] = k[i]
-                    clamped[b, t, i] = cl[i]
-                    slope += k[i] * qu[i]
-                    acc = 0.0
-                    for j in range(m):
-                        acc += Quu_r[i, j] * k[j]
-                    curv += k[i] * acc
-            else:
-                if not _cholesky(M, r, cl, Lb):
-                    ok = False
-                    break
-                _gains(Lb, M, n1, cl, Kt)  # [K_t, k_t] together (cl all False)
-            Lt = L[b, t]
+            _stage_matrix(Vn, F[bf, t], H[bh, t], Hz, t, b, VF, M)
+        if boxed:
             for i in range(m):
-                for j in range(i + 1):
-                    Lt[i, j] = Lb[i, j]
-            if short_form:  # Vh_t = M_zz + M_uz'Kk, symmetrised (row order)
-                for i in range(n1):
-                    vi = Vc[i]
-                    for j in range(n1):
-                        vi[j] = M[m + i, m + j]
-                    for p in range(m):
-                        a = M[p, m + i]
-                        kp = Kt[p]
-                        for j in range(n1):
-                            vi[j] += a * kp[j]
-                for i in range(n1):
-                    for j in range(i, n1):
-                        s = 0.5 * (Vc[i, j] + Vc[j, i])
-                        Vc[i, j] = s
-                        Vc[j, i] = s
-                continue
-            # Vh_t = M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk (Tassa et al. 2012's form,
-            # exact for any gains, hence also with reg and with clamped rows), as
-            # M_zz + Kk'W + M_uz'Kk with W = Quu Kk + M_uz; row (axpy) order, the upper
-            # triangle mirrored
-            for p in range(m):
-                wp = W[p]
-                for j in range(n1):
-                    wp[j] = M[p, m + j]
-                for q in range(m):
-                    a = M[p, q]
-                    kq = Kt[q]
-                    for j in range(n1):
-                        wp[j] += a * kq[j]
+                for j in range(m):
+                    Quu_r[i, j] = M[i, j] + (r if i == j else 0.0)
+                qu[i] = M[i, mn1 - 1]
+            qmax = 0.0
+            for i in range(m):
+                qmax = max(qmax, abs(qu[i]))
+            tol = tol_base * (1.0 + qmax)
+            if not _box_qp(Quu_r, qu, lower[bb, t], upper[bb, t], k, tol, box_opts, cl, Lb, work):
+                ok = False
+                break
+            _gains(Lb, M, n, cl, Kt)
+            for i in range(m):
+                Kt[i, n] = k[i]
+                clamped[b, t, i] = cl[i]
+                slope += k[i] * qu[i]
+                acc = 0.0
+                for j in range(m):
+                    acc += Quu_r[i, j] * k[j]
+                curv += k[i] * acc
+        else:
+            if not _cholesky(M, r, cl, Lb):
+                ok = False
+                break
+            _gains(Lb, M, n1, cl, Kt)  # [K_t, k_t] together (cl all False)
+        Lt = L[b, t]
+        for i in range(m):
+            for j in range(i + 1):
+                Lt[i, j] = Lb[i, j]
+        if short_form:  # Vh_t = M_zz + M_uz'Kk, symmetrised (row order)
             for i in range(n1):
                 vi = Vc[i]
                 for j in range(n1):
                     vi[j] = M[m + i, m + j]
                 for p in range(m):
-                    a = Kt[p, i]
-                    c = M[p, m + i]
-                    wp = W[p]
+                    a = M[p, m + i]
                     kp = Kt[p]
                     for j in range(n1):
-                        vi[j] += a * wp[j] + c * kp[j]
+                        vi[j] += a * kp[j]
             for i in range(n1):
-                for j in range(i + 1, n1):
-                    Vc[j, i] = Vc[i, j]
-        failed[b] = not ok
-        if boxed:
-            dV[b, 0] = slope
-            dV[b, 1] = curv
+                for j in range(i, n1):
+                    s = 0.5 * (Vc[i, j] + Vc[j, i])
+                    Vc[i, j] = s
+                    Vc[j, i] = s
+            continue
+        # Vh_t = M_zz + Kk'Quu Kk + Kk'M_uz + M_uz'Kk (Tassa et al. 2012's form,
+        # exact for any gains, hence also with reg and with clamped rows), as
+        # M_zz + Kk'W + M_uz'Kk with W = Quu Kk + M_uz; row (axpy) order, the upper
+        # triangle mirrored
+        for p in range(m):
+            wp = W[p]
+            for j in range(n1):
+                wp[j] = M[p, m + j]
+            for q in range(m):
+                a = M[p, q]
+                kq = Kt[q]
+                for j in range(n1):
+                    wp[j] += a * kq[j]
+        for i in range(n1):
+            vi = Vc[i]
+            for j in range(n1):
+                vi[j] = M[m + i, m + j]
+            for p in range(m):
+                a = Kt[p, i]
+                c = M[p, m + i]
+                wp = W[p]
+                kp = Kt[p]
+                for j in range(n1):
+                    vi[j] += a * wp[j] + c * kp[j]
+        for i in range(n1):
+            for j in range(i + 1, n1):
+                Vc[j, i] = Vc[i, j]
+    return ok, slope, curv
 
 
 @numba.njit(cache=True, nogil=True)

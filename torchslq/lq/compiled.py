@@ -185,7 +185,8 @@ def riccati_compiled(
     bounds: tuple[Tensor, Tensor] | None = None,
     box_tol: float = 0.0,
     pieces: tuple[Tensor | None, ...] | None = None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor | None, Tensor | None]:
+    restarts: tuple[Tensor, Tensor, Tensor, tuple[float, float, float, int]] | None = None,
+) -> tuple:
     """The Riccati pass of :func:`riccati_homogeneous` on the CPU kernel.
 
     Args as for :func:`riccati_homogeneous` (``F (..., T, n+1, m+n+1)``,
@@ -198,11 +199,15 @@ def riccati_compiled(
     :func:`riccati_backward` ``(A, B, c, Q, R, S, q, r)``, each with a time dim of 1 or
     ``T`` (``T + 1`` for ``Q, q``) and ``c, S, q, r`` possibly None: the kernel assembles
     each step's homogeneous matrices itself, so they are never materialised.
-    Call only where :func:`can_use_compiled` holds.
+    ``restarts``: None, or ``(mu, delta, allowed, (factor, floor, mu_max, max_restarts))``
+    with ``(*batch,)`` tensors: each element starts with ``reg = mu`` and repeats its
+    pass with a larger one after a failure (see the kernel's docstring); ``reg`` is then
+    ignored. Call only where :func:`can_use_compiled` holds.
 
     Returns:
         ``Kk (*batch, T, m, n+1)``, ``Vh (*batch, T+1, n+1, n+1)``, ``chol (*batch, T, m, m)``,
-        ``failed (*batch,)``, and with bounds ``clamped (*batch, T, m)``, ``dV (*batch, 2)``
+        ``failed (*batch,)``, with bounds ``clamped (*batch, T, m)``, ``dV (*batch, 2)``
+        (else None, None), and with restarts the final ``mu``, ``delta`` ``(*batch,)``
         (else None, None).
     """
     dtype = F.dtype if pieces is None else pieces[0].dtype
@@ -237,6 +242,20 @@ def riccati_compiled(
         lower, upper = (_flat(t, batch, 2) for t in bounds)
     else:
         lower = upper = np.zeros((0, 1, 1), dtype=npd)
+    if restarts is None:
+        mu = delta = None
+        restart_arrays = (
+            np.zeros(4, dtype=np.float64),
+            np.zeros(0, npd),
+            np.zeros(0, npd),
+            np.zeros(0, np.bool_),
+        )
+    else:
+        mu, delta = (t.detach().to(dtype).expand(batch).reshape(nb).clone() for t in restarts[:2])
+        allowed = restarts[2].expand(batch).reshape(nb).contiguous()
+        opts = np.array(restarts[3], dtype=np.float64)
+        restart_arrays = (opts, mu.numpy(), delta.numpy(), allowed.numpy())
+        reg = mu
     _launch(
         _kernels().riccati_kernel,
         nb,
@@ -256,6 +275,7 @@ def riccati_compiled(
         failed.numpy(),
         dV.numpy(),
         piece_arrays,
+        *restart_arrays,
     )
     return (
         Kk.reshape(*batch, T, m, n1),
@@ -264,6 +284,8 @@ def riccati_compiled(
         failed.reshape(batch),
         clamped.reshape(*batch, T, m) if boxed else None,
         dV.reshape(*batch, 2) if boxed else None,
+        None if mu is None else mu.reshape(batch),
+        None if delta is None else delta.reshape(batch),
     )
 
 

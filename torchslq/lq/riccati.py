@@ -40,6 +40,7 @@ from .compiled import PIECE_NDIMS, can_use_compiled, riccati_compiled, rollout_c
 StageHook = Callable[[int, Tensor], Tensor]
 
 __all__ = [
+    "Restarts",
     "RiccatiFactors",
     "riccati_backward",
     "rollout_linear",
@@ -68,6 +69,8 @@ class RiccatiFactors:
             then holds the factor of the free block, identity on clamped rows/columns).
         dV: with control bounds only (else None): ``(B, 2)``, the expected-improvement
             terms ``[sum_t k_t'Q_u,t, sum_t k_t'(Q_uu,t + reg) k_t]`` of the step.
+        reg, reg_delta: where :func:`riccati_backward` made the ``restarts`` (else
+            None): ``(B,)``, each element's final regularisation and schedule factor.
     """
 
     Kk: Tensor
@@ -76,6 +79,8 @@ class RiccatiFactors:
     failed: Tensor
     clamped: Tensor | None = None
     dV: Tensor | None = None
+    reg: Tensor | None = None
+    reg_delta: Tensor | None = None
 
     @property
     def K(self) -> Tensor:
@@ -92,6 +97,28 @@ class RiccatiFactors:
     @property
     def v(self) -> Tensor:
         return self.Vh[..., :-1, -1]
+
+
+@dataclass(frozen=True)
+class Restarts:
+    """Tassa, Erez & Todorov's (2012) restarts of a failed pass, made per element inside
+    the compiled kernel (see :func:`riccati_backward`).
+
+    An element whose pass fails (``Quu + reg I`` not positive definite, or non-finite
+    gains) and is ``allowed`` repeats it with ``delta := max(factor, delta factor)``,
+    ``reg := max(floor, reg delta)``, until it succeeds, ``reg > reg_max`` (that pass is
+    still made) or ``max_restarts`` restarts were made.
+
+    Attributes:
+        delta: ``(B,)`` the schedule's current factors; allowed ``(B,)`` bool.
+    """
+
+    delta: Tensor
+    allowed: Tensor
+    factor: float
+    floor: float
+    reg_max: float
+    max_restarts: int
 
 
 def with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
@@ -398,7 +425,7 @@ def _pass_batch(
 
 
 def _compiled_pieces_pass(
-    A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds
+    A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds, restarts: Restarts | None = None
 ) -> RiccatiFactors | None:
     """:func:`riccati_backward` on the compiled kernel straight from the LQ data (its
     homogeneous ``F``, ``H`` are assembled per step inside the kernel, never built), or
@@ -423,8 +450,26 @@ def _compiled_pieces_pass(
     extra = [t for t in (reg, hessians) if isinstance(t, Tensor)]
     if not can_use_compiled(*[p for p in pieces if p is not None], *(bounds or ()), *extra):
         return None
+    if restarts is not None:
+        if not (isinstance(reg, Tensor) and len(batch) == 1):
+            raise ValueError("restarts need a per-element reg tensor and one batch dim")
+        restarts = (
+            reg,
+            restarts.delta,
+            restarts.allowed,
+            (restarts.factor, restarts.floor, restarts.reg_max, restarts.max_restarts),
+        )
     out = riccati_compiled(
-        None, None, None, reg, hessians, batch, bounds, _box_tol(A.dtype), pieces=tuple(pieces)
+        None,
+        None,
+        None,
+        reg,
+        hessians,
+        batch,
+        bounds,
+        _box_tol(A.dtype),
+        pieces=tuple(pieces),
+        restarts=restarts,
     )
     return RiccatiFactors(*out)
 
@@ -471,6 +516,7 @@ def riccati_backward(
     reg: Tensor | float | None = None,
     stage_hook: StageHook | None = None,
     u_bounds: tuple[Tensor, Tensor] | None = None,
+    restarts: Restarts | None = None,
 ) -> RiccatiFactors:
     """Backward Riccati pass of the LQ problem solved by :func:`torchslq.lqr_solve`.
 
@@ -481,8 +527,15 @@ def riccati_backward(
     ``Quu`` (scalar or ``(B,)``); ``stage_hook`` and ``u_bounds`` (box bounds
     ``(lower, upper)`` on ``u_t``, each broadcastable to ``(B, T, m)``) are passed to
     :func:`riccati_homogeneous`. No input validation: this is the inner-loop entry point.
+
+    ``restarts`` (with a ``(B,)`` ``reg``): where the pass runs on the compiled CPU
+    kernel, an element whose pass fails repeats it there with a larger ``reg``
+    (:class:`Restarts`), and the result's ``reg``, ``reg_delta`` report the last values
+    (a failure is then also non-finite gains). The torch path ignores it (``reg`` of
+    the result is None): the caller restarts the failed elements itself, as
+    :class:`torchslq.ILQR` does with the same schedule.
     """
-    fac = _compiled_pieces_pass(A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds)
+    fac = _compiled_pieces_pass(A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds, restarts)
     if fac is not None:
         return fac
     T = A.shape[-3]

@@ -38,7 +38,7 @@ from torch import Tensor
 
 from ..costs.general import project_psd
 from ..dynamics.linearize import linearize
-from ..lq.riccati import RiccatiFactors, StageHook, riccati_backward
+from ..lq.riccati import Restarts, RiccatiFactors, StageHook, riccati_backward
 from .line_search import TrialRecorder, armijo_search
 from .rollout import costate_gradient, rollout_closed_loop
 from .slq import SLQ
@@ -287,7 +287,12 @@ class ILQR(SLQ):
         hook = self._second_order(problem, x, u, lam, e)
         u_bounds = None if lo is None else (lo - u, hi - u)  # bounds on δu at ū = u
 
-        def backward_pass(stage_hook, idx: Tensor | None = None, reg: Tensor | None = None):
+        def backward_pass(
+            stage_hook,
+            idx: Tensor | None = None,
+            reg: Tensor | None = None,
+            restarts: Restarts | None = None,
+        ):
             """The Riccati pass for the whole batch, or for the rows ``idx`` only (a
             retry: the pass costs per element, so only the failing ones repeat it; rows
             may repeat, each with its own ``reg``)."""
@@ -311,13 +316,16 @@ class ILQR(SLQ):
                 if idx is None or stage_hook is None
                 else stage_hook.subset(idx),
                 u_bounds=bounds,
+                restarts=restarts,
             )
             # a factorisation can succeed and still give non-finite gains (DDP's
             # second-order terms can make the value function overflow): a failure too
             return fac, fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
 
-        fac, bad = backward_pass(hook)
-        if hook is not None and not hasattr(hook, "subset"):
+        fac, bad = backward_pass(hook, restarts=self._restarts())
+        if fac.reg is not None:  # the compiled kernel made the restarts itself
+            self._mu, self._delta = fac.reg, fac.reg_delta
+        elif hook is not None and not hasattr(hook, "subset"):
             for _ in range(MAX_RETRIES):  # a hook that cannot be restricted: whole batch
                 retry = bad & self._running & (self._mu <= self.mu_max)
                 if not bool(retry.any()):
@@ -357,6 +365,20 @@ class ILQR(SLQ):
             **({} if fac.clamped is None else {"clamped": fac.clamped}),
             **({} if done is None else {"keep_gains": ~done}),
         }
+
+    def _restarts(self) -> Restarts:
+        """The schedule of :meth:`_retry_failed`, for restarts inside the compiled Riccati
+        kernel (no pass repeated from Python: for small problems a repeated pass costs
+        mostly its dispatch)."""
+        floor = self.mu_min if self.mu_min > 0 else 1e-6  # as in _increased
+        return Restarts(
+            self._delta,
+            self._running,
+            float(self.mu_factor),
+            floor,
+            float(self.mu_max),
+            MAX_RETRIES,
+        )
 
     def _retry_failed(self, backward_pass, hook, fac: RiccatiFactors, bad: Tensor):
         """Tassa et al.'s restart for the elements whose pass failed: raise ``mu`` (the
