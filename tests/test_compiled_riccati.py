@@ -92,15 +92,38 @@ def test_compiled_broadcasts_like_the_torch_path(torch_path):
     _close(fast, ref)
 
 
-def test_compiled_with_ddp_hessian_hook(torch_path):
+def _hook(Hz: torch.Tensor, m: int) -> _HessianHook:
+    """DDP's hook from ``Hz (T, n, B, m+n, m+n)`` (symmetric, ``[u; x]`` order)."""
+    blocks = (Hz[..., m:, m:], Hz[..., :m, :m], Hz[..., :m, m:])
+    return _HessianHook(*(b.movedim(0, 2).contiguous() for b in blocks))
+
+
+class _TensorHook:
+    """A hook exposing ``hessians`` as one ``Hz`` tensor (the other accepted form)."""
+
+    def __init__(self, Hz):
+        self.hessians = Hz
+
+    def __call__(self, t, Vh_next):
+        n = self.hessians.shape[1]
+        s = Vh_next[..., :n, n]
+        return (s.mT.unsqueeze(-1).unsqueeze(-1) * self.hessians[t]).sum(0)
+
+
+@pytest.mark.parametrize("form", ["blocks", "tensor"])
+def test_compiled_with_ddp_hessian_hook(torch_path, form):
     B, T, n, m = 5, 8, 3, 2
     F, H, VhT = _problem((B,), T, n, m)
     g = torch.Generator().manual_seed(7)
     Hz = torch.randn(T, n, B, m + n, m + n, generator=g, dtype=F64)
     Hz = 0.05 * (Hz + Hz.mT)
-    fast, ref = _both(torch_path, F, H, VhT, reg=1e-2, stage_hook=_HessianHook(Hz))
+    hook = _hook(Hz, m) if form == "blocks" else _TensorHook(Hz)
+    fast, ref = _both(torch_path, F, H, VhT, reg=1e-2, stage_hook=hook)
     assert not bool(ref.failed.any())
     _close(fast, ref)
+    # the hook changes the pass (a zero-weight hook would pass the comparison above too)
+    plain = riccati_homogeneous(F, H, VhT, reg=1e-2)
+    assert float((plain.Kk - fast.Kk).abs().max()) > 1e-3
 
 
 def test_compiled_reports_the_same_failures(torch_path):
@@ -275,7 +298,7 @@ def test_compiled_box_pass_equals_torch_path(torch_path, m, hook):
     kw = {"reg": reg, "u_bounds": (lower, upper)}
     if hook:
         Hz = torch.randn(T, n, B, m + n, m + n, generator=g, dtype=F64)
-        kw["stage_hook"] = _HessianHook(0.005 * (Hz + Hz.mT))
+        kw["stage_hook"] = _hook(0.005 * (Hz + Hz.mT), m)
     fast, ref = _both(torch_path, F, H, VhT, **kw)
     assert not bool(ref.failed.any())
     assert bool(ref.clamped.any()) and not bool(ref.clamped.all())

@@ -234,9 +234,11 @@ def _box_qp(H, g, lower, upper, x, tol, opts, clamped, Lf, work):
 
 
 @numba.njit(cache=True, nogil=True)
-def _stage_matrix(Vn, Ft, Ht, Hz, t, b, VF, M):
+def _stage_matrix(Vn, Ft, Ht, Hz, Hb, t, b, VF, M):
     """``M = H_t + F_t' Vh_{t+1} F_t`` (upper triangle, mirrored), plus DDP's
-    ``v_{t+1} . f_zz`` on the ``[u; x]`` block when ``Hz`` is not empty."""
+    ``v_{t+1} . f_zz`` on the ``[u; x]`` block when ``Hz`` ``(T, n, B, m+n, m+n)`` or the
+    blocks ``Hb = (Hxx (n, B, T, n, n), Huu (n, B, T, m, m), Hux (n, B, T, m, n))`` are
+    not empty."""
     n1, mn1 = Ft.shape
     n = n1 - 1
     # row-times-matrix (axpy) order over row views: the innermost loops run along
@@ -272,6 +274,27 @@ def _stage_matrix(Vn, Ft, Ht, Hz, t, b, VF, M):
             for i in range(mn1 - 1):
                 for j in range(mn1 - 1):
                     M[i, j] += v * Hk[i, j]
+    Hxx, Huu, Hux = Hb
+    if Hxx.shape[0] > 0:
+        m = mn1 - n1
+        for k in range(n):
+            v = Vn[k, n]
+            hxx = Hxx[k, b, t]
+            huu = Huu[k, b, t]
+            hux = Hux[k, b, t]
+            for i in range(m):
+                mi = M[i]
+                for j in range(m):
+                    mi[j] += v * huu[i, j]
+                for j in range(n):
+                    mi[m + j] += v * hux[i, j]
+            for i in range(n):
+                mi = M[m + i]
+                for j in range(m):
+                    mi[j] += v * hux[j, i]
+                hi = hxx[i]
+                for j in range(n):
+                    mi[m + j] += v * hi[j]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -418,6 +441,7 @@ def riccati_kernel(
     VhT,
     reg,
     Hz,
+    Hb,
     short_form,
     lower,
     upper,
@@ -438,7 +462,8 @@ def riccati_kernel(
     """One Riccati pass per element (see riccati_homogeneous for the equations).
 
     F ``(BF, T, n+1, m+n+1)``, H ``(BH, T, m+n+1, m+n+1)``, VhT ``(BV, n+1, n+1)``
-    (each batch 1 or B), reg ``(BR,)`` (1 or B), Hz ``(T, n, B, m+n, m+n)`` or empty;
+    (each batch 1 or B), reg ``(BR,)`` (1 or B), Hz ``(T, n, B, m+n, m+n)`` or empty, Hb
+    the same Hessians as three blocks ``(n, B, T, ., .)`` (or empty, see _stage_matrix);
     ``short_form``: the value update ``M_zz + M_uz'Kk`` (no reg, as the torch path)
     instead of the general form. Control-limited pass (``riccati._riccati_box``, Tassa,
     Mansard & Todorov 2014) when lower/upper ``(BB, T, m)`` are not empty: the
@@ -497,7 +522,7 @@ def riccati_kernel(
         restarts = 0
         while True:
             ok, slope, curv = _element_pass(
-                b, bf, bh, bv, bb, r, F, H, VhT, Hz, short_form, lower, upper, tol_base,
+                b, bf, bh, bv, bb, r, F, H, VhT, Hz, Hb, short_form, lower, upper, tol_base,
                 box_opts, Kk, Vh, L, clamped, pieces, assembled, boxed, VF, M, Lb, Quu_r,
                 qu, k, cl, work, W, Fs, Hs,
             )  # fmt: skip
@@ -534,7 +559,7 @@ def _finite(a):
 
 @numba.njit(cache=True, nogil=True)
 def _element_pass(
-    b, bf, bh, bv, bb, r, F, H, VhT, Hz, short_form, lower, upper, tol_base, box_opts,
+    b, bf, bh, bv, bb, r, F, H, VhT, Hz, Hb, short_form, lower, upper, tol_base, box_opts,
     Kk, Vh, L, clamped, pieces, assembled, boxed, VF, M, Lb, Quu_r, qu, k, cl, work, W,
     Fs, Hs,
 ):  # fmt: skip
@@ -563,9 +588,9 @@ def _element_pass(
         Kt = Kk[b, t]
         if assembled:
             _assemble_stage(pieces, b, t, Fs, Hs)
-            _stage_matrix(Vn, Fs, Hs, Hz, t, b, VF, M)
+            _stage_matrix(Vn, Fs, Hs, Hz, Hb, t, b, VF, M)
         else:
-            _stage_matrix(Vn, F[bf, t], H[bh, t], Hz, t, b, VF, M)
+            _stage_matrix(Vn, F[bf, t], H[bh, t], Hz, Hb, t, b, VF, M)
         if boxed:
             for i in range(m):
                 for j in range(m):

@@ -192,7 +192,8 @@ def riccati_compiled(
     Args as for :func:`riccati_homogeneous` (``F (..., T, n+1, m+n+1)``,
     ``H (..., T, m+n+1, m+n+1)``, ``VhT (..., n+1, n+1)``, ``reg`` scalar or batch-shaped),
     ``hessians``: None or ``(T, n, prod(batch), m+n, m+n)``, the dynamics' output Hessians
-    in ``[u; x]`` order (added to ``M`` contracted with ``v_{t+1}``); ``batch``: the
+    in ``[u; x]`` order (added to ``M`` contracted with ``v_{t+1}``), or the same as the
+    blocks ``(Hxx, Huu, Hux)``, each ``(n, prod(batch), T, ., .)``; ``batch``: the
     broadcast batch shape; ``bounds``: None, or ``(lower, upper)`` ``(..., T, m)`` on the
     step for the control-limited pass (box QP tolerance ``box_tol (1 + |qu|_inf)``).
     ``pieces``: instead of ``F, H, VhT`` (then None), the LQ data of
@@ -262,7 +263,7 @@ def riccati_compiled(
         T,
         *arrays,
         _reg_array(reg, batch, dtype),
-        _hessian_array(hessians, dtype),
+        *_hessian_arrays(hessians, dtype),
         reg is None and not boxed,
         lower,
         upper,
@@ -421,11 +422,16 @@ def _reg_array(reg: Tensor | float | None, batch: torch.Size, dtype: torch.dtype
     return r.detach().contiguous().numpy()
 
 
-def _hessian_array(hessians: Tensor | None, dtype: torch.dtype) -> np.ndarray:
-    """DDP's ``(T, n, B, m+n, m+n)`` Hessians, or an empty array of ``dtype``."""
+def _hessian_arrays(hessians, dtype: torch.dtype) -> tuple:
+    """DDP's Hessians for the kernel's ``Hz`` and ``Hb`` arguments: a ``(T, n, B, m+n,
+    m+n)`` tensor, or the blocks ``(Hxx, Huu, Hux)`` each ``(n, B, T, ., .)``, or None
+    (empty arrays of ``dtype`` for what is not given)."""
+    empty = np.zeros((0, 1, 1, 1, 1), dtype=_np_dtype(dtype))
     if hessians is None:
-        return np.zeros((0, 1, 1, 1, 1), dtype=_np_dtype(dtype))
-    return hessians.detach().contiguous().numpy()
+        return empty, (empty, empty, empty)
+    if isinstance(hessians, Tensor):
+        return hessians.detach().contiguous().numpy(), (empty, empty, empty)
+    return empty, tuple(h.detach().contiguous().numpy() for h in hessians)
 
 
 def _np_dtype(dtype: torch.dtype) -> np.dtype:

@@ -241,7 +241,8 @@ def riccati_homogeneous(
             ``[u; x]`` block of the stage Hessian at step ``t`` that may depend on the
             value function of step ``t+1`` (DDP's ``V_x · f_zz`` second-order dynamics
             terms); ``None`` for the plain LQ recursion. A hook whose term is
-            ``sum_i v_{t+1,i} Hz[t, i]`` can expose ``Hz (T, n, B, m+n, m+n)`` as its
+            ``sum_i v_{t+1,i} Hz[t, i]`` can expose ``Hz (T, n, B, m+n, m+n)``, or the
+            same Hessians as blocks ``(Hxx, Huu, Hux)`` each ``(n, B, T, ., .)``, as its
             ``hessians`` attribute, which lets the compiled CPU kernel
             (:mod:`torchslq.lq.compiled`) run the pass.
         u_bounds: optional ``(lower, upper)`` bounds on the control ``u_t`` of this LQ
@@ -264,9 +265,7 @@ def riccati_homogeneous(
     if (
         T > 0
         and (stage_hook is None or hessians is not None)
-        and can_use_compiled(
-            F, H, VhT, *(bounds or ()), *[t for t in (reg, hessians) if isinstance(t, Tensor)]
-        )
+        and can_use_compiled(F, H, VhT, *(bounds or ()), *_tensors(reg, hessians))
     ):
         tol = _box_tol(F.dtype)
         return RiccatiFactors(*riccati_compiled(F, H, VhT, reg, hessians, batch, bounds, tol))
@@ -447,7 +446,7 @@ def _compiled_pieces_pass(
             shapes.append(p.shape[: p.ndim - tail - 1])
         pieces.append(p)
     bounds, batch = _pass_batch(broadcast_shapes(*shapes), reg, u_bounds, T, m, A.dtype)
-    extra = [t for t in (reg, hessians) if isinstance(t, Tensor)]
+    extra = _tensors(reg, hessians)
     if not can_use_compiled(*[p for p in pieces if p is not None], *(bounds or ()), *extra):
         return None
     if restarts is not None:
@@ -472,6 +471,18 @@ def _compiled_pieces_pass(
         restarts=restarts,
     )
     return RiccatiFactors(*out)
+
+
+def _tensors(*args) -> list[Tensor]:
+    """The tensors among ``args`` and inside tuples among them (``reg``, a hook's
+    ``hessians``), for :func:`can_use_compiled`."""
+    out = []
+    for a in args:
+        if isinstance(a, Tensor):
+            out.append(a)
+        elif isinstance(a, tuple):
+            out.extend(t for t in a if isinstance(t, Tensor))
+    return out
 
 
 def _box_tol(dtype: torch.dtype) -> float:

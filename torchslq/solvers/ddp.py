@@ -98,36 +98,45 @@ class DDP(ILQR):
         """All ``n`` output Hessians for every step in one batched call
         (:func:`torchslq.dynamics.dynamics_hessians`), contracted with ``v_{t+1}`` inside
         the Riccati loop (same result as the step-by-step VHP)."""
-        Hxx, Huu, Hux = dynamics_hessians(dynamics, x, u)
-        # time-major (T, n, B, m+n, m+n): the concatenation writes this layout at no extra
-        # cost and makes each step's slice contiguous for the contraction
-        return _HessianHook(_block(Hxx.movedim(2, 0), Huu.movedim(2, 0), Hux.movedim(2, 0)))
+        return _HessianHook(*dynamics_hessians(dynamics, x, u))
 
 
 class _HessianHook:
     """Stage hook ``v_{t+1} · f_zz(t)`` from precomputed output Hessians.
 
-    ``Hz``: ``(T, n, B, m+n, m+n)``, the Hessian of output ``i`` at step ``t`` of element
-    ``b`` in the kernel's ``[u; x]`` ordering. :meth:`subset` restricts it to some
-    elements (a Riccati pass repeated for the elements whose factorisation failed).
+    ``Hxx (n, B, T, n, n)``, ``Huu (n, B, T, m, m)``, ``Hux (n, B, T, m, n)``: the
+    Hessians of output ``i`` at step ``t`` of element ``b``
+    (:func:`~torchslq.dynamics.dynamics_hessians`' layout). The compiled Riccati kernel
+    reads them as they are (:attr:`hessians`); the torch path contracts ``Hz (T, n, B,
+    m+n, m+n)``, the same in the kernel's ``[u; x]`` ordering, time-major so that each
+    step's slice is contiguous, built on its first use. :meth:`subset` restricts them to
+    some elements (a Riccati pass repeated for the elements whose factorisation failed).
     """
 
-    def __init__(self, Hz: Tensor):
-        self.Hz = Hz
+    def __init__(self, Hxx: Tensor, Huu: Tensor, Hux: Tensor):
+        self.blocks = (Hxx, Huu, Hux)
+        self._Hz: Tensor | None = None
 
     @property
-    def hessians(self) -> Tensor:
-        """``Hz``, for the compiled Riccati kernel (which contracts it itself)."""
-        return self.Hz
+    def hessians(self) -> tuple[Tensor, Tensor, Tensor]:
+        """``(Hxx, Huu, Hux)``, for the compiled Riccati kernel (which contracts them)."""
+        return self.blocks
+
+    @property
+    def Hz(self) -> Tensor:
+        if self._Hz is None:
+            self._Hz = _block(*(h.movedim(2, 0) for h in self.blocks))
+        return self._Hz
 
     def __call__(self, t: int, Vh_next: Tensor) -> Tensor:
-        n = self.Hz.shape[1]
+        Hz = self.Hz
+        n = Hz.shape[1]
         s = Vh_next[..., :n, n]  # v_{t+1}, (B, n)
         # a broadcast product summed over the outputs: measured 1.6x faster than einsum
-        return (s.mT.unsqueeze(-1).unsqueeze(-1) * self.Hz[t]).sum(0)
+        return (s.mT.unsqueeze(-1).unsqueeze(-1) * Hz[t]).sum(0)
 
     def subset(self, idx: Tensor) -> _HessianHook:
-        return _HessianHook(self.Hz.index_select(2, idx))
+        return _HessianHook(*(h.index_select(1, idx) for h in self.blocks))
 
 
 def _block(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor:
