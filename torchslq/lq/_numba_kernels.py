@@ -777,3 +777,56 @@ def feedback_kernel(t, x, xn, K, lo, hi, u):
             if bounded:
                 s = min(max(s, lo[b, t, i]), hi[b, t, i])
             ur[i] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def costate_kernel(b0, b1, A, B, lx, lu, K, grad, lam):
+    """The costate recursion of ``solvers.rollout.costate_gradient`` per element:
+    ``lam_T = lx_T``, ``g_t = lu_t + B_t' lam_{t+1}``, ``lam_t = lx_t + A_t' lam_{t+1}
+    (+ K_t' g_t)``. A ``(., T, n, n)``, B ``(., T, n, m)``, lx ``(., T+1, n)``, lu ``(., T,
+    m)``, K ``(., T, m, n)`` or empty (each batch 1 or B); outputs grad ``(B, T, m)``,
+    lam ``(B, T+1, n)``."""
+    T = grad.shape[1]
+    m = grad.shape[2]
+    n = lam.shape[2]
+    feedback = K.shape[0] > 0
+    for b in range(b0, b1):
+        ba = b if A.shape[0] > 1 else 0
+        bb = b if B.shape[0] > 1 else 0
+        bx = b if lx.shape[0] > 1 else 0
+        bu = b if lu.shape[0] > 1 else 0
+        bk = b if K.shape[0] > 1 else 0
+        for i in range(n):
+            lam[b, T, i] = lx[bx, T, i]
+        for t in range(T - 1, -1, -1):
+            ln = lam[b, t + 1]
+            g = grad[b, t]
+            Bt = B[bb, t]
+            # the products summed first, then the gradients added (the torch path's order)
+            for j in range(m):
+                g[j] = 0.0
+            for i in range(n):
+                li = ln[i]
+                Bi = Bt[i]
+                for j in range(m):
+                    g[j] += Bi[j] * li
+            for j in range(m):
+                g[j] += lu[bu, t, j]
+            lc = lam[b, t]
+            At = A[ba, t]
+            for j in range(n):
+                lc[j] = 0.0
+            for i in range(n):
+                li = ln[i]
+                Ai = At[i]
+                for j in range(n):
+                    lc[j] += Ai[j] * li
+            for j in range(n):
+                lc[j] += lx[bx, t, j]
+            if feedback:
+                Kt = K[bk, t]
+                for j in range(n):
+                    s = 0.0
+                    for i in range(m):
+                        s += Kt[i, j] * g[i]
+                    lc[j] += s

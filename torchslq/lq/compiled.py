@@ -49,6 +49,7 @@ __all__ = [
     "PIECE_NDIMS",
     "adjoint_compiled",
     "closed_loop_feedback_compiled",
+    "costate_compiled",
     "can_use_compiled",
     "compiled_available",
     "riccati_compiled",
@@ -381,6 +382,45 @@ def closed_loop_feedback_compiled(
         kernel(t, xt.detach().reshape(-1, n).numpy(), xn, Kn, lo, hi, un)
 
     return step
+
+
+def costate_compiled(
+    A: Tensor, B: Tensor, lx: Tensor, lu: Tensor, K: Tensor | None
+) -> tuple[Tensor, Tensor] | None:
+    """:func:`torchslq.solvers.costate_gradient` on the CPU kernel (same shapes and
+    outputs), or None where the shapes are not the plain ``A (..., T, n, n)``, ``B (...,
+    T, n, m)``, ``lx (..., T+1, n)``, ``lu (..., T, m)``, ``K (..., T, m, n)`` (the
+    caller then takes the torch path). Call only where :func:`can_use_compiled` holds."""
+    T, m, n = lu.shape[-2], lu.shape[-1], lx.shape[-1]
+    if (
+        T == 0
+        or A.shape[-3:] != (T, n, n)
+        or B.shape[-3:] != (T, n, m)
+        or lx.shape[-2] != T + 1
+        or (K is not None and K.shape[-3:] != (T, m, n))
+    ):
+        return None
+    leads = [A.shape[:-3], B.shape[:-3], lx.shape[:-2], lu.shape[:-2]]
+    if K is not None:
+        leads.append(K.shape[:-3])
+    batch = broadcast_shapes(*leads)
+    nb = math.prod(batch)
+    grad = torch.empty(nb, T, m, dtype=lu.dtype)
+    lam = torch.empty(nb, T + 1, n, dtype=lu.dtype)
+    Ka = np.zeros((0, 1, 1, 1), _np_dtype(lu.dtype)) if K is None else _flat(K, batch, 3)
+    _launch(
+        _kernels().costate_kernel,
+        nb,
+        T,
+        _flat(A, batch, 3),
+        _flat(B, batch, 3),
+        _flat(lx, batch, 2),
+        _flat(lu, batch, 2),
+        Ka,
+        grad.numpy(),
+        lam.numpy(),
+    )
+    return grad.reshape(*batch, T, m), lam.reshape(*batch, T + 1, n)
 
 
 def stage_congruence_compiled(

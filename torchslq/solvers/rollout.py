@@ -8,7 +8,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from ..lq.compiled import can_use_compiled, closed_loop_feedback_compiled
+from ..lq.compiled import can_use_compiled, closed_loop_feedback_compiled, costate_compiled
 
 __all__ = ["rollout", "rollout_closed_loop", "costate_gradient"]
 
@@ -127,6 +127,10 @@ def costate_gradient(
     Returns:
         ``grad (B, T, m)`` and costates ``lam (B, T+1, n)``.
     """
+    if can_use_compiled(A, B, lx, lu, *(() if K is None else (K,))):
+        out = costate_compiled(A, B, lx, lu, K)
+        if out is not None:
+            return out
     T = lu.shape[-2]
     lam = lx[..., T, :].unsqueeze(-1)
     lams = [lam] * (T + 1)
