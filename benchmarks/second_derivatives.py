@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import torchslq as ts  # noqa: E402
 from torchslq.dynamics import dynamics_hessians, dynamics_vhp  # noqa: E402
-from torchslq.systems import CartPole, Unicycle  # noqa: E402
+from torchslq.systems import CartPole, MassChain, Unicycle  # noqa: E402
 
 F64 = torch.float64
 
@@ -156,7 +156,12 @@ def main() -> None:
         solves = [("cartpole", 8, "value")]
         args.repeats, args.solve_repeats = 3, 1
     else:
-        calls = [("cart-pole RK4", cartpole, 512, 50), ("unicycle", Unicycle(0.1), 512, 20)]
+        chain = ts.discretize(MassChain(), 0.1)  # the MPC layer benchmark's model
+        calls = [
+            ("cart-pole RK4", cartpole, 512, 50),
+            ("unicycle", Unicycle(0.1), 512, 20),
+            ("mass chain RK4", chain, 64, 40),
+        ]
         solves = [
             ("cartpole", 64, "value"),
             ("cartpole", 64, "costate"),

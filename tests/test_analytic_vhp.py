@@ -8,7 +8,7 @@ import torch
 
 import torchslq as ts
 from torchslq.dynamics import ContinuousDynamics, dynamics_hessians, dynamics_vhp
-from torchslq.systems import CartPole
+from torchslq.systems import CartPole, MassChain
 
 F64 = torch.float64
 
@@ -19,6 +19,8 @@ def _models():
     return {
         "cartpole": CartPole(),
         "cartpole-per-element-mc": CartPole(mc=per_elem),
+        "mass-chain": MassChain(k3=1.7, damping=0.2),
+        "mass-chain-per-element-mass": MassChain(n_masses=3, mass=per_elem, k3=0.6),
     }
 
 

@@ -687,6 +687,8 @@ def stage_congruence_kernel(j0, j1, hxx, huu, hux, dk, scale, Hxx, Huu, Hux):
     Q = np.empty((n, m), dtype=hxx.dtype)
     HP = np.empty((n, n), dtype=hxx.dtype)
     t1 = np.empty((n, m), dtype=hxx.dtype)
+    row_nz = np.zeros(n, dtype=np.bool_)
+    t1_nz = np.zeros(n, dtype=np.bool_)
     r_prev = -1
     for j in range(j0, j1):
         r = j % R
@@ -701,7 +703,9 @@ def stage_congruence_kernel(j0, j1, hxx, huu, hux, dk, scale, Hxx, Huu, Hux):
             r_prev = r
         h = hxx[j]
         g = hux[j]
-        # HP = hxx P and t1 = hxx Q + hux', row by row
+        # HP = hxx P and t1 = hxx Q + hux', row by row. Models' second derivatives are
+        # mostly zero (only some states enter nonlinearly): zero entries of hxx are
+        # skipped, and so are the rows of HP they leave zero in the next product
         for a in range(n):
             hp = HP[a]
             ta = t1[a]
@@ -709,45 +713,74 @@ def stage_congruence_kernel(j0, j1, hxx, huu, hux, dk, scale, Hxx, Huu, Hux):
                 hp[b] = 0.0
             for k in range(m):
                 ta[k] = g[k, a]
+            nz = False
             for c in range(n):
                 hac = h[a, c]
+                if hac == 0.0:
+                    continue
+                nz = True
                 pc = P[c]
                 qc = Q[c]
                 for b in range(n):
                     hp[b] += hac * pc[b]
                 for k in range(m):
                     ta[k] += hac * qc[k]
+            row_nz[a] = nz
+            for k in range(m):
+                nz = nz or g[k, a] != 0.0
+            t1_nz[a] = nz
         # Hxx += P' HP: symmetric (hxx is, and so is every earlier stage's sum), so the
         # upper triangle is computed and mirrored
         O = Hxx[j]
         for c in range(n):
+            if not row_nz[c]:
+                continue
             pc = P[c]
             hc = HP[c]
             for a in range(n):
                 pca = pc[a]
+                if pca == 0.0:
+                    continue
                 oa = O[a]
                 for b in range(a, n):
                     oa[b] += pca * hc[b]
         for a in range(n):
             for b in range(a + 1, n):
                 O[b, a] = O[a, b]
-        # Hux += t1' P, Huu += huu + Q' t1 + hux Q
+        # Hux += t1' P, Huu += huu + Q' t1 + hux Q (zero rows of t1, entries of hux
+        # skipped)
         G = Hux[j]
         U = Huu[j]
         hu = huu[j]
         for k in range(m):
-            gk = G[k]
             uk = U[k]
-            for a in range(n):
-                tak = t1[a, k]
-                pa = P[a]
+            for l in range(m):
+                uk[l] += hu[k, l]
+        for a in range(n):
+            if not t1_nz[a]:
+                continue
+            pa = P[a]
+            ta = t1[a]
+            qa = Q[a]
+            for k in range(m):
+                tak = ta[k]
+                gk = G[k]
                 for b in range(n):
                     gk[b] += tak * pa[b]
-            for l in range(m):
-                s = hu[k, l]
-                for a in range(n):
-                    s += Q[a, k] * t1[a, l] + g[k, a] * Q[a, l]
-                uk[l] += s
+                qak = qa[k]
+                uk = U[k]
+                for l in range(m):
+                    uk[l] += qak * ta[l]
+        for k in range(m):
+            gk_row = g[k]
+            uk = U[k]
+            for a in range(n):
+                gka = gk_row[a]
+                if gka == 0.0:
+                    continue
+                qa = Q[a]
+                for l in range(m):
+                    uk[l] += gka * qa[l]
 
 
 @numba.njit(cache=True, nogil=True)

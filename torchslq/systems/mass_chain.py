@@ -113,3 +113,28 @@ class MassChain(ContinuousDynamics):
         )
         B = torch.cat([zero, torch.diag_embed(ones / m)], dim=-2)
         return A, B
+
+    def vhp(
+        self, x: Tensor, u: Tensor, s: Tensor, t: Tensor | None = None
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """Hessian blocks of ``s · f``. Only the springs are curved: ``s · f`` contains
+        ``sum_j c_j s(e_j)`` with ``c_j = (w_{j-1} - w_j) / m`` (``w = s[N:]`` the weights
+        of the accelerations, ``w_0 = 0``), so with ``d_j = c_j s''(e_j) = 6 k3 c_j e_j``
+        the position block is the tridiagonal ``D' diag(d) D`` (``e = D p``); every other
+        entry is zero."""
+        N = self.n_masses
+        m, _, k3, _ = self._params(x)
+        Dt, _ = self._matrices(x)
+        e = x[..., :N] @ Dt
+        w = s[..., N:]
+        w_prev = torch.cat([torch.zeros_like(w[..., :1]), w[..., :-1]], dim=-1)
+        d = (6.0 * k3) * (w_prev - w) / m * e  # (..., N)
+        diag = torch.cat([d[..., :-1] + d[..., 1:], d[..., -1:]], dim=-1)
+        Hpp = torch.diag_embed(diag)
+        if N > 1:
+            off = -d[..., 1:]
+            Hpp = Hpp + torch.diag_embed(off, offset=1) + torch.diag_embed(off, offset=-1)
+        lead = Hpp.shape[:-2]
+        Hxx = x.new_zeros(*lead, 2 * N, 2 * N)
+        Hxx[..., :N, :N] = Hpp
+        return Hxx, x.new_zeros(*lead, N, N), x.new_zeros(*lead, N, 2 * N)
