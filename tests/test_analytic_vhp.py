@@ -215,6 +215,50 @@ def test_mpc_exact_implicit_gradients_with_analytic_second_derivatives(monkeypat
         torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
 
 
+def test_mass_chain_mpc_exact_gradients_and_ddp_with_analytic_second_derivatives(monkeypatch):
+    """The MPC benchmark's model: the exact implicit gradients w.r.t. learnable mass, k3
+    and x0 through MassChain.vhp equal those with autodiff f_zz, and DDP (costate mode,
+    which uses f_zz in every step) takes the same iterates."""
+    from torch import nn
+
+    calls = {"n": 0}
+    real = MassChain.vhp
+
+    def counting(self, *a, **k):
+        calls["n"] += 1
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(MassChain, "vhp", counting)
+    N, T = 3, 12
+    Q = torch.eye(2 * N, dtype=F64)
+    goal = torch.tensor([0.3, 0.6, 0.9, 0, 0, 0], dtype=F64)
+    g = torch.Generator().manual_seed(8)
+    x0 = 0.5 * torch.randn(2, 2 * N, generator=g, dtype=F64)
+    wx = torch.randn(2, T + 1, 2 * N, generator=g, dtype=F64)
+    grads, sols = [], []
+    for analytic in (True, False):
+        mass = nn.Parameter(torch.tensor(1.1, dtype=F64))
+        k3 = nn.Parameter(torch.tensor(1.5, dtype=F64))
+        step = ts.discretize(MassChain(N, mass=mass, k3=k3), 0.1)
+        dyn = step if analytic else Autodiff(step)
+        cost = ts.QuadraticCost(Q, 0.1 * torch.eye(N, dtype=F64), 10 * Q, x_ref=goal)
+        solver = ts.DDP(second_order="costate", max_iter=100, tol=1e-10, progress=False)
+        mpc = ts.MPC(dyn, cost, T, solver=solver, backward="implicit", warm_start=False)
+        x0v = x0.clone().requires_grad_(True)
+        n0 = calls["n"]
+        x, u = mpc(x0v)
+        assert bool(mpc.last_result.converged.all())
+        assert (calls["n"] > n0) == analytic
+        sols.append((mpc.last_result.iterations.clone(), u.detach().clone()))
+        (wx * x).sum().backward()
+        grads.append((mass.grad.clone(), k3.grad.clone(), x0v.grad.clone()))
+    assert torch.equal(sols[0][0], sols[1][0])
+    torch.testing.assert_close(sols[0][1], sols[1][1], rtol=1e-9, atol=1e-11)
+    for a, b in zip(*grads, strict=True):
+        assert float(b.abs().max()) > 1e-3
+        torch.testing.assert_close(a, b, rtol=1e-8, atol=1e-10)
+
+
 @pytest.mark.parametrize(
     "shapes",
     [
