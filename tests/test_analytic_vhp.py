@@ -298,3 +298,37 @@ def test_compiled_rk4_congruence_matches_the_torch_chain(shapes, dtype, monkeypa
         b = b.expand_as(a)
         assert a.dtype == dtype
         assert (a - b).abs().max() <= tol * (1 + b.abs().max())
+
+
+@pytest.mark.parametrize("name", ["cartpole", "mass-chain-per-element-mass", "autodiff", "euler"])
+def test_linearize_with_vhp_equals_the_separate_calls_and_shares_the_stages(name, monkeypatch):
+    """linearize_with_vhp == linearize and dynamics_vhp at the same point (bit for bit);
+    for an RK4 model with analytic derivatives the stage Jacobians are computed once for
+    both (4 continuous Jacobian calls instead of 8)."""
+    from torchslq.dynamics import linearize_with_vhp
+
+    model = _models()["cartpole" if name in ("autodiff", "euler") else name]
+    step = ts.discretize(model, 0.07, "euler" if name == "euler" else "rk4")
+    dyn = Autodiff(step) if name == "autodiff" else step
+    n, m = model.state_dim, model.control_dim
+    x, u, s = _data(n, m, seed=9)
+    calls = {"n": 0}
+    real = type(model).jacobians
+
+    def counting(self, *a, **k):
+        calls["n"] += 1
+        return real(self, *a, **k)
+
+    monkeypatch.setattr(type(model), "jacobians", counting)
+    A, B, vhp = linearize_with_vhp(dyn, x, u)
+    got = vhp(s)
+    shared_calls = calls["n"]
+    calls["n"] = 0
+    A2, B2 = ts.linearize(dyn, x, u)
+    ref = dynamics_vhp(dyn, x, u, s)
+    assert torch.equal(A, A2) and torch.equal(B, B2)
+    for a, b in zip(got, ref, strict=True):
+        assert torch.equal(a, b)
+    if name in ("cartpole", "mass-chain-per-element-mass"):
+        assert (shared_calls, calls["n"]) == (4, 8)
+    assert float(got[0].abs().max()) > 1e-4

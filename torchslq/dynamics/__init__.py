@@ -8,6 +8,7 @@ from .linearize import (
     dynamics_hessians,
     dynamics_vhp,
     linearize,
+    linearize_with_vhp,
 )
 
 __all__ = [
@@ -20,5 +21,6 @@ __all__ = [
     "dynamics_hessians",
     "dynamics_vhp",
     "linearize",
+    "linearize_with_vhp",
     "state_control_dims",
 ]

@@ -119,8 +119,25 @@ class DiscretizedDynamics(Dynamics):
             )
         if self.method == "euler":
             return tuple(dt * h for h in f.vhp(x, u, s))
-        n = x.shape[-1]
         _, _, stages = self._rk4_chain(x, u, keep_stages=True)
+        return self._vhp_from_stages(u, s, stages)
+
+    def jacobians_and_vhp(self, x: Tensor, u: Tensor):
+        """``(A, B, vhp)``: the step's Jacobians and a function ``s -> vhp(x, u, s)`` that
+        reuses their RK4 stages (the Jacobians at each stage, which the second
+        derivatives chain through) instead of recomputing them; None when the model has
+        no analytic second derivatives to chain (or for Euler, where nothing is shared).
+        For callers that need both at the same point, the second after a costate
+        recursion on the first (DDP's costate mode, the MPC layer's exact backward)."""
+        if self.method == "euler" or not self.has_analytic_vhp:
+            return None
+        A, B, stages = self._rk4_chain(x, u, keep_stages=True)
+        return A, B, lambda s: self._vhp_from_stages(u, s, stages)
+
+    def _vhp_from_stages(self, u: Tensor, s: Tensor, stages: list):
+        """The RK4 chain of :meth:`vhp` from :meth:`_rk4_chain`'s kept stages."""
+        f, dt = self.continuous, self.dt
+        n = s.shape[-1]
         weights = [dt / 6.0 * w for _, w in _RK4]
         mu = weights[3] * s
         Hxx = Huu = Hux = None

@@ -16,7 +16,14 @@ from torch.func import jacfwd, jacrev, vjp, vmap
 from .._shapes import broadcast_shapes
 from .base import Dynamics, state_control_dims
 
-__all__ = ["linearize", "dynamics_vhp", "dynamics_hessians", "LearnedDynamics", "as_transition"]
+__all__ = [
+    "linearize",
+    "linearize_with_vhp",
+    "dynamics_vhp",
+    "dynamics_hessians",
+    "LearnedDynamics",
+    "as_transition",
+]
 
 _METHODS = ("auto", "vjp", "jacrev", "jacfwd")
 
@@ -199,12 +206,46 @@ def dynamics_vhp(
     return Hx[..., :n], Hu[..., n:], Hu[..., :n]
 
 
+def linearize_with_vhp(
+    dynamics: Callable, x: Tensor, u: Tensor, *, method: str = "auto"
+) -> tuple[Tensor, Tensor, Callable[[Tensor], tuple[Tensor, Tensor, Tensor]]]:
+    """``(A, B, vhp)``: :func:`linearize` at ``(x, u)`` and ``vhp(s)`` =
+    :func:`dynamics_vhp` ``(dynamics, x, u, s)`` at the same point, for a caller that
+    needs the second after computing ``s`` from the first (a costate recursion).
+
+    With a model whose second derivatives are chained through its integration stages
+    (:meth:`torchslq.DiscretizedDynamics.jacobians_and_vhp`, analytic ``jacobians`` and
+    ``vhp``), the stages' Jacobians are computed once for both; otherwise the two are
+    computed as by the separate functions. Detached results, as theirs.
+    """
+    share = getattr(dynamics, "jacobians_and_vhp", None)
+    if share is not None and x.shape[:-1] == u.shape[:-1]:
+        with torch.no_grad():
+            out = share(x.detach(), u.detach())
+        if out is not None:
+            A, B, vhp = out
+
+            def shared_vhp(s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+                with torch.no_grad():
+                    return _full_vhp(vhp(s.detach()), x, u, s)
+
+            return A, B, shared_vhp
+    A, B = linearize(dynamics, x, u, method=method)
+    return A, B, lambda s: dynamics_vhp(dynamics, x, u, s)
+
+
 def _analytic_vhp(f, x: Tensor, u: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The model's own :meth:`~torchslq.Dynamics.vhp`, at full shape ``(*lead, ., .)``
     with ``lead`` the broadcast of ``s``'s and ``x``'s leading dims."""
+    return _full_vhp(f.vhp(x, u, s), x, u, s)
+
+
+def _full_vhp(blocks, x: Tensor, u: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Hessian blocks expanded to ``(*lead, ., .)``, ``lead`` the broadcast of ``s``'s
+    and ``x``'s leading dims, contiguous."""
     n, m = x.shape[-1], u.shape[-1]
     lead = broadcast_shapes(s.shape[:-1], x.shape[:-1])
-    Hxx, Huu, Hux = f.vhp(x, u, s)
+    Hxx, Huu, Hux = blocks
     return (
         Hxx.expand(*lead, n, n).contiguous(),
         Huu.expand(*lead, m, m).contiguous(),

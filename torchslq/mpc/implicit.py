@@ -33,13 +33,14 @@ the identity and their linear term by zero), so their sensitivity is zero.
 
 from __future__ import annotations
 
+from functools import partial
 from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from ..dynamics.linearize import dynamics_vhp, linearize
+from ..dynamics.linearize import dynamics_vhp, linearize_with_vhp
 from ..lq.riccati import homogeneous_cost, homogeneous_dynamics, riccati_homogeneous
 from ..lq.solve import lq_adjoint_solve, lq_status
 from ..solvers.rollout import costate_gradient
@@ -84,9 +85,11 @@ def _lagrangian_terms(
     hessian: str,
     A: Tensor | None,
     B: Tensor | None,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    return_jacobians: bool = False,
+) -> tuple[Tensor, ...]:
     """:func:`lagrangian_hessian`'s blocks and the costates ``λ (B,T+1,n)`` at ``(x, u)``
-    (Sideris & Bobrow eqs. 8-9)."""
+    (Sideris & Bobrow eqs. 8-9); with ``return_jacobians`` also ``A, B`` (computed here
+    when not given, with the second derivatives' shared work: :func:`linearize_with_vhp`)."""
     if hessian not in _HESSIANS:
         raise ValueError(f"hessian must be one of {_HESSIANS}, got {hessian!r}")
     T, n, m = problem.horizon, problem.state_dim, problem.control_dim
@@ -103,13 +106,17 @@ def _lagrangian_terms(
         lx = _batched(e.lx.detach(), Bsz, (n,)).expand(Bsz, T + 1, n)
         lu = _batched(e.lu.detach(), Bsz, (m,)).expand(Bsz, T, m)
         if A is None or B is None:
-            A, B = linearize(problem.transition, x[:, :T], u)
+            A, B, vhp = linearize_with_vhp(problem.transition, x[:, :T], u)
+        else:
+            vhp = partial(dynamics_vhp, problem.transition, x[:, :T], u)
         _, lam = costate_gradient(A.detach(), B.detach(), lx, lu)
         if hessian == "exact":
-            Hxx, Huu, Hux = dynamics_vhp(problem.transition, x[:, :T], u, lam[:, 1:])
+            Hxx, Huu, Hux = vhp(lam[:, 1:])
             Q = torch.cat([Q[:, :T] + Hxx, Q[:, T:]], dim=1)
             R = R + Huu
             S = S + Hux
+    if return_jacobians:
+        return Q, R, S, lx, lu, lam, A, B
     return Q, R, S, lx, lu, lam
 
 
@@ -197,8 +204,7 @@ def implicit_solution(
     xl = torch.where(finite.view(-1, 1, 1), xs, torch.zeros_like(xs))
     ul = torch.where(finite.view(-1, 1, 1), us, torch.zeros_like(us))
     with torch.no_grad():
-        A, Bm = linearize(problem.dynamics, xl[:, :T], ul)
-        Q, R, S, _, _, lam = _lagrangian_terms(problem, xl, ul, hessian, A, Bm)
+        Q, R, S, _, _, lam, A, Bm = _lagrangian_terms(problem, xl, ul, hessian, None, None, True)
         keep_u = torch.ones_like(ul, dtype=torch.bool) if active is None else ~active
         if active is not None:
             keep = keep_u.to(xs.dtype)  # (B, T, m)

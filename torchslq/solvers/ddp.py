@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from ..dynamics.linearize import dynamics_hessians, dynamics_vhp
+from ..dynamics.linearize import dynamics_hessians, dynamics_vhp, linearize_with_vhp
 from ..lq.riccati import StageHook
 from .ilqr import ILQR
 
@@ -66,13 +66,22 @@ class DDP(ILQR):
             raise ValueError(f"second_order must be one of {_MODES}, got {second_order!r}")
         self.second_order = second_order
 
+    def _linearize(self, problem: Problem, x: Tensor, u: Tensor):
+        if self.second_order != "costate":
+            return super()._linearize(problem, x, u)
+        # the costate mode's VHP at the same steps follows: share what the model allows
+        return linearize_with_vhp(problem.transition, x, u, method=self.options.linearize_method)
+
     def _second_order(
-        self, problem: Problem, x: Tensor, u: Tensor, lam: Tensor, e
+        self, problem: Problem, x: Tensor, u: Tensor, lam: Tensor, e, vhp=None
     ) -> StageHook | None:
         f = problem.transition
         n, T = problem.state_dim, problem.horizon
         if self.second_order == "costate":
-            Hxx, Huu, Hux = dynamics_vhp(f, x[:, :T], u, lam[:, 1:])
+            if vhp is None:
+                Hxx, Huu, Hux = dynamics_vhp(f, x[:, :T], u, lam[:, 1:])
+            else:
+                Hxx, Huu, Hux = vhp(lam[:, 1:])
             Bsz = x.shape[0]
             e.lxx = e.lxx.expand(Bsz, *e.lxx.shape[1:]).clone()
             e.lxx[:, :T] += Hxx

@@ -269,7 +269,7 @@ class ILQR(SLQ):
         still failing are reported in ``failed``.
         """
         T = problem.horizon
-        A, B = linearize(problem.transition, x[:, :T], u, method=self.options.linearize_method)
+        A, B, vhp = self._linearize(problem, x[:, :T], u)
         e = self._expansion(problem, x, u)
         grad, lam = costate_gradient(A, B, e.lx, e.lu)
         if getattr(self, "_running", None) is None or self._running.shape[0] != x.shape[0]:
@@ -284,7 +284,7 @@ class ILQR(SLQ):
         if done is not None and bool((done | ~self._running).all()):
             # every step would be discarded: skip the second-order terms and the pass
             return _no_step(x, u, grad)
-        hook = self._second_order(problem, x, u, lam, e)
+        hook = self._second_order(problem, x, u, lam, e, vhp)
         u_bounds = None if lo is None else (lo - u, hi - u)  # bounds on δu at ū = u
 
         def backward_pass(
@@ -424,8 +424,14 @@ class ILQR(SLQ):
             tries += n_cand
         return fac, bad
 
+    def _linearize(self, problem: Problem, x: Tensor, u: Tensor):
+        """``(A, B, vhp)`` at the steps ``(x_t, u_t)``; iLQR needs no second derivatives
+        (``vhp`` None, see :class:`torchslq.DDP`)."""
+        A, B = linearize(problem.transition, x, u, method=self.options.linearize_method)
+        return A, B, None
+
     def _second_order(
-        self, problem: Problem, x: Tensor, u: Tensor, lam: Tensor, e
+        self, problem: Problem, x: Tensor, u: Tensor, lam: Tensor, e, vhp=None
     ) -> StageHook | None:
         """Dynamics second-order terms: none for iLQR (see :class:`torchslq.DDP`)."""
         return None
