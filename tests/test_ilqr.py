@@ -642,3 +642,44 @@ def test_converged_initial_guess_still_gets_gains():
     assert bool((r.iterations == 0).all()) and bool(r.converged.all())
     assert bool((r.K != 0).any(dim=(1, 2, 3)).all())
     torch.testing.assert_close(r.K, ref.K, rtol=1e-3, atol=1e-4)
+
+
+@pytest.mark.parametrize("bounded", [False, True])
+def test_x_init_skips_the_initial_rollout_and_gives_the_same_solve(bounded, monkeypatch):
+    """solve(..., x_init=rollout of u_init): the same result bit for bit without the
+    initial rollout (one model rollout fewer); with bounds that clamp u_init the given
+    states are not those of the clamped controls and are ignored (still the same result);
+    a wrong shape or first state is an error."""
+    import torchslq.solvers.slq as slq_mod
+    from torchslq import discretize
+    from torchslq.solvers.rollout import rollout
+
+    dyn = discretize(CartPole(), 0.05)
+    cost = QuadraticCost(torch.eye(4, dtype=F64), 0.1 * torch.eye(1, dtype=F64))
+    problem = Problem(dyn, cost, 15)
+    g = torch.Generator().manual_seed(2)
+    x0 = 0.3 * torch.randn(3, 4, generator=g, dtype=F64)
+    u0 = 2.0 * torch.randn(3, 15, 1, generator=g, dtype=F64)
+    xs = rollout(problem.transition, x0, u0)
+    kw = dict(max_iter=30, tol=1e-9, progress=False)
+    solver = ILQR(u_min=-1.0, u_max=1.0, **kw) if bounded else ILQR(**kw)
+    calls = {"n": 0}
+    real = slq_mod.rollout
+
+    def counting(*a):
+        calls["n"] += 1
+        return real(*a)
+
+    monkeypatch.setattr(slq_mod, "rollout", counting)
+    ref = solver.solve(problem, x0, u0)
+    n_ref = calls["n"]
+    got = solver.solve(problem, x0, u0, x_init=xs)
+    assert calls["n"] - n_ref == (1 if bounded else 0)  # clamped u_init: rolled out again
+    for name in ("x", "u", "cost", "iterations", "status"):
+        assert torch.equal(getattr(got, name), getattr(ref, name)), name
+    with pytest.raises(ValueError, match="x_init"):
+        solver.solve(problem, x0, u0, x_init=xs[:, :-1])
+    bad = xs.clone()
+    bad[1, 0, 0] += 1e-3
+    with pytest.raises(ValueError, match="x0"):
+        solver.solve(problem, x0, u0, x_init=bad)

@@ -353,10 +353,15 @@ def test_shifted_warm_start_applies_the_previous_gains():
     out = mpc(X0)
     res = out.result
     x_pred = res.x[:, 1]
-    guess = mpc._initial_guess(x_pred, None)
+    guess, _ = mpc._initial_guess(x_pred, None)
     torch.testing.assert_close(guess[:, :-1], res.u[:, 1:], rtol=0, atol=1e-12)
     x_off = x_pred + torch.tensor([0.05, -0.1], dtype=torch.float64)
-    guess = mpc._initial_guess(x_off, None)
+    guess, guess_x = mpc._initial_guess(x_off, None)
+    # the states handed to the solver (which then skips its initial rollout) are the
+    # rollout of the guess from the new state, bit for bit
+    from torchslq.solvers.rollout import rollout
+
+    assert torch.equal(guess_x, rollout(mpc.problem.transition, x_off, guess))
     K1 = res.K[:, 1]
     expected_first = res.u[:, 1] + (K1 @ (x_off - x_pred).unsqueeze(-1))[..., 0]
     torch.testing.assert_close(guess[:, 0], expected_first, rtol=1e-12, atol=1e-12)

@@ -185,22 +185,25 @@ class MPC(nn.Module):
         """Forget the stored warm start."""
         self._warm = None
 
-    def _initial_guess(self, x0: Tensor, u_init: Tensor | None) -> Tensor | None:
-        """``u_init``, else the stored warm start for this batch size: the previous
-        controls, and for ``"shift"`` with the previous feedback gains applied to the
-        deviation from the previous (shifted) trajectory, ``u = u_prev + K_prev (x - x_prev)``
-        rolled out from the new ``x0`` (so a state that drifted from the prediction, e.g.
-        under model mismatch, starts from a corrected guess)."""
+    def _initial_guess(
+        self, x0: Tensor, u_init: Tensor | None
+    ) -> tuple[Tensor | None, Tensor | None]:
+        """``(u, x)``: ``u_init``, else the stored warm start for this batch size: the
+        previous controls, and for ``"shift"`` with the previous feedback gains applied to
+        the deviation from the previous (shifted) trajectory, ``u = u_prev + K_prev (x -
+        x_prev)`` rolled out from the new ``x0`` (so a state that drifted from the
+        prediction, e.g. under model mismatch, starts from a corrected guess); ``x`` is
+        that rollout's states (the solver then skips its own), else None."""
         if u_init is not None:
-            return u_init.detach()
+            return u_init.detach(), None
         w = self._warm
         if self.warm_start is False or w is None or w["u"].shape[0] != x0.shape[0]:
-            return None
+            return None, None
         if "K" not in w:
-            return w["u"]
+            return w["u"], None
         lo, hi = self._bounds(x0)
         with torch.no_grad():
-            _, u = rollout_closed_loop(
+            x, u = rollout_closed_loop(
                 self.problem.transition,
                 x0.detach(),
                 w["x"],
@@ -212,8 +215,10 @@ class MPC(nn.Module):
                 hi,
             )
         # a guess that blew up (a gain far from valid) falls back to the plain shift
-        ok = torch.isfinite(u).flatten(1).all(1).view(-1, 1, 1)
-        return torch.where(ok, u, w["u"])
+        ok = torch.isfinite(u).flatten(1).all(1) & torch.isfinite(x).flatten(1).all(1)
+        if bool(ok.all()):
+            return u, x
+        return torch.where(ok.view(-1, 1, 1), u, w["u"]), None
 
     def _store_warm_start(self, result: SolverResult) -> None:
         if self.warm_start is False:
@@ -268,7 +273,7 @@ class MPC(nn.Module):
         unbatched = x0.ndim == 1
         x0b = x0.reshape(-1, n)
         Bsz = x0b.shape[0]
-        guess = self._initial_guess(x0b, u_init)
+        guess, guess_x = self._initial_guess(x0b, u_init)
         if self._default_solver:
             self.solver.options.tol = DEFAULT_TOL.get(x0b.dtype, DEFAULT_TOL[torch.float32])
         if self._supports_compact():
@@ -276,8 +281,9 @@ class MPC(nn.Module):
             if compact == "auto":
                 compact = self.problem.per_element_tensor(Bsz) is None
             self.solver.options.compact = compact
+        kw = {"x_init": guess_x} if guess_x is not None and self._supports_compact() else {}
         with torch.no_grad():
-            result = self.solver.solve(self.problem, x0b.detach(), guess)
+            result = self.solver.solve(self.problem, x0b.detach(), guess, **kw)
         self.last_result = result
         self._store_warm_start(result)
         x, u, status = result.x, result.u, result.status

@@ -41,7 +41,7 @@ from ..dynamics.linearize import linearize
 from ..lq.riccati import Restarts, RiccatiFactors, StageHook, riccati_backward
 from .line_search import TrialRecorder, armijo_search
 from .rollout import costate_gradient, rollout_closed_loop
-from .slq import SLQ
+from .slq import SLQ, _checked_x_init
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -219,18 +219,25 @@ class ILQR(SLQ):
         x0: Tensor,
         u_init: Tensor | None = None,
         logger: Any = None,
+        *,
+        x_init: Tensor | None = None,
     ):
         """As :meth:`torchslq.SLQ.solve`; with ``u_min``/``u_max`` the solve is
-        control-limited and the result carries ``active_bounds``."""
+        control-limited and the result carries ``active_bounds`` (an ``x_init`` is then
+        used only if ``u_init`` is within the bounds: clamping changes its rollout)."""
         if self.u_min is None and self.u_max is None:
-            return super().solve(problem, x0, u_init, logger)
-        x0b, u, unbatched = problem.check_inputs(x0, u_init)
+            return super().solve(problem, x0, u_init, logger, x_init=x_init)
+        x0b, u0, unbatched = problem.check_inputs(x0, u_init)
         lo, hi = self._resolve_bounds(problem, x0b)
-        u = torch.minimum(torch.maximum(u, lo), hi)
+        u = torch.minimum(torch.maximum(u0, lo), hi)
+        if x_init is not None:
+            x_init = _checked_x_init(x_init, x0b, problem.horizon)
+            if not torch.equal(u, u0):
+                x_init = None  # the rollout of other controls
         bounded = not (bool(torch.isinf(lo).all()) and bool(torch.isinf(hi).all()))
         self._lo, self._hi = (lo, hi) if bounded else (None, None)
         try:
-            result = super().solve(problem, x0, u, logger)
+            result = super().solve(problem, x0, u, logger, x_init=x_init)
         finally:
             self._lo = self._hi = None
         if unbatched:

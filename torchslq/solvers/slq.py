@@ -55,6 +55,23 @@ _ROLLOUTS = ("open_loop", "closed_loop")
 _STOPS = ("grad", "step", "either", "both")
 
 
+def _checked_x_init(x_init: Tensor, x0: Tensor, T: int) -> Tensor:
+    """``x_init`` as ``(B, T+1, n)``, checked against ``x0 (B, n)`` (shape, first state)."""
+    if not torch.is_tensor(x_init):
+        raise TypeError("x_init must be a tensor of shape (B, T+1, n) or (T+1, n)")
+    Bsz, n = x0.shape
+    x = x_init.reshape(-1, *x_init.shape[-2:]) if x_init.ndim in (2, 3) else x_init
+    if x.ndim != 3 or x.shape[1:] != (T + 1, n) or x.shape[0] not in (1, Bsz):
+        raise ValueError(
+            f"x_init must have shape ({Bsz}, {T + 1}, {n}) or ({T + 1}, {n}), "
+            f"got {tuple(x_init.shape)}"
+        )
+    x = x.to(dtype=x0.dtype, device=x0.device).expand(Bsz, T + 1, n)
+    if not torch.equal(x[:, 0], x0):
+        raise ValueError("x_init[:, 0] must equal x0 (x_init is the rollout of u_init from x0)")
+    return x.detach().clone()
+
+
 @dataclass
 class SLQOptions:
     """Options of :class:`SLQ` (see its docstring)."""
@@ -166,15 +183,24 @@ class SLQ:
         x0: Tensor,
         u_init: Tensor | None = None,
         logger: Any = None,
+        *,
+        x_init: Tensor | None = None,
     ) -> SolverResult:
         """Solve ``problem`` from initial states ``x0 (B, n)`` (or ``(n,)``).
 
         Args:
             u_init: initial controls ``(B, T, m)`` or ``(T, m)``; zeros by default.
             logger: e.g. :class:`torchslq.TensorBoardLogger`; None costs nothing.
+            x_init: optional states ``(B, T+1, n)`` (or ``(T+1, n)``) of ``u_init`` from
+                ``x0`` (``x_{t+1} = f(x_t, u_t)``), when the caller has them already (e.g.
+                a closed-loop warm start): the initial rollout is then skipped. Only its
+                shape and first state are checked (a trajectory that is not the rollout
+                of ``u_init`` makes the first iteration's cost and step wrong).
         """
         o = self.options
         x0, u, unbatched = problem.check_inputs(x0, u_init)
+        if x_init is not None:
+            x_init = _checked_x_init(x_init, x0, problem.horizon)
         f = problem.transition
         cost_fn = problem.cost
         Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
@@ -192,7 +218,7 @@ class SLQ:
         t_start = time.perf_counter()
 
         with torch.no_grad():
-            x = rollout(f, x0, u)
+            x = rollout(f, x0, u) if x_init is None else x_init
             J = cost_fn(x, u)
             status = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=x0.device)
             finite0 = torch.isfinite(J) & torch.isfinite(x).flatten(1).all(1)
