@@ -23,10 +23,17 @@ With control bounds the control-limited pass (a box QP per step, the projected N
 autograd through the pass, callable hooks) takes the torch path.
 ``tests/test_compiled_riccati.py`` checks the two against each other.
 
+The same module runs a few other dispatch-bound loops of the solvers on the CPU, under
+the same conditions and each checked against its torch form in the tests: the feedback
+step of closed-loop rollouts (:func:`closed_loop_feedback_compiled`), the costate
+recursion (:func:`costate_compiled`), one RK4 stage's congruence of the chained second
+derivatives (:func:`stage_congruence_compiled`), and the Riccati kernel's own restarts
+of failed elements with a larger regularisation (``restarts``).
+
 The kernels live in :mod:`torchslq.lq._numba_kernels`, imported on the first CPU pass
-(never by GPU-only use). numba compiles them on first use per dtype (about 2.5 s for the
-three, once) and caches the machine code on disk; a new process then pays about 0.5 s
-to import numba and load it, on its first CPU pass.
+(never by GPU-only use). numba compiles each on first use per dtype and argument layout
+and caches the machine code on disk (seconds, once); a new process then pays about
+0.5 s to import numba and load it, on its first CPU pass.
 """
 
 from __future__ import annotations
