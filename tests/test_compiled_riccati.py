@@ -494,6 +494,8 @@ def test_compiled_closed_loop_rollout_equals_torch_path(torch_path, case):
     if case == "gopronto-x_nom":
         d["x_nom"] = d["x_nom"][:, :T]
     f = Unicycle(0.1).to(dtype)
+    f.compiled_step = lambda: None  # the feedback kernel with the torch model (the
+    # model's own compiled step is tested below)
     calls = []
     kernel = compiled._kernels().feedback_kernel
     real = compiled.closed_loop_feedback_compiled
@@ -575,3 +577,50 @@ def test_compiled_costate_gradient_equals_torch_path(torch_path, case):
         xs.append(x)
         J = (torch.stack(xs, 1) * lx).sum() + (u * lu).sum()
         torch.testing.assert_close(fast[0], torch.autograd.grad(J, u)[0])
+
+
+@pytest.mark.parametrize("case", ["alphas", "one-alpha", "bounds", "gopronto-x_nom", "float32"])
+def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, case):
+    """A model with a compiled step (Unicycle) rolls out in one kernel call: the same
+    states and controls as the torch path up to the last bits of cos/sin, and the
+    controls exactly the feedback law applied to those states."""
+    import sys
+
+    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.systems import Unicycle
+
+    dtype = torch.float32 if case == "float32" else F64
+    B, T, n, m = 5, 7, 3, 2
+    d = _feedback_data(0 if case == "one-alpha" else 4, B, T, n, m, dtype)
+    kw = {}
+    if case == "bounds":
+        kw = {
+            "u_min": -0.5 * torch.ones(B, T, m, dtype=dtype),
+            "u_max": 0.4 * torch.ones(B, T, m, dtype=dtype),
+        }
+    if case == "gopronto-x_nom":
+        d["x_nom"] = d["x_nom"][:, :T]
+    f = Unicycle(0.1).to(dtype)
+    mod = sys.modules["torchslq.lq.compiled"]
+    calls = []
+    real = mod.closed_loop_rollout_compiled
+    rmod = sys.modules["torchslq.solvers.rollout"]
+    rmod.closed_loop_rollout_compiled = lambda *a: calls.append(1) or real(*a)
+    try:
+        xf, uf = rollout_closed_loop(f, **d, **kw)
+    finally:
+        rmod.closed_loop_rollout_compiled = real
+    assert calls
+    with torch_path:
+        xr, ur = rollout_closed_loop(f, **d, **kw)
+    assert xf.shape == xr.shape and uf.shape == ur.shape and xf.dtype == dtype
+    tol = 1e-13 if dtype == F64 else 2e-5
+    assert float((xf - xr).abs().max()) <= tol and float((uf - ur).abs().max()) <= tol
+    # the model's step and the feedback law hold exactly on the kernel's own trajectory
+    xn = d["x_nom"][:, :T]
+    ff = d["u_nom"] + d["alpha"][..., None, None] * d["k"]
+    law = ff + ((xf[..., :T, :] - xn).unsqueeze(-2) @ d["K"].mT).squeeze(-2)
+    if kw:
+        law = law.clamp(kw["u_min"], kw["u_max"])
+    torch.testing.assert_close(uf, law, rtol=0, atol=10 * torch.finfo(dtype).eps)
+    torch.testing.assert_close(xf[..., 1:, :], f(xf[..., :T, :], uf), rtol=0, atol=tol)

@@ -55,6 +55,17 @@ class Dynamics(nn.Module):
     def has_analytic_vhp(self) -> bool:
         return type(self).vhp is not Dynamics.vhp
 
+    def compiled_step(self):
+        """Optional CPU fast path for rollouts: ``(step, params)`` with ``step`` a
+        numba-compiled function ``step(x, u, params, out)`` that writes ``f(x, u)`` for
+        one row (1-d arrays ``x (n,)``, ``u (m,)``, ``out (n,)``) and ``params`` a 1-d
+        float64 array; or None (the default, and whenever the current parameters cannot
+        be passed that way, e.g. per-element tensors). Closed-loop rollouts without
+        autograd then run as one compiled loop (:func:`torchslq.solvers.rollout_closed_loop`).
+        It must compute what :meth:`forward` computes (up to the last bits of library
+        functions such as ``cos``)."""
+        return None
+
 
 class ContinuousDynamics(nn.Module):
     """Continuous-time dynamics ``xdot = f(x, u, t)``.

@@ -863,3 +863,38 @@ def costate_kernel(b0, b1, A, B, lx, lu, K, grad, lam):
                     for i in range(m):
                         s += Kt[i, j] * g[i]
                     lc[j] += s
+
+
+@numba.njit(nogil=True)
+def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, u, x):
+    """A whole closed-loop rollout per row with a model's compiled step
+    (``Dynamics.compiled_step``): ``u[r, t] += K[b, t] (x[r, t] - xn[b, t])`` (clamped
+    into ``[lo, hi]`` when not empty; the feedforward is in ``u`` on entry, the same
+    order of operations as :func:`feedback_kernel`), ``x[r, t+1] = step(x[r, t], u[r, t])``.
+    x0 ``(R, n)``, xn ``(B, T, n)``, K ``(B, T, m, n)``, lo/hi ``(B, T, m)`` or empty,
+    u ``(R, T, m)``, x ``(R, T+1, n)`` (output); ``b = r % B``. Rows ``r0 <= r < r1``.
+    (Not cached on disk: it takes the step function as an argument.)"""
+    B = xn.shape[0]
+    T = u.shape[1]
+    m = u.shape[2]
+    n = x.shape[2]
+    bounded = lo.shape[0] > 0
+    for r in range(r0, r1):
+        b = r % B
+        for j in range(n):
+            x[r, 0, j] = x0[r, j]
+        for t in range(T):
+            Kt = K[b, t]
+            xr = x[r, t]
+            xnr = xn[b, t]
+            ur = u[r, t]
+            for i in range(m):
+                s = 0.0
+                Ki = Kt[i]
+                for j in range(n):
+                    s += Ki[j] * (xr[j] - xnr[j])
+                s += ur[i]
+                if bounded:
+                    s = min(max(s, lo[b, t, i]), hi[b, t, i])
+                ur[i] = s
+            step(xr, ur, p, x[r, t + 1])

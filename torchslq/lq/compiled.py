@@ -56,6 +56,7 @@ __all__ = [
     "PIECE_NDIMS",
     "adjoint_compiled",
     "closed_loop_feedback_compiled",
+    "closed_loop_rollout_compiled",
     "costate_compiled",
     "can_use_compiled",
     "compiled_available",
@@ -389,6 +390,46 @@ def closed_loop_feedback_compiled(
         kernel(t, xt.detach().reshape(-1, n).numpy(), xn, Kn, lo, hi, un)
 
     return step
+
+
+def closed_loop_rollout_compiled(
+    step, params: np.ndarray, x0: Tensor, x_nom: Tensor, K: Tensor, u: Tensor, u_min, u_max
+) -> Tensor:
+    """A whole closed-loop rollout on the CPU kernel with a model's compiled step
+    (:meth:`torchslq.Dynamics.compiled_step`): ``x0 (..., B, n)`` (expanded to ``u``'s
+    leading dims), ``x_nom (B, T, n)``, ``K (B, T, m, n)``, ``u (..., B, T, m)``
+    contiguous holding the feedforward (overwritten with the applied controls), bounds as
+    for :func:`closed_loop_feedback_compiled`. Returns ``x (..., B, T+1, n)``. Call only
+    where :func:`can_use_compiled` holds."""
+    Bsz, T, m, n = K.shape[-4:]
+    lead = u.shape[:-2]
+    R = math.prod(lead)
+    un = u.view(R, T, m).numpy()
+    if u_min is None and u_max is None:
+        lo = hi = np.zeros((0, 1, 1), dtype=un.dtype)
+    else:
+        inf = torch.tensor(float("inf"), dtype=u.dtype)
+        lo, hi = (
+            (inf if h else -inf).expand(Bsz, T, m) if b is None else b.expand(Bsz, T, m)
+            for b, h in ((u_min, False), (u_max, True))
+        )
+        lo, hi = (b.detach().contiguous().numpy() for b in (lo, hi))
+    x = torch.empty(*lead, T + 1, n, dtype=u.dtype)
+    _launch(
+        _kernels().closed_loop_rollout_kernel,
+        R,
+        T,
+        step,
+        params,
+        x0.detach().expand(*lead, n).reshape(R, n).contiguous().numpy(),
+        x_nom.detach().contiguous().numpy(),
+        K.detach().contiguous().numpy(),
+        lo,
+        hi,
+        un,
+        x.view(R, T + 1, n).numpy(),
+    )
+    return x
 
 
 def costate_compiled(

@@ -8,7 +8,12 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from ..lq.compiled import can_use_compiled, closed_loop_feedback_compiled, costate_compiled
+from ..lq.compiled import (
+    can_use_compiled,
+    closed_loop_feedback_compiled,
+    closed_loop_rollout_compiled,
+    costate_compiled,
+)
 
 __all__ = ["rollout", "rollout_closed_loop", "costate_gradient"]
 
@@ -91,6 +96,18 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
     (B,) = Bsz
     lead = broadcast_shapes(alpha.shape, x0.shape[:-1], (B,))
     u = (u_nom + alpha[..., None, None] * k).expand(*lead, T, m).contiguous()
+    compiled = _compiled_step(f)
+    if compiled is not None:  # the model's own compiled step: one kernel call in all
+        x = closed_loop_rollout_compiled(
+            *compiled,
+            x0,
+            x_nom[..., :T, :].expand(B, T, n),
+            K.expand(B, T, m, n),
+            u,
+            u_min,
+            u_max,
+        )
+        return x, u
     feedback = closed_loop_feedback_compiled(
         x_nom[..., :T, :].expand(B, T, n), K.expand(B, T, m, n), u, u_min, u_max
     )
@@ -104,6 +121,18 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
         xt = f(xt, u[..., t : t + 1, :])
         xs.append(xt)
     return torch.cat(xs, dim=-2), u
+
+
+def _compiled_step(f):
+    """``f.compiled_step()`` (:meth:`torchslq.Dynamics.compiled_step`) when ``f`` has one
+    and its parameters need no autograd here, else None."""
+    get = getattr(f, "compiled_step", None)
+    if get is None:
+        return None
+    if torch.is_grad_enabled() and isinstance(f, torch.nn.Module):
+        if any(p.requires_grad for p in f.parameters()):
+            return None
+    return get()
 
 
 def costate_gradient(

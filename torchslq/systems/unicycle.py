@@ -43,6 +43,14 @@ class Unicycle(Dynamics):
             -1,
         )
 
+    def compiled_step(self):
+        """The step as a numba function (see :meth:`torchslq.Dynamics.compiled_step`)."""
+        import numpy as np
+
+        from ._numba_steps import unicycle_step
+
+        return unicycle_step, np.array([self.dt], dtype=np.float64)
+
     def jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         th, v = x[..., 2], u[..., 0]
         c, s, dt = torch.cos(th), torch.sin(th), self.dt
