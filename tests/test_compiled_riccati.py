@@ -579,18 +579,21 @@ def test_compiled_costate_gradient_equals_torch_path(torch_path, case):
         torch.testing.assert_close(fast[0], torch.autograd.grad(J, u)[0])
 
 
+@pytest.mark.parametrize("model", ["unicycle", "cartpole-rk4"])
 @pytest.mark.parametrize("case", ["alphas", "one-alpha", "bounds", "gopronto-x_nom", "float32"])
-def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, case):
-    """A model with a compiled step (Unicycle) rolls out in one kernel call: the same
-    states and controls as the torch path up to the last bits of cos/sin, and the
-    controls exactly the feedback law applied to those states."""
+def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, case, model):
+    """A model with a compiled step (Unicycle; the cart-pole's compiled right-hand side
+    under discretize's RK4) rolls out in one kernel call: the same states and controls
+    as the torch path up to the last bits of cos/sin, and the controls exactly the
+    feedback law applied to those states."""
     import sys
 
     from torchslq.solvers.rollout import rollout_closed_loop
-    from torchslq.systems import Unicycle
+    from torchslq.systems import CartPole, Unicycle
 
     dtype = torch.float32 if case == "float32" else F64
-    B, T, n, m = 5, 7, 3, 2
+    B, T, m = 5, 7, 2 if model == "unicycle" else 1
+    n = 3 if model == "unicycle" else 4
     d = _feedback_data(0 if case == "one-alpha" else 4, B, T, n, m, dtype)
     kw = {}
     if case == "bounds":
@@ -600,7 +603,11 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
         }
     if case == "gopronto-x_nom":
         d["x_nom"] = d["x_nom"][:, :T]
-    f = Unicycle(0.1).to(dtype)
+    if model == "unicycle":
+        f = Unicycle(0.1).to(dtype)
+    else:
+        f = ts.discretize(CartPole(mc=torch.tensor(1.3, dtype=dtype)), 0.05)
+    assert f.compiled_step() is not None
     mod = sys.modules["torchslq.lq.compiled"]
     calls = []
     real = mod.closed_loop_rollout_compiled
@@ -614,7 +621,7 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
     with torch_path:
         xr, ur = rollout_closed_loop(f, **d, **kw)
     assert xf.shape == xr.shape and uf.shape == ur.shape and xf.dtype == dtype
-    tol = 1e-13 if dtype == F64 else 2e-5
+    tol = 1e-12 if dtype == F64 else 5e-5
     assert float((xf - xr).abs().max()) <= tol and float((uf - ur).abs().max()) <= tol
     # the model's step and the feedback law hold exactly on the kernel's own trajectory
     xn = d["x_nom"][:, :T]
@@ -624,3 +631,15 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
         law = law.clamp(kw["u_min"], kw["u_max"])
     torch.testing.assert_close(uf, law, rtol=0, atol=10 * torch.finfo(dtype).eps)
     torch.testing.assert_close(xf[..., 1:, :], f(xf[..., :T, :], uf), rtol=0, atol=tol)
+
+
+def test_models_without_a_usable_compiled_step_take_the_torch_model():
+    """Per-element parameters, Euler steps and models without a compiled right-hand side
+    give no compiled step (their rollouts call the torch model)."""
+    from torchslq.systems import CartPole, MassChain
+
+    per_elem = torch.rand(3, 1, dtype=F64) + 0.5
+    assert ts.discretize(CartPole(mc=per_elem), 0.05).compiled_step() is None
+    assert ts.discretize(CartPole(), 0.05, "euler").compiled_step() is None
+    assert ts.discretize(MassChain(), 0.1).compiled_step() is None
+    assert ts.discretize(CartPole(), 0.05).compiled_step() is not None

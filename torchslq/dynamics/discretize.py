@@ -52,6 +52,22 @@ class DiscretizedDynamics(Dynamics):
     def has_analytic_jacobians(self) -> bool:
         return self.continuous.has_analytic_jacobians
 
+    def compiled_step(self):
+        """The RK4 step as a numba function around the continuous model's
+        :meth:`~torchslq.ContinuousDynamics.compiled_rhs` (same sums in the same order
+        as :meth:`forward`), or None (no compiled right-hand side, or Euler)."""
+        if self.method != "rk4":
+            return None
+        rhs = self.continuous.compiled_rhs()
+        if rhs is None:
+            return None
+        import numpy as np
+
+        from ..systems._numba_steps import rk4_step
+
+        fn, params = rhs
+        return rk4_step(fn), np.concatenate([[self.dt], params]).astype(np.float64)
+
     def jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         """Exact Jacobians of the integration step from the continuous model's ones."""
         f, dt = self.continuous, self.dt

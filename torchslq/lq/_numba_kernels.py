@@ -870,7 +870,8 @@ def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, u, x):
     """A whole closed-loop rollout per row with a model's compiled step
     (``Dynamics.compiled_step``): ``u[r, t] += K[b, t] (x[r, t] - xn[b, t])`` (clamped
     into ``[lo, hi]`` when not empty; the feedforward is in ``u`` on entry, the same
-    order of operations as :func:`feedback_kernel`), ``x[r, t+1] = step(x[r, t], u[r, t])``.
+    order of operations as :func:`feedback_kernel`), ``x[r, t+1] = step(x[r, t], u[r, t])``
+    (``step(x, u, p, out, work)``, ``work`` an ``(8, n)`` scratch array).
     x0 ``(R, n)``, xn ``(B, T, n)``, K ``(B, T, m, n)``, lo/hi ``(B, T, m)`` or empty,
     u ``(R, T, m)``, x ``(R, T+1, n)`` (output); ``b = r % B``. Rows ``r0 <= r < r1``.
     (Not cached on disk: it takes the step function as an argument.)"""
@@ -879,6 +880,7 @@ def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, u, x):
     m = u.shape[2]
     n = x.shape[2]
     bounded = lo.shape[0] > 0
+    work = np.empty((8, n), dtype=x.dtype)  # the step's scratch
     for r in range(r0, r1):
         b = r % B
         for j in range(n):
@@ -897,4 +899,4 @@ def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, u, x):
                 if bounded:
                     s = min(max(s, lo[b, t, i]), hi[b, t, i])
                 ur[i] = s
-            step(xr, ur, p, x[r, t + 1])
+            step(xr, ur, p, x[r, t + 1], work)

@@ -130,7 +130,8 @@ def _compiled_step(f):
     if get is None:
         return None
     if torch.is_grad_enabled() and isinstance(f, torch.nn.Module):
-        if any(p.requires_grad for p in f.parameters()):
+        # (a tensor given as a model parameter may be a buffer that requires grad)
+        if any(t.requires_grad for t in (*f.parameters(), *f.buffers())):
             return None
     return get()
 

@@ -48,6 +48,23 @@ class CartPole(ContinuousDynamics):
         set_param(self, "l", l, positive=True)
         set_param(self, "g", g)
 
+    def compiled_rhs(self):
+        """``xdot`` as a numba function (see :meth:`torchslq.ContinuousDynamics.compiled_rhs`);
+        None when a parameter is a tensor with batch dims."""
+        vals = []
+        for k in ("mc", "mp", "l", "g"):
+            p = getattr(self, k)
+            if isinstance(p, Tensor):
+                if p.ndim > 0:
+                    return None
+                p = float(p.detach())
+            vals.append(p)
+        import numpy as np
+
+        from ._numba_steps import cartpole_rhs
+
+        return cartpole_rhs, np.array(vals, dtype=np.float64)
+
     def _params(self, x: Tensor):
         return tuple(get_param(self, k, x) for k in ("mc", "mp", "l", "g"))
 
