@@ -493,31 +493,52 @@ def bench_unicycle(args, rows):
     for B in args.batches:
         problem, x0 = unicycle_problem(B, args.seed, T)
         x0n = x0.numpy()
+        # --repeats: every solver runs that many times, in turn (crocoddyl, torchslq,
+        # crocoddyl, ...), and the median is reported: this machine's load moves single
+        # runs by 20-60%, the peers' as much as ours
+        runs: dict[str, dict] = {}
+        for _ in range(args.repeats):
+            for sname in ("DDP", "FDDP"):
+                name = f"crocoddyl {sname} (C++ ActionModelUnicycle)"
+                try:
+                    us, its, t, ext, done = crocoddyl_unicycle(x0n, T, args.cap, sname)
+                except Exception as e:  # noqa: BLE001
+                    traceback.print_exc()
+                    runs[name] = {"error": f"{type(e).__name__}: {e}"}
+                    continue
+                if name not in runs:
+                    u = np.zeros((B, T, 2))
+                    u[:done] = np.stack(us).reshape(done, T, 2)
+                    runs[name] = {
+                        "u": u, "times": [], "solved": done, "extrapolated": ext,
+                        "iters_mean": float(np.mean(its)), "iters_max": int(max(its)),
+                    }  # fmt: skip
+                runs[name].setdefault("times", []).append(t)
+            for name, mk in torchslq_solvers(args.max_iter).items():
+                if "SLQ" in name:
+                    continue
+                r = run_torchslq(mk(), problem, x0)
+                if name not in runs:
+                    runs[name] = {
+                        "u": r["u"], "times": [], "iters_mean": r["iters_mean"],
+                        "iters_max": r["iters_max"], "converged": r["converged"],
+                    }  # fmt: skip
+                runs[name]["times"].append(r["time"])
         Jref = None
-        for sname in ("DDP", "FDDP"):
-            name = f"crocoddyl {sname} (C++ ActionModelUnicycle)"
-            try:
-                us, its, t, ext, done = crocoddyl_unicycle(x0n, T, args.cap, sname)
-                u = np.zeros((B, T, 2))
-                u[:done] = np.stack(us).reshape(done, T, 2)
-                if Jref is None:
-                    Jref = true_cost(problem, x0, u)
-                    Jref[done:] = np.nan
-                record(
-                    rows, "unicycle", B, name + (" (ref)" if sname == "DDP" else ""), u, t, Jref,
-                    problem, x0, solved=done, extrapolated=ext,
-                    iters_mean=float(np.mean(its)), iters_max=int(max(its)),
-                )  # fmt: skip
-            except Exception as e:  # noqa: BLE001
-                traceback.print_exc()
-                note(rows, "unicycle", B, name, f"{type(e).__name__}: {e}")
-        for name, mk in torchslq_solvers(args.max_iter).items():
-            if "SLQ" in name:
+        for name, run in runs.items():
+            if "error" in run:
+                note(rows, "unicycle", B, name, run["error"])
                 continue
-            r = run_torchslq(mk(), problem, x0)
+            u, times = run.pop("u"), run.pop("times")
+            t = float(np.median(times))
+            extra = dict(run, times=times) if len(times) > 1 else run
+            ref = name.startswith("crocoddyl DDP")
+            if ref:
+                Jref = true_cost(problem, x0, u)
+                Jref[run["solved"] :] = np.nan
             J = record(
-                rows, "unicycle", B, name, r["u"], r["time"], Jref, problem, x0,
-                iters_mean=r["iters_mean"], iters_max=r["iters_max"], converged=r["converged"],
+                rows, "unicycle", B, name + (" (ref)" if ref else ""), u, t, Jref, problem, x0,
+                **extra,
             )  # fmt: skip
             if Jref is None:
                 Jref = J
@@ -542,6 +563,13 @@ def ratios(rows):
     return out
 
 
+def _note(r: dict) -> str:
+    """A row's note, with the times of its repeated runs (``--repeats``)."""
+    times = r.get("times")
+    runs = "runs " + ", ".join(f"{t:.3f}" for t in times) + " s" if times else ""
+    return "; ".join(x for x in (r.get("note", ""), runs) if x)
+
+
 def markdown(meta, rows, rat) -> str:
     L_ = [
         "# torchslq vs peer solvers",
@@ -562,6 +590,15 @@ def markdown(meta, rows, rat) -> str:
         "DDP) / instances checked. `extrapolated`: the loop was stopped at the cap (or not "
         "run) and the time scaled linearly from the instances solved (or from the previous B).",
         "",
+        *(
+            [
+                "Unicycle times: the median of the runs listed in the note (`--repeats`; the "
+                "solvers ran in turn: crocoddyl DDP, FDDP, torchslq ILQR, DDP, again).",
+                "",
+            ]
+            if any(r.get("times") for r in rows)
+            else []
+        ),
         "| problem | B | solver | time [s] | per problem [ms] | iters mean/max | match | "
         "max rel gap | mean cost | note |",
         "|---|---|---|---|---|---|---|---|---|---|",
@@ -580,7 +617,7 @@ def markdown(meta, rows, rat) -> str:
         cost = "-" if "mean_cost" not in r else f"{r['mean_cost']:.8g}"
         L_.append(
             f"| {r['problem']} | {r['B']} | {r['solver']} | {r['time_s']:.3f}{ext} | "
-            f"{r['per_problem_ms']:.2f} | {it} | {m} | {gap} | {cost} | {r.get('note', '')} |"
+            f"{r['per_problem_ms']:.2f} | {it} | {m} | {gap} | {cost} | {_note(r)} |"
         )
     L_ += [
         "",
@@ -623,6 +660,9 @@ def main(argv=None) -> int:
     ap.add_argument("--max-iter", type=int, default=500)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="benchmarks/results")
+    ap.add_argument(
+        "--repeats", type=int, default=1, help="unicycle: runs per solver, median reported"
+    )
     args = ap.parse_args(argv)
     args.batches = [int(b) for b in args.batches.split(",")]
     args.peers = set(args.peers.split(","))
