@@ -357,6 +357,19 @@ def adjoint_compiled(
     )
 
 
+def _bound_arrays(u_min, u_max, shape: tuple[int, int, int], dtype: torch.dtype):
+    """Control bounds as ``(B, T, m)`` arrays for the rollout kernels (a missing one
+    infinite), or two empty arrays when there are none."""
+    if u_min is None and u_max is None:
+        empty = np.zeros((0, 1, 1), dtype=_np_dtype(dtype))
+        return empty, empty
+    inf = torch.tensor(float("inf"), dtype=dtype)
+    return tuple(
+        ((inf if upper else -inf) if b is None else b).expand(shape).detach().contiguous().numpy()
+        for b, upper in ((u_min, False), (u_max, True))
+    )
+
+
 def closed_loop_feedback_compiled(
     x_nom: Tensor, K: Tensor, u: Tensor, u_min: Tensor | None, u_max: Tensor | None
 ):
@@ -375,15 +388,7 @@ def closed_loop_feedback_compiled(
     xn = x_nom.detach().contiguous().numpy()
     Kn = K.detach().contiguous().numpy()
     un = u.view(-1, T, m).numpy()
-    if u_min is None and u_max is None:
-        lo = hi = np.zeros((0, 1, 1), dtype=un.dtype)
-    else:
-        inf = torch.tensor(float("inf"), dtype=u.dtype)
-        lo, hi = (
-            (inf if h else -inf).expand(Bsz, T, m) if b is None else b.expand(Bsz, T, m)
-            for b, h in ((u_min, False), (u_max, True))
-        )
-        lo, hi = (b.detach().contiguous().numpy() for b in (lo, hi))
+    lo, hi = _bound_arrays(u_min, u_max, (Bsz, T, m), u.dtype)
     kernel = _kernels().feedback_kernel
 
     def step(t: int, xt: Tensor) -> None:
@@ -405,15 +410,7 @@ def closed_loop_rollout_compiled(
     lead = u.shape[:-2]
     R = math.prod(lead)
     un = u.view(R, T, m).numpy()
-    if u_min is None and u_max is None:
-        lo = hi = np.zeros((0, 1, 1), dtype=un.dtype)
-    else:
-        inf = torch.tensor(float("inf"), dtype=u.dtype)
-        lo, hi = (
-            (inf if h else -inf).expand(Bsz, T, m) if b is None else b.expand(Bsz, T, m)
-            for b, h in ((u_min, False), (u_max, True))
-        )
-        lo, hi = (b.detach().contiguous().numpy() for b in (lo, hi))
+    lo, hi = _bound_arrays(u_min, u_max, (Bsz, T, m), u.dtype)
     x = torch.empty(*lead, T + 1, n, dtype=u.dtype)
     _launch(
         _kernels().closed_loop_rollout_kernel,
