@@ -469,6 +469,23 @@ def _feedback_data(Na, B, T, n, m, dtype=F64, seed=3):
     }
 
 
+def _rollout_case(case: str, B: int, T: int, n: int, m: int, dtype) -> tuple[dict, dict]:
+    """The closed-loop rollout tests' data and bounds for ``case``."""
+    d = _feedback_data(0 if case == "one-alpha" else 4, B, T, n, m, dtype)
+    kw = {}
+    if case == "bounds":
+        kw = {
+            "u_min": -0.5 * torch.ones(B, T, m, dtype=dtype),
+            "u_max": 0.4 * torch.ones(B, T, m, dtype=dtype),
+        }
+    if case == "time-shared-bounds":  # one (T, m) bound for every element, no upper
+        lo = torch.tensor([-0.3, -0.6][:m], dtype=dtype).expand(1, T, m)
+        kw = {"u_min": lo, "u_max": None}
+    if case == "gopronto-x_nom":
+        d["x_nom"] = d["x_nom"][:, :T]
+    return d, kw
+
+
 @pytest.mark.parametrize(
     "case", ["alphas", "one-alpha", "bounds", "time-shared-bounds", "gopronto-x_nom", "float32"]
 )
@@ -481,18 +498,7 @@ def test_compiled_closed_loop_rollout_equals_torch_path(torch_path, case):
 
     dtype = torch.float32 if case == "float32" else F64
     B, T, n, m = 5, 7, 3, 2
-    d = _feedback_data(0 if case == "one-alpha" else 4, B, T, n, m, dtype)
-    kw = {}
-    if case == "bounds":
-        kw = {
-            "u_min": -0.5 * torch.ones(B, T, m, dtype=dtype),
-            "u_max": 0.4 * torch.ones(B, T, m, dtype=dtype),
-        }
-    if case == "time-shared-bounds":  # one (T, m) bound for every element, no upper
-        lo = torch.tensor([-0.3, -0.6], dtype=dtype).expand(1, T, m)
-        kw = {"u_min": lo, "u_max": None}
-    if case == "gopronto-x_nom":
-        d["x_nom"] = d["x_nom"][:, :T]
+    d, kw = _rollout_case(case, B, T, n, m, dtype)
     f = Unicycle(0.1).to(dtype)
     f.compiled_step = lambda: None  # the feedback kernel with the torch model (the
     # model's own compiled step is tested below)
@@ -594,15 +600,7 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
     dtype = torch.float32 if case == "float32" else F64
     B, T, m = 5, 7, 2 if model == "unicycle" else 1
     n = 3 if model == "unicycle" else 4
-    d = _feedback_data(0 if case == "one-alpha" else 4, B, T, n, m, dtype)
-    kw = {}
-    if case == "bounds":
-        kw = {
-            "u_min": -0.5 * torch.ones(B, T, m, dtype=dtype),
-            "u_max": 0.4 * torch.ones(B, T, m, dtype=dtype),
-        }
-    if case == "gopronto-x_nom":
-        d["x_nom"] = d["x_nom"][:, :T]
+    d, kw = _rollout_case(case, B, T, n, m, dtype)
     if model == "unicycle":
         f = Unicycle(0.1).to(dtype)
     else:
