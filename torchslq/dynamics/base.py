@@ -59,11 +59,12 @@ class Dynamics(nn.Module):
         """Optional CPU fast path for rollouts: ``(step, params)`` with ``step`` a
         numba-compiled function ``step(x, u, params, out, work)`` that writes ``f(x, u)``
         for one row (1-d arrays ``x (n,)``, ``u (m,)``, ``out (n,)``; ``work`` an
-        ``(8, n)`` scratch array it may use) and ``params`` a 1-d float64 array; or None (the default, and whenever the current parameters cannot
-        be passed that way, e.g. per-element tensors). Closed-loop rollouts without
-        autograd then run as one compiled loop (:func:`torchslq.solvers.rollout_closed_loop`).
-        It must compute what :meth:`forward` computes (up to the last bits of library
-        functions such as ``cos``)."""
+        ``(8, n)`` scratch array it may use) and ``params`` a 1-d float64 array; or None
+        (the default, and whenever the current parameters cannot be passed that way,
+        e.g. per-element tensors). Closed-loop rollouts without autograd then run as one
+        compiled loop (:func:`torchslq.solvers.rollout_closed_loop`). It must compute
+        what :meth:`forward` computes (up to the last bits of library functions such as
+        ``cos``)."""
         return None
 
 
@@ -105,9 +106,8 @@ class ContinuousDynamics(nn.Module):
     def compiled_rhs(self):
         """Optional: ``(rhs, params)`` with ``rhs(x, u, params, out)`` a numba function
         writing ``f(x, u)`` for one row (time-invariant models; ``params`` a 1-d float64
-        array), so that
-        :func:`torchslq.discretize` can give its step as a compiled function
-        (:meth:`torchslq.Dynamics.compiled_step`); None by default."""
+        array), so that :func:`torchslq.discretize` can give its step as a compiled
+        function (:meth:`torchslq.Dynamics.compiled_step`); None by default."""
         return None
 
 

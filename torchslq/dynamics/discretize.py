@@ -161,20 +161,20 @@ class DiscretizedDynamics(Dynamics):
             a, xi, fx, dk_prev = stages[i]
             hxx, huu, hux = f.vhp(xi, u, mu)
             if dk_prev is not None and can_use_compiled(hxx, huu, hux, dk_prev):
-                # the congruence on the CPU kernel: the same products as below, but
-                # without ~10 tiny batched matmuls (each broadcasting over the weight
-                # vectors by a copy) per stage
+                # the congruence on the CPU kernel, added into the running sums: the same
+                # products as below, but without ~10 tiny batched matmuls (each
+                # broadcasting over the weight vectors by a copy) per stage
                 Hxx, Huu, Hux = _accumulator(Hxx, Huu, Hux, hxx, huu, hux, dk_prev)
                 stage_congruence_compiled((Hxx, Huu, Hux), (hxx, huu, hux), dk_prev, a * dt)
-            elif dk_prev is not None:
-                # Z_i = [[P, Q], [0, I]]: P = I + a dt dk_x, Q = a dt dk_u
-                P = torch.add(identity_like(xi, n), dk_prev[..., :n], alpha=a * dt)
-                Q = dk_prev[..., n:] * (a * dt)
-                t1 = torch.add(hxx @ Q, hux.mT)  # (n, m)
-                hux_i = t1.mT @ P
-                huu = torch.add(huu, torch.add(Q.mT @ t1, hux @ Q))
-                hxx, hux = P.mT @ hxx @ P, hux_i
-            if dk_prev is None or Hxx is None or not can_use_compiled(hxx, huu, hux, dk_prev):
+            else:
+                if dk_prev is not None:
+                    # Z_i = [[P, Q], [0, I]]: P = I + a dt dk_x, Q = a dt dk_u
+                    P = torch.add(identity_like(xi, n), dk_prev[..., :n], alpha=a * dt)
+                    Q = dk_prev[..., n:] * (a * dt)
+                    t1 = torch.add(hxx @ Q, hux.mT)  # (n, m)
+                    hux_i = t1.mT @ P
+                    huu = torch.add(huu, torch.add(Q.mT @ t1, hux @ Q))
+                    hxx, hux = P.mT @ hxx @ P, hux_i
                 Hxx = hxx if Hxx is None else Hxx + hxx
                 Huu = huu if Huu is None else Huu + huu
                 Hux = hux if Hux is None else Hux + hux

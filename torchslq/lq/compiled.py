@@ -378,9 +378,8 @@ def closed_loop_feedback_compiled(
     in place and clamps it into the bounds.
 
     ``x_nom (B, T, n)`` (the first ``T`` nominal states), ``K (B, T, m, n)``,
-    ``u (..., B, T, m)`` contiguous (the
-    feedforward on entry), bounds None or broadcastable to ``(B, T, m)``; ``x_t``
-    ``(..., B, 1, n)``. One kernel call per step instead of a broadcast batched matmul
+    ``u (..., B, T, m)`` contiguous (the feedforward on entry), bounds None or
+    broadcastable to ``(B, T, m)``; ``x_t`` ``(..., B, 1, n)``. One kernel call per step instead of a broadcast batched matmul
     (which copies ``K_t`` for every candidate step) and three elementwise ops. Call only
     where :func:`can_use_compiled` holds for all of them.
     """

@@ -78,10 +78,7 @@ class DDP(ILQR):
         f = problem.transition
         n, T = problem.state_dim, problem.horizon
         if self.second_order == "costate":
-            if vhp is None:
-                Hxx, Huu, Hux = dynamics_vhp(f, x[:, :T], u, lam[:, 1:])
-            else:
-                Hxx, Huu, Hux = vhp(lam[:, 1:])
+            Hxx, Huu, Hux = vhp(lam[:, 1:])  # from _linearize: shares its RK4 stages
             Bsz = x.shape[0]
             e.lxx = e.lxx.expand(Bsz, *e.lxx.shape[1:]).clone()
             e.lxx[:, :T] += Hxx

@@ -377,12 +377,11 @@ class ILQR(SLQ):
         """The schedule of :meth:`_retry_failed`, for restarts inside the compiled Riccati
         kernel (no pass repeated from Python: for small problems a repeated pass costs
         mostly its dispatch)."""
-        floor = self.mu_min if self.mu_min > 0 else 1e-6  # as in _increased
         return Restarts(
             self._delta,
             self._running,
             float(self.mu_factor),
-            floor,
+            self._mu_floor,
             float(self.mu_max),
             MAX_RETRIES,
         )
@@ -449,8 +448,13 @@ class ILQR(SLQ):
         ``mu := max(mu_min, mu delta)``."""
         f = self.mu_factor
         delta = torch.maximum(torch.full_like(delta, f), delta * f)
-        floor = self.mu_min if self.mu_min > 0 else 1e-6  # a zero mu cannot grow by scaling
-        return torch.maximum(torch.full_like(mu, floor), mu * delta), delta
+        return torch.maximum(torch.full_like(mu, self._mu_floor), mu * delta), delta
+
+    @property
+    def _mu_floor(self) -> float:
+        """The smallest ``mu`` an increase gives: ``mu_min``, or 1e-6 when that is zero (a
+        zero ``mu`` cannot grow by scaling)."""
+        return self.mu_min if self.mu_min > 0 else 1e-6
 
     def _increase_mu(self, mask: Tensor) -> None:
         mu, delta = self._increased(self._mu, self._delta)

@@ -96,21 +96,11 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
     (B,) = Bsz
     lead = broadcast_shapes(alpha.shape, x0.shape[:-1], (B,))
     u = (u_nom + alpha[..., None, None] * k).expand(*lead, T, m).contiguous()
+    xn, KB = x_nom[..., :T, :].expand(B, T, n), K.expand(B, T, m, n)
     compiled = _compiled_step(f)
     if compiled is not None:  # the model's own compiled step: one kernel call in all
-        x = closed_loop_rollout_compiled(
-            *compiled,
-            x0,
-            x_nom[..., :T, :].expand(B, T, n),
-            K.expand(B, T, m, n),
-            u,
-            u_min,
-            u_max,
-        )
-        return x, u
-    feedback = closed_loop_feedback_compiled(
-        x_nom[..., :T, :].expand(B, T, n), K.expand(B, T, m, n), u, u_min, u_max
-    )
+        return closed_loop_rollout_compiled(*compiled, x0, xn, KB, u, u_min, u_max), u
+    feedback = closed_loop_feedback_compiled(xn, KB, u, u_min, u_max)
     grad = torch.is_grad_enabled()
     xt = x0.expand(*lead, n).unsqueeze(-2)
     xs = [xt]
