@@ -94,3 +94,40 @@ def test_finished_elements_do_not_hold_up_the_line_search(module, monkeypatch):
         assert bool(act[: n_active[b], b].all()) and not bool(act[n_active[b] :, b].any())
     assert bool((n_active >= res.iterations).all())
     assert int(n_active.min()) < act.shape[0]  # someone finished before the last search
+
+
+@pytest.mark.parametrize("compact", [False, True])
+@pytest.mark.parametrize("solver", ["ddp", "ilqr-bounds", "slq"])
+def test_skipping_settled_trials_changes_no_solve(solver, compact, monkeypatch):
+    """The solvers hand armijo_search skip_settled=True (the trials of elements that
+    accepted a step, or finished, are not rolled out): the same solves to the last bit
+    as evaluating every trial. The cart-pole has a compiled RK4 step, so the rollout
+    kernel really skips rows."""
+    import sys
+
+    problem, x0 = cartpole_swingup(batch=6, horizon=25, seed=3)
+    assert problem.dynamics.compiled_step() is not None
+    make = {
+        "ddp": lambda: ts.DDP(max_iter=40, progress=False, compact=compact),
+        "ilqr-bounds": lambda: ts.ILQR(
+            max_iter=40, progress=False, compact=compact, u_min=-3.0, u_max=3.0
+        ),
+        "slq": lambda: ts.SLQ(
+            line_search="armijo", rollout="closed_loop", max_iter=40, progress=False,
+            compact=compact,
+        ),
+    }[solver]  # fmt: skip
+    fast = make().solve(problem, x0)
+    module = sys.modules["torchslq.solvers." + ("slq" if solver == "slq" else "ilqr")]
+    real = module.armijo_search
+    seen = []
+
+    def every_trial(*a, **kw):
+        seen.append(kw.pop("skip_settled"))
+        return real(*a, **kw, skip_settled=False)
+
+    monkeypatch.setattr(module, "armijo_search", every_trial)
+    ref = make().solve(problem, x0)
+    assert seen and all(seen)
+    assert len(set(ref.iterations.tolist())) > 1  # finished elements during the solve
+    _same(fast, ref)

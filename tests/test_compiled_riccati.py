@@ -641,3 +641,29 @@ def test_models_without_a_usable_compiled_step_take_the_torch_model():
     assert ts.discretize(CartPole(), 0.05, "euler").compiled_step() is None
     assert ts.discretize(MassChain(), 0.1).compiled_step() is None
     assert ts.discretize(CartPole(), 0.05).compiled_step() is not None
+
+
+@pytest.mark.parametrize("model", ["unicycle", "cartpole-rk4"])
+def test_whole_rollout_kernel_skips_rows_with_a_nan_step(torch_path, model):
+    """A NaN step (a line-search trial no element needs, armijo_search's skip_settled)
+    is not rolled out by the kernel: NaN states after x0 as on the torch path, the other rows the
+    same as without NaN steps."""
+    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.systems import CartPole, Unicycle
+
+    B, T, m = 5, 7, 2 if model == "unicycle" else 1
+    n = 3 if model == "unicycle" else 4
+    d, _ = _rollout_case("alphas", B, T, n, m, F64)
+    f = Unicycle(0.1).double() if model == "unicycle" else ts.discretize(CartPole(), 0.05)
+    assert f.compiled_step() is not None
+    full_x, full_u = rollout_closed_loop(f, **d)
+    skip = torch.zeros_like(d["alpha"], dtype=torch.bool)
+    skip[1:, 2] = True
+    skip[3, :] = True
+    d["alpha"] = torch.where(skip, torch.full_like(d["alpha"], float("nan")), d["alpha"])
+    xs, us = rollout_closed_loop(f, **d)
+    with torch_path:
+        xr, _ = rollout_closed_loop(f, **d)
+    for x in (xs, xr):  # the initial state, then NaN
+        assert bool(torch.isnan(x[skip][:, 1:]).all()) and torch.equal(x[..., 0, :], xs[..., 0, :])
+    assert torch.equal(xs[~skip], full_x[~skip]) and torch.equal(us[~skip], full_u[~skip])

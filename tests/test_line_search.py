@@ -77,3 +77,36 @@ def test_passes_of_fixed_size_and_inactive_elements():
     )
     assert calls == [2, 3, 3]
     assert torch.equal(out[0][:2], ref[0][:2])
+
+
+def test_skip_settled_hands_only_the_needed_trials_to_evaluate():
+    """With skip_settled the steps of settled elements arrive as NaN: the first pass for
+    every active element, a later pass only for the elements that have accepted no step
+    yet; the result for the active elements is the same as trying everything."""
+    scale = torch.tensor([0.5, 40.0, 1.0, 3000.0, 0.7], dtype=torch.float64)
+    J0, slope = torch.full_like(scale, 10.0), -torch.ones_like(scale)
+    active = torch.tensor([True, True, True, True, False])
+    seen: list[torch.Tensor] = []
+
+    def evaluate(alphas):
+        seen.append(alphas.clone())
+        return 10.0 - alphas + 0.5 * scale * alphas**2
+
+    out = armijo_search(evaluate, J0, slope, first_trials=2, pass_size=3, active=active,
+                        skip_settled=True)  # fmt: skip
+    ref = armijo_search(
+        _quadratic_evaluator(scale, []), J0, slope, first_trials=None, active=active
+    )
+    for a, b in zip(out, ref, strict=True):
+        assert torch.equal(a[:3], b[:3])
+    # element 3 needs a step <= 1/3000 (j >= 12): it alone is evaluated after the first
+    # pass, element 1 (j = 5) until it accepts, the inactive element never
+    evaluated = [(~torch.isnan(a)).any(dim=0) for a in seen]
+    assert evaluated[0].tolist() == [True, True, True, True, False]
+    assert evaluated[1].tolist() == [False, True, False, True, False]
+    assert evaluated[2].tolist() == [False, True, False, True, False]
+    assert len(evaluated) > 3 and all(
+        e.tolist() == [False, False, False, True, False] for e in evaluated[3:]
+    )
+    assert float(out[0][3]) == float(ref[0][3]) > 0
+    assert float(out[0][4]) == 0.0 and not bool(out[2][4])

@@ -866,25 +866,31 @@ def costate_kernel(b0, b1, A, B, lx, lu, K, grad, lam):
 
 
 @numba.njit(nogil=True)
-def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, u, x):
+def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, skip, u, x):
     """A whole closed-loop rollout per row with a model's compiled step
     (``Dynamics.compiled_step``): ``u[r, t] += K[b, t] (x[r, t] - xn[b, t])`` (clamped
     into ``[lo, hi]`` when not empty; the feedforward is in ``u`` on entry, the same
     order of operations as :func:`feedback_kernel`), ``x[r, t+1] = step(x[r, t], u[r, t])``
     (``step(x, u, p, out, work)``, ``work`` an ``(8, n)`` scratch array).
     x0 ``(R, n)``, xn ``(B, T, n)``, K ``(B, T, m, n)``, lo/hi ``(B, T, m)`` or empty,
-    u ``(R, T, m)``, x ``(R, T+1, n)`` (output); ``b = r % B``. Rows ``r0 <= r < r1``.
+    u ``(R, T, m)``, x ``(R, T+1, n)`` (output); ``b = r % B``. Rows ``r0 <= r < r1``;
+    rows with ``skip[r]`` (``(R,)`` bool, or empty for none) are not rolled out: their
+    states after ``x0`` are NaN (a line search's trial that no element needs).
     (Not cached on disk: it takes the step function as an argument.)"""
     B = xn.shape[0]
     T = u.shape[1]
     m = u.shape[2]
     n = x.shape[2]
     bounded = lo.shape[0] > 0
+    skipping = skip.shape[0] > 0
     work = np.empty((8, n), dtype=x.dtype)  # the step's scratch
     for r in range(r0, r1):
-        b = r % B
         for j in range(n):
             x[r, 0, j] = x0[r, j]
+        if skipping and skip[r]:
+            x[r, 1:, :] = np.nan
+            continue
+        b = r % B
         for t in range(T):
             Kt = K[b, t]
             xr = x[r, t]

@@ -397,20 +397,34 @@ def closed_loop_feedback_compiled(
 
 
 def closed_loop_rollout_compiled(
-    step, params: np.ndarray, x0: Tensor, x_nom: Tensor, K: Tensor, u: Tensor, u_min, u_max
+    step,
+    params: np.ndarray,
+    x0: Tensor,
+    x_nom: Tensor,
+    K: Tensor,
+    u: Tensor,
+    u_min,
+    u_max,
+    skip: Tensor | None = None,
 ) -> Tensor:
     """A whole closed-loop rollout on the CPU kernel with a model's compiled step
     (:meth:`torchslq.Dynamics.compiled_step`): ``x0 (..., B, n)`` (expanded to ``u``'s
     leading dims), ``x_nom (B, T, n)``, ``K (B, T, m, n)``, ``u (..., B, T, m)``
     contiguous holding the feedforward (overwritten with the applied controls), bounds as
-    for :func:`closed_loop_feedback_compiled`. Returns ``x (..., B, T+1, n)``. Call only
-    where :func:`can_use_compiled` holds."""
+    for :func:`closed_loop_feedback_compiled`; ``skip`` (bool, broadcastable to ``u``'s
+    leading dims) marks rows not to roll out (their states after ``x0`` are NaN). Returns
+    ``x (..., B, T+1, n)``. Call only where :func:`can_use_compiled` holds."""
     Bsz, T, m, n = K.shape[-4:]
     lead = u.shape[:-2]
     R = math.prod(lead)
     un = u.view(R, T, m).numpy()
     lo, hi = _bound_arrays(u_min, u_max, (Bsz, T, m), u.dtype)
     x = torch.empty(*lead, T + 1, n, dtype=u.dtype)
+    skip_rows = (
+        np.zeros(0, np.bool_)
+        if skip is None
+        else skip.detach().expand(lead).reshape(R).contiguous().numpy()
+    )
     _launch(
         _kernels().closed_loop_rollout_kernel,
         R,
@@ -422,6 +436,7 @@ def closed_loop_rollout_compiled(
         K.detach().contiguous().numpy(),
         lo,
         hi,
+        skip_rows,
         un,
         x.view(R, T + 1, n).numpy(),
     )

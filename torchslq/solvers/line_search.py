@@ -82,6 +82,7 @@ def armijo_search(
     first_trials: int | None = 4,
     pass_size: int | None = None,
     active: Tensor | None = None,
+    skip_settled: bool = False,
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Backtracking on sufficient decrease ``J(a) <= J0 + c1 dJ(a)`` (Armijo).
 
@@ -96,6 +97,14 @@ def armijo_search(
     trying all at once, at a fraction of the trial rollouts when (as near convergence)
     the first steps are accepted. None tries all at once. Elements outside ``active``
     (``(B,)`` bool, e.g. finished ones) do not hold up the next pass.
+
+    With ``skip_settled`` the trials that cannot change the result are handed to
+    ``evaluate`` as NaN steps (it must then return a non-finite or any cost there; a
+    closed-loop rollout with a model's compiled step skips such rows): every step of an
+    element outside ``active``, and in a later pass every step of an element that has
+    already accepted one. Steps and costs of the elements in ``active`` are the same as
+    without it; elements outside get ``alpha = 0`` and ``ok = False`` (callers discard
+    them). Later passes then cost in proportion to the elements still searching.
 
     Args:
         J0: ``(B,)`` current cost; slope ``(B,)`` directional derivative (< 0).
@@ -116,8 +125,13 @@ def armijo_search(
             rest -= sizes[-1]
     Js, oks = [], []
     found = torch.zeros_like(J0, dtype=torch.bool)
+    searching = active if skip_settled else None
     for g in torch.split(grid, sizes):
         alphas = g.unsqueeze(-1).expand(-1, J0.shape[0])
+        if skip_settled:
+            if searching is None:
+                searching = ~found
+            alphas = torch.where(searching, alphas, torch.full_like(alphas, float("nan")))
         J = _finite(evaluate(alphas))
         model = alphas * slope
         if curvature is not None:
@@ -129,6 +143,7 @@ def armijo_search(
             done = found if active is None else found | ~active
             if bool(done.all()):
                 break  # every element accepted a step among the largest ones
+            searching = ~done
     J, ok = torch.cat(Js, dim=0), torch.cat(oks, dim=0)
     first = torch.argmax(ok.to(torch.int8), dim=0)  # first True (largest alpha)
     found = ok.any(dim=0)

@@ -47,7 +47,9 @@ def rollout_closed_loop(
 
     Args:
         x0: ``(..., B, n)``; x_nom ``(B, T+1, n)``; u_nom ``(B, T, m)``; K ``(B, T, m, n)``;
-        k ``(B, T, m)``; alpha ``(..., B)`` step sizes (leading dims: candidate steps).
+        k ``(B, T, m)``; alpha ``(..., B)`` step sizes (leading dims: candidate steps);
+            a NaN step gives NaN states and controls (with a model's compiled step that
+            row is not rolled out at all: a line-search trial no element needs).
         u_min, u_max: optional control bounds ``(B, T, m)`` (or broadcastable, with a
             time dim); the control is clamped into ``[u_min, u_max]`` before it is
             applied (control-limited iLQR/DDP).
@@ -99,7 +101,12 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
     xn, KB = x_nom[..., :T, :].expand(B, T, n), K.expand(B, T, m, n)
     compiled = _compiled_step(f)
     if compiled is not None:  # the model's own compiled step: one kernel call in all
-        return closed_loop_rollout_compiled(*compiled, x0, xn, KB, u, u_min, u_max), u
+        # a NaN step is a line-search trial no element needs (armijo_search's
+        # skip_settled): not rolled out, its states are NaN as on the torch path
+        skip = torch.isnan(alpha)
+        skip = skip if bool(skip.any()) else None
+        x = closed_loop_rollout_compiled(*compiled, x0, xn, KB, u, u_min, u_max, skip)
+        return x, u
     feedback = closed_loop_feedback_compiled(xn, KB, u, u_min, u_max)
     grad = torch.is_grad_enabled()
     xt = x0.expand(*lead, n).unsqueeze(-2)

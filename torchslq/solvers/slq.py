@@ -405,6 +405,7 @@ class SLQ:
                 beta=o.armijo_beta,
                 max_backtracks=o.max_backtracks,
                 active=d.get("running"),
+                skip_settled=True,
             )
         x_new, u_new = trials.select(alpha)
         return alpha, J_new, ok, x_new, u_new
