@@ -173,8 +173,8 @@ def test_unicycle_derivatives_match_automatic_differentiation():
 
 
 def test_mpc_exact_implicit_gradients_with_analytic_second_derivatives(monkeypatch):
-    """The MPC layer's exact backward (Hessian of the Lagrangian) through CartPole.vhp:
-    the same gradients w.r.t. a learnable model parameter and x0 as with autodiff f_zz,
+    """The MPC layer's exact backward (Hessian of the Lagrangian) through CartPole.vhp
+    (or its compiled form): the same gradients w.r.t. a learnable model parameter and x0 as with autodiff f_zz,
     and the analytic path is really taken."""
     from torch import nn
 
@@ -186,6 +186,17 @@ def test_mpc_exact_implicit_gradients_with_analytic_second_derivatives(monkeypat
         return real(self, *a, **k)
 
     monkeypatch.setattr(CartPole, "vhp", counting)
+    # (or the same derivatives on the CPU kernel, CartPole.compiled_derivatives)
+    import sys
+
+    disc = sys.modules["torchslq.dynamics.discretize"]
+    real_kernel = disc.rk4_vhp_compiled
+
+    def counting_kernel(*a):
+        calls["n"] += 1
+        return real_kernel(*a)
+
+    monkeypatch.setattr(disc, "rk4_vhp_compiled", counting_kernel)
     Q = torch.diag(torch.tensor([1.0, 10.0, 0.1, 0.1], dtype=F64))
     x_ref = torch.tensor([0.0, 3.0, 0.0, 0.0], dtype=F64)
     g = torch.Generator().manual_seed(7)
@@ -282,6 +293,8 @@ def test_compiled_rk4_congruence_matches_the_torch_chain(shapes, dtype, monkeypa
     g = torch.Generator().manual_seed(4)
     xs, us, ss = shapes
     model = CartPole(mc=torch.tensor(1.3, dtype=F64))
+    model.compiled_derivatives = lambda: None  # the torch chain (the whole chain on a
+    # kernel is tested in tests/test_compiled_rk4.py)
     dyn = ts.discretize(model, 0.07).to(dtype)
     x = (0.8 * torch.randn(*xs, 4, generator=g, dtype=F64)).to(dtype)
     u = torch.randn(*us, 1, generator=g, dtype=F64).to(dtype)
@@ -300,11 +313,15 @@ def test_compiled_rk4_congruence_matches_the_torch_chain(shapes, dtype, monkeypa
         assert (a - b).abs().max() <= tol * (1 + b.abs().max())
 
 
-@pytest.mark.parametrize("name", ["cartpole", "mass-chain-per-element-mass", "autodiff", "euler"])
+@pytest.mark.parametrize(
+    "name",
+    ["cartpole", "cartpole-per-element-mc", "mass-chain-per-element-mass", "autodiff", "euler"],
+)
 def test_linearize_with_vhp_equals_the_separate_calls_and_shares_the_stages(name, monkeypatch):
     """linearize_with_vhp == linearize and dynamics_vhp at the same point (bit for bit);
     for an RK4 model with analytic derivatives the stage Jacobians are computed once for
-    both (4 continuous Jacobian calls instead of 8)."""
+    both (4 continuous Jacobian calls instead of 8), or not at all in torch (the
+    cart-pole with scalar parameters: compiled derivatives on the CPU kernels)."""
     from torchslq.dynamics import linearize_with_vhp
 
     model = _models()["cartpole" if name in ("autodiff", "euler") else name]
@@ -329,6 +346,8 @@ def test_linearize_with_vhp_equals_the_separate_calls_and_shares_the_stages(name
     assert torch.equal(A, A2) and torch.equal(B, B2)
     for a, b in zip(got, ref, strict=True):
         assert torch.equal(a, b)
-    if name in ("cartpole", "mass-chain-per-element-mass"):
+    if name in ("cartpole-per-element-mc", "mass-chain-per-element-mass"):
         assert (shared_calls, calls["n"]) == (4, 8)
+    if name == "cartpole":
+        assert (shared_calls, calls["n"]) == (0, 0)
     assert float(got[0].abs().max()) > 1e-4

@@ -110,6 +110,17 @@ class ContinuousDynamics(nn.Module):
         function (:meth:`torchslq.Dynamics.compiled_step`); None by default."""
         return None
 
+    def compiled_derivatives(self):
+        """Optional, with :meth:`compiled_rhs`: a numba function
+        ``derivatives(x, u, params, fz, H)`` taking ``compiled_rhs``'s ``params``, that
+        writes ``[f_x | f_u]`` at one row into ``fz (n, n + m)`` and, unless ``H`` is
+        empty (``H.shape[0] == 0``), every output's Hessian in ``z = (x, u)`` into
+        ``H (n, n + m, n + m)`` (all entries, zeros included); or None (the default).
+        :func:`torchslq.discretize`'s RK4 step then computes its Jacobians and
+        second derivatives on CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`) when
+        nothing needs autograd. It must agree with :meth:`jacobians` and :meth:`vhp`."""
+        return None
+
 
 def state_control_dims(dynamics: nn.Module) -> tuple[int, int]:
     """``(state_dim, control_dim)`` of a dynamics module, with a clear error if missing."""

@@ -8,6 +8,7 @@ from torch import Tensor
 from .._shapes import broadcast_shapes
 from ..lq.compiled import can_use_compiled, stage_congruence_compiled
 from .base import ContinuousDynamics, Dynamics, identity_like
+from .compiled_rk4 import rk4_jacobians_compiled, rk4_vhp_compiled
 
 __all__ = ["discretize", "DiscretizedDynamics"]
 
@@ -74,8 +75,32 @@ class DiscretizedDynamics(Dynamics):
         if self.method == "euler":
             fx, fu = f.jacobians(x, u)
             return identity_like(x, x.shape[-1]) + dt * fx, dt * fu
+        hooks = self._compiled_derivatives(x, u)
+        if hooks is not None:
+            return rk4_jacobians_compiled(hooks, dt, x, u)
         A, B, _ = self._rk4_chain(x, u)
         return A, B
+
+    def _compiled_derivatives(self, *tensors: Tensor):
+        """``(rhs, derivatives, params)`` of the continuous model when this RK4 step's
+        derivatives can run on the CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`):
+        the model has :meth:`~ContinuousDynamics.compiled_rhs` and
+        :meth:`~ContinuousDynamics.compiled_derivatives`, ``tensors`` are CPU float
+        tensors and nothing (they, or the model's parameters) needs autograd; else None."""
+        if self.method != "rk4" or not can_use_compiled(*tensors):
+            return None
+        c = self.continuous
+        if torch.is_grad_enabled() and any(
+            t.requires_grad for t in (*c.parameters(), *c.buffers())
+        ):
+            return None
+        derivs = c.compiled_derivatives()
+        if derivs is None:
+            return None
+        rhs = c.compiled_rhs()
+        if rhs is None:
+            return None
+        return rhs[0], derivs, rhs[1]
 
     def _rk4_chain(
         self, x: Tensor, u: Tensor, keep_stages: bool = False
@@ -135,6 +160,9 @@ class DiscretizedDynamics(Dynamics):
             )
         if self.method == "euler":
             return tuple(dt * h for h in f.vhp(x, u, s))
+        hooks = self._compiled_derivatives(x, u, s)
+        if hooks is not None:
+            return rk4_vhp_compiled(hooks, dt, x, u, s)
         _, _, stages = self._rk4_chain(x, u, keep_stages=True)
         return self._vhp_from_stages(u, s, stages)
 
@@ -147,6 +175,10 @@ class DiscretizedDynamics(Dynamics):
         recursion on the first (DDP's costate mode, the MPC layer's exact backward)."""
         if self.method == "euler" or not self.has_analytic_vhp:
             return None
+        hooks = self._compiled_derivatives(x, u)
+        if hooks is not None:  # the kernel recomputes the stages: cheaper than keeping them
+            A, B = rk4_jacobians_compiled(hooks, self.dt, x, u)
+            return A, B, lambda s: self.vhp(x, u, s)
         A, B, stages = self._rk4_chain(x, u, keep_stages=True)
         return A, B, lambda s: self._vhp_from_stages(u, s, stages)
 

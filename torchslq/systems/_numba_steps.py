@@ -32,6 +32,66 @@ def cartpole_rhs(x, u, p, out):
     out[3] = (-F * c - mp * l * thd * thd * c * s - (mc + mp) * g * s) / (l * D)
 
 
+@numba.njit(cache=True, nogil=True)
+def cartpole_derivatives(x, u, p, fz, H):
+    """:class:`torchslq.systems.CartPole`'s ``[f_x | f_u]`` into ``fz (4, 5)`` and, when
+    ``H`` is not empty, each output's Hessian in ``z = (x, u)`` into ``H (4, 5, 5)``
+    (the formulas of ``CartPole.jacobians`` and ``CartPole.vhp``); ``p = [mc, mp, l, g]``."""
+    mc, mp, l, g = p[0], p[1], p[2], p[3]
+    th, thd, F = x[1], x[3], u[0]
+    sn, c = math.sin(th), math.cos(th)
+    D = mc + mp * sn * sn
+    sdd = (F + mp * sn * (l * thd * thd + g * c)) / D
+    r = (-F * c - mp * l * thd * thd * c * sn - (mc + mp) * g * sn) / D  # l theta_ddot
+    dD = 2.0 * mp * sn * c
+    c2 = c * c - sn * sn
+    # numerator derivatives (a = th, b = thd, F); sdd = N1 / D, r = N2 / D
+    N1a = mp * (l * thd * thd * c + g * c2)
+    N1b = 2.0 * mp * l * sn * thd
+    N2a = F * sn - mp * l * thd * thd * c2 - (mc + mp) * g * c
+    N2b = -2.0 * mp * l * thd * c * sn
+    qa, qb, qF = (N1a - sdd * dD) / D, N1b / D, 1.0 / D
+    ra, rb, rF = (N2a - r * dD) / D, N2b / D, -c / D
+    for i in range(4):
+        for j in range(5):
+            fz[i, j] = 0.0
+    fz[0, 2] = 1.0
+    fz[1, 3] = 1.0
+    fz[2, 1], fz[2, 3], fz[2, 4] = qa, qb, qF
+    fz[3, 1], fz[3, 3], fz[3, 4] = ra / l, rb / l, rF / l
+    if H.shape[0] == 0:
+        return
+    ddD = 2.0 * mp * c2
+    N1aa = -mp * (l * thd * thd * sn + 4.0 * g * sn * c)
+    N1ab = 2.0 * mp * l * c * thd
+    N1bb = 2.0 * mp * l * sn
+    N2aa = F * c + 4.0 * mp * l * thd * thd * sn * c + (mc + mp) * g * sn
+    N2ab = -2.0 * mp * l * thd * c2
+    N2bb = -2.0 * mp * l * c * sn
+    for i in range(4):
+        for a in range(5):
+            for b in range(5):
+                H[i, a, b] = 0.0
+    for o in range(2):
+        if o == 0:
+            haa = (N1aa - 2.0 * qa * dD - sdd * ddD) / D
+            hab = (N1ab - qb * dD) / D
+            haF = -qF * dD / D
+            hbb = N1bb / D
+        else:
+            haa = (N2aa - 2.0 * ra * dD - r * ddD) / D / l
+            hab = (N2ab - rb * dD) / D / l
+            haF = (sn - rF * dD) / D / l
+            hbb = N2bb / D / l
+        Ho = H[2 + o]
+        Ho[1, 1] = haa
+        Ho[1, 3] = hab
+        Ho[3, 1] = hab
+        Ho[1, 4] = haF
+        Ho[4, 1] = haF
+        Ho[3, 3] = hbb
+
+
 _RK4_STEPS: dict = {}
 
 

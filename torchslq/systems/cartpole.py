@@ -65,6 +65,13 @@ class CartPole(ContinuousDynamics):
 
         return cartpole_rhs, np.array(vals, dtype=np.float64)
 
+    def compiled_derivatives(self):
+        """:meth:`jacobians` and the per-output Hessians of :meth:`vhp` as a numba
+        function (see :meth:`torchslq.ContinuousDynamics.compiled_derivatives`)."""
+        from ._numba_steps import cartpole_derivatives
+
+        return cartpole_derivatives
+
     def _params(self, x: Tensor):
         return tuple(get_param(self, k, x) for k in ("mc", "mp", "l", "g"))
 

@@ -1,0 +1,215 @@
+"""numba kernels for the derivatives of an RK4 step of a model with compiled derivatives
+(:meth:`torchslq.ContinuousDynamics.compiled_derivatives`), imported on first use.
+
+Both take the model's functions as arguments, so they are compiled once per process and
+model function (not cached on disk). The sums follow :mod:`torchslq.dynamics.discretize`
+(``DiscretizedDynamics._rk4_chain`` and ``_vhp_from_stages``), row by row.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+# (a_i, w_i) of the classical RK4 scheme: stage i at x + a_i dt k_{i-1}, weight w_i dt / 6
+# (as functions: numba indexes a constant tuple with a run-time index slowly, ~0.2 us
+# per row of the Jacobian kernel)
+@numba.njit(inline="always")
+def _rk4_a(i):
+    return 0.0 if i == 0 else (0.5 if i < 3 else 1.0)
+
+
+@numba.njit(inline="always")
+def _rk4_w(i):
+    return 2.0 if (i == 1 or i == 2) else 1.0
+
+
+@numba.njit(nogil=True)
+def _stages(rhs, derivs, p, dt, xr, ur, fz, H, dk, xi, k, with_hessians):
+    """Forward sweep over the four stages of one row: ``fz[i] = [f_x | f_u](zeta_i)``,
+    ``H[i]`` the per-output Hessians there (when ``with_hessians``), ``dk[i] =
+    dk_i/dz = fz[i] + a_i dt f_x(zeta_i) dk[i-1]``."""
+    n = xr.shape[0]
+    nz = fz.shape[2]
+    for i in range(4):
+        a = _rk4_a(i)
+        if i == 0:
+            for j in range(n):
+                xi[j] = xr[j]
+        else:
+            for j in range(n):
+                xi[j] = xr[j] + (a * dt) * k[j]
+        if with_hessians:
+            derivs(xi, ur, p, fz[i], H[i])
+        else:
+            derivs(xi, ur, p, fz[i], H[0])
+        f = fz[i]
+        d = dk[i]
+        if i == 0:
+            for j in range(n):
+                for c in range(nz):
+                    d[j, c] = f[j, c]
+        else:
+            prev = dk[i - 1]
+            for j in range(n):
+                for c in range(nz):
+                    s = 0.0
+                    for q in range(n):
+                        s += f[j, q] * prev[q, c]
+                    d[j, c] = f[j, c] + (a * dt) * s
+        if i < 3:  # the last stage's k is not needed
+            rhs(xi, ur, p, k)
+
+
+@numba.njit(nogil=True)
+def rk4_jacobians_kernel(r0, r1, rhs, derivs, p, dt, x, u, A, B):
+    """``A = I + dt/6 sum_i w_i dk_i/dx``, ``B = dt/6 sum_i w_i dk_i/du`` per row.
+    x ``(R, n)``, u ``(R, m)``; A ``(R, n, n)``, B ``(R, n, m)`` (outputs). Rows
+    ``r0 <= r < r1``."""
+    n = x.shape[1]
+    m = u.shape[1]
+    nz = n + m
+    fz = np.empty((4, n, nz), dtype=x.dtype)
+    dk = np.empty((4, n, nz), dtype=x.dtype)
+    H = np.empty((1, 0, nz, nz), dtype=x.dtype)  # no second derivatives wanted
+    xi = np.empty(n, dtype=x.dtype)
+    k = np.empty(n, dtype=x.dtype)
+    c = dt / 6.0
+    for r in range(r0, r1):
+        _stages(rhs, derivs, p, dt, x[r], u[r], fz, H, dk, xi, k, False)
+        for j in range(n):
+            for q in range(nz):
+                s = dk[0, j, q] + 2.0 * dk[1, j, q] + 2.0 * dk[2, j, q] + dk[3, j, q]
+                if q < n:
+                    A[r, j, q] = (1.0 if q == j else 0.0) + c * s
+                else:
+                    B[r, j, q - n] = c * s
+
+
+@numba.njit(nogil=True)
+def rk4_second_derivatives_kernel(r0, r1, rhs, derivs, p, dt, x, u, S, Hxx, Huu, Hux):
+    """Hessian blocks of ``s · step(x, u)`` for every weight vector ``s = S[w, r]``:
+    ``sum_i Z_i' (mu_i · f_zz(zeta_i)) Z_i`` with ``Z_i = d zeta_i / dz`` and the adjoint
+    weights ``mu_3 = c_3 s``, ``mu_{i-1} = c_{i-1} s + a_i dt f_x(zeta_i)' mu_i``
+    (``c_i = w_i dt / 6``).
+
+    Per row, the stages and each curved output's congruence ``G_ij = Z_i' f_j,zz Z_i``
+    (restricted to the ``z`` entries where some output is curved) are computed once;
+    each weight vector then only sums ``mu_ij G_ij``. x ``(R, n)``, u ``(R, m)``,
+    S ``(W, R, n)``; outputs Hxx ``(W, R, n, n)``, Huu ``(W, R, m, m)``, Hux
+    ``(W, R, m, n)``. Rows ``r0 <= r < r1``."""
+    n = x.shape[1]
+    m = u.shape[1]
+    nz = n + m
+    W = S.shape[0]
+    fz = np.empty((4, n, nz), dtype=x.dtype)
+    dk = np.empty((4, n, nz), dtype=x.dtype)
+    H = np.empty((4, n, nz, nz), dtype=x.dtype)
+    G = np.empty((4, n, nz, nz), dtype=x.dtype)  # upper triangles of Z_i' f_j,zz Z_i
+    xi = np.empty(n, dtype=x.dtype)
+    k = np.empty(n, dtype=x.dtype)
+    sup = np.empty(nz, dtype=np.int64)  # the curved z entries of a stage
+    outs = np.empty((4, n), dtype=np.int64)  # per stage: the curved outputs
+    nout = np.empty(4, dtype=np.int64)
+    Zs = np.empty((nz, nz), dtype=x.dtype)  # rows of Z_i at the curved entries
+    T1 = np.empty((nz, nz), dtype=x.dtype)
+    acc = np.empty((nz, nz), dtype=x.dtype)
+    mu = np.empty(n, dtype=x.dtype)
+    mu2 = np.empty(n, dtype=x.dtype)
+    for r in range(r0, r1):
+        _stages(rhs, derivs, p, dt, x[r], u[r], fz, H, dk, xi, k, True)
+        for i in range(4):
+            Hi = H[i]
+            no = 0
+            for j in range(n):
+                curved = False
+                for a in range(nz):
+                    for b in range(nz):
+                        if Hi[j, a, b] != 0.0:
+                            curved = True
+                            break
+                    if curved:
+                        break
+                if curved:
+                    outs[i, no] = j
+                    no += 1
+            nout[i] = no
+            if no == 0:
+                continue
+            ns = 0
+            for a in range(nz):
+                curved = False
+                for jj in range(no):
+                    j = outs[i, jj]
+                    for b in range(nz):
+                        if Hi[j, a, b] != 0.0:
+                            curved = True
+                            break
+                    if curved:
+                        break
+                if curved:
+                    sup[ns] = a
+                    ns += 1
+            # Z_i = [[I + a_i dt dk_x, a_i dt dk_u], [0, I]] at the curved rows
+            scale = _rk4_a(i) * dt
+            for a in range(ns):
+                za = sup[a]
+                for c in range(nz):
+                    v = 1.0 if c == za else 0.0
+                    if i > 0 and za < n:
+                        v += scale * dk[i - 1, za, c]
+                    Zs[a, c] = v
+            for jj in range(no):
+                j = outs[i, jj]
+                Hj = Hi[j]
+                Gj = G[i, j]
+                for a in range(ns):  # T1 = f_j,zz[S, S] Zs
+                    for c in range(nz):
+                        v = 0.0
+                        for b in range(ns):
+                            v += Hj[sup[a], sup[b]] * Zs[b, c]
+                        T1[a, c] = v
+                for c1 in range(nz):  # G = Zs' T1 (symmetric: upper half)
+                    for c2 in range(c1, nz):
+                        v = 0.0
+                        for a in range(ns):
+                            v += Zs[a, c1] * T1[a, c2]
+                        Gj[c1, c2] = v
+        for w in range(W):
+            s = S[w, r]
+            for a in range(nz):
+                for b in range(a, nz):
+                    acc[a, b] = 0.0
+            for j in range(n):
+                mu[j] = (_rk4_w(3) * dt / 6.0) * s[j]
+            for i in range(3, -1, -1):
+                for jj in range(nout[i]):
+                    j = outs[i, jj]
+                    mj = mu[j]
+                    if mj != 0.0:
+                        Gj = G[i, j]
+                        for a in range(nz):
+                            for b in range(a, nz):
+                                acc[a, b] += mj * Gj[a, b]
+                if i > 0:
+                    scale = _rk4_a(i) * dt
+                    cw = _rk4_w(i - 1) * dt / 6.0
+                    for q in range(n):
+                        v = 0.0
+                        for j in range(n):
+                            v += fz[i, j, q] * mu[j]
+                        mu2[q] = cw * s[q] + scale * v
+                    for q in range(n):
+                        mu[q] = mu2[q]
+            for c1 in range(nz):
+                for c2 in range(c1, nz):
+                    v = acc[c1, c2]
+                    if c2 < n:
+                        Hxx[w, r, c1, c2] = v
+                        Hxx[w, r, c2, c1] = v
+                    elif c1 >= n:
+                        Huu[w, r, c1 - n, c2 - n] = v
+                        Huu[w, r, c2 - n, c1 - n] = v
+                    else:
+                        Hux[w, r, c2 - n, c1] = v

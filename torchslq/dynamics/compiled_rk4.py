@@ -1,0 +1,110 @@
+"""The derivatives of an RK4 step on CPU kernels, for models with compiled derivatives.
+
+:class:`~torchslq.dynamics.DiscretizedDynamics` chains a continuous model's analytic
+Jacobians and Hessians through the four RK4 stages with batched torch products: a dozen
+small products on ``(rows, n, n + m)`` tensors per stage, dispatch- and memory-bound.
+When the model gives its right-hand side and its derivatives as numba functions
+(:meth:`~torchslq.ContinuousDynamics.compiled_rhs`,
+:meth:`~torchslq.ContinuousDynamics.compiled_derivatives`) the same chain runs row by row
+in one kernel call (:mod:`torchslq.dynamics._numba_rk4`). Call only where
+:func:`torchslq.lq.compiled.can_use_compiled` holds for ``x``, ``u`` (and ``s``).
+"""
+
+from __future__ import annotations
+
+import math
+from types import ModuleType
+
+import torch
+from torch import Tensor
+
+from .._shapes import broadcast_shapes
+from ..lq.compiled import _launch
+
+__all__ = ["rk4_jacobians_compiled", "rk4_vhp_compiled"]
+
+_module: ModuleType | None = None
+
+
+def _kernels() -> ModuleType:
+    global _module
+    if _module is None:
+        from . import _numba_rk4
+
+        _module = _numba_rk4
+    return _module
+
+
+def _rows(x: Tensor, u: Tensor, lead=None) -> tuple[torch.Size, int, Tensor, Tensor]:
+    """``x``, ``u`` expanded to ``lead`` (default: their broadcast) as ``(R, .)`` rows."""
+    if lead is None:
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
+    R = math.prod(lead)
+    xr = x.detach().expand(*lead, x.shape[-1]).reshape(R, x.shape[-1]).contiguous()
+    ur = u.detach().expand(*lead, u.shape[-1]).reshape(R, u.shape[-1]).contiguous()
+    return lead, R, xr, ur
+
+
+def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """``(A (..., n, n), B (..., n, m))`` of the RK4 step of ``dt`` at ``x (..., n)``,
+    ``u (..., m)`` (leading dims broadcast); ``hooks = (rhs, derivatives, params)``."""
+    rhs, derivs, params = hooks
+    n, m = x.shape[-1], u.shape[-1]
+    lead, R, xr, ur = _rows(x, u)
+    A = torch.empty(R, n, n, dtype=x.dtype)
+    B = torch.empty(R, n, m, dtype=x.dtype)
+    _launch(
+        _kernels().rk4_jacobians_kernel,
+        R,
+        1,
+        rhs,
+        derivs,
+        params,
+        float(dt),
+        xr.numpy(),
+        ur.numpy(),
+        A.numpy(),
+        B.numpy(),
+    )
+    return A.view(*lead, n, n), B.view(*lead, n, m)
+
+
+def rk4_vhp_compiled(
+    hooks, dt: float, x: Tensor, u: Tensor, s: Tensor
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Hessian blocks ``(Hxx, Huu, Hux)`` of ``s · step(x, u)`` for the RK4 step of
+    ``dt``, each ``(*W, *lead, ., .)`` with ``lead`` the broadcast of ``x``'s and ``u``'s
+    leading dims and ``W`` the dims ``s`` has beyond them (several weight vectors per
+    point, e.g. the output basis for all output Hessians: the stages are computed once
+    per point for all of them)."""
+    rhs, derivs, params = hooks
+    n, m = x.shape[-1], u.shape[-1]
+    nl = len(broadcast_shapes(x.shape[:-1], u.shape[:-1]))
+    full = broadcast_shapes(s.shape[:-1], x.shape[:-1], u.shape[:-1])
+    Wdims = full[: len(full) - nl]
+    lead, R, xr, ur = _rows(x, u, full[len(full) - nl :])
+    W = math.prod(Wdims)
+    S = s.detach().expand(*full, n).reshape(W, R, n).contiguous()
+    Hxx = torch.empty(W, R, n, n, dtype=x.dtype)
+    Huu = torch.empty(W, R, m, m, dtype=x.dtype)
+    Hux = torch.empty(W, R, m, n, dtype=x.dtype)
+    _launch(
+        _kernels().rk4_second_derivatives_kernel,
+        R,
+        W,
+        rhs,
+        derivs,
+        params,
+        float(dt),
+        xr.numpy(),
+        ur.numpy(),
+        S.numpy(),
+        Hxx.numpy(),
+        Huu.numpy(),
+        Hux.numpy(),
+    )
+    return (
+        Hxx.view(*full, n, n),
+        Huu.view(*full, m, m),
+        Hux.view(*full, m, n),
+    )
