@@ -172,31 +172,36 @@ def test_unicycle_derivatives_match_automatic_differentiation():
         Unicycle(0.0)
 
 
+def _count_analytic_vhp(monkeypatch, cls) -> dict:
+    """Counts the calls of ``cls.vhp`` and of the same derivatives on the CPU kernel
+    (``cls.compiled_derivatives``) in ``calls["n"]``."""
+    import sys
+
+    calls = {"n": 0}
+    real = cls.vhp
+    disc = sys.modules["torchslq.dynamics.discretize"]
+    real_kernel = disc.rk4_vhp_compiled
+
+    def counting(self, *a, **k):
+        calls["n"] += 1
+        return real(self, *a, **k)
+
+    def counting_kernel(*a):
+        calls["n"] += 1
+        return real_kernel(*a)
+
+    monkeypatch.setattr(cls, "vhp", counting)
+    monkeypatch.setattr(disc, "rk4_vhp_compiled", counting_kernel)
+    return calls
+
+
 def test_mpc_exact_implicit_gradients_with_analytic_second_derivatives(monkeypatch):
     """The MPC layer's exact backward (Hessian of the Lagrangian) through CartPole.vhp
     (or its compiled form): the same gradients w.r.t. a learnable model parameter and x0 as with autodiff f_zz,
     and the analytic path is really taken."""
     from torch import nn
 
-    calls = {"n": 0}
-    real = CartPole.vhp
-
-    def counting(self, *a, **k):
-        calls["n"] += 1
-        return real(self, *a, **k)
-
-    monkeypatch.setattr(CartPole, "vhp", counting)
-    # (or the same derivatives on the CPU kernel, CartPole.compiled_derivatives)
-    import sys
-
-    disc = sys.modules["torchslq.dynamics.discretize"]
-    real_kernel = disc.rk4_vhp_compiled
-
-    def counting_kernel(*a):
-        calls["n"] += 1
-        return real_kernel(*a)
-
-    monkeypatch.setattr(disc, "rk4_vhp_compiled", counting_kernel)
+    calls = _count_analytic_vhp(monkeypatch, CartPole)
     Q = torch.diag(torch.tensor([1.0, 10.0, 0.1, 0.1], dtype=F64))
     x_ref = torch.tensor([0.0, 3.0, 0.0, 0.0], dtype=F64)
     g = torch.Generator().manual_seed(7)
@@ -232,14 +237,7 @@ def test_mass_chain_mpc_exact_gradients_and_ddp_with_analytic_second_derivatives
     which uses f_zz in every step) takes the same iterates."""
     from torch import nn
 
-    calls = {"n": 0}
-    real = MassChain.vhp
-
-    def counting(self, *a, **k):
-        calls["n"] += 1
-        return real(self, *a, **k)
-
-    monkeypatch.setattr(MassChain, "vhp", counting)
+    calls = _count_analytic_vhp(monkeypatch, MassChain)
     N, T = 3, 12
     Q = torch.eye(2 * N, dtype=F64)
     goal = torch.tensor([0.3, 0.6, 0.9, 0, 0, 0], dtype=F64)

@@ -12,7 +12,7 @@ from torch.func import hessian, jacrev
 
 import torchslq as ts
 from torchslq.lq import compiled
-from torchslq.systems import CartPole
+from torchslq.systems import CartPole, MassChain
 
 F64 = torch.float64
 
@@ -23,18 +23,46 @@ pytestmark = pytest.mark.skipif(
 _disc = sys.modules["torchslq.dynamics.discretize"]
 
 
-def _step(dtype=F64, dt=0.07, **kw) -> ts.DiscretizedDynamics:
-    return ts.discretize(CartPole(mc=torch.tensor(1.3, dtype=F64), **kw), dt).to(dtype)
+def _step(dtype=F64, dt=0.07, model: str = "cartpole") -> ts.DiscretizedDynamics:
+    """An RK4 model with compiled derivatives: the cart-pole (declared curvature
+    pattern), the same with a function that fills all of H (each point's Hessians
+    scanned for their curved entries), or a chain of 3 masses (n + m = 9)."""
+    if model == "mass-chain":
+        return ts.discretize(MassChain(3, mass=1.3, k3=0.7, damping=0.2), dt).to(dtype)
+    cont = CartPole(mc=torch.tensor(1.3, dtype=F64))
+    if model == "cartpole-scan":
+        cont.compiled_derivatives = lambda: _full_cartpole_derivatives()
+    return ts.discretize(cont, dt).to(dtype)
 
 
-def _torch_chain(step: ts.DiscretizedDynamics) -> ts.DiscretizedDynamics:
-    """The same model without compiled derivatives (the torch chain)."""
-    other = ts.discretize(step.continuous, step.dt)
-    other.continuous = type(step.continuous)(
-        **{k: getattr(step.continuous, k) for k in ("mc", "mp", "l", "g")}
-    )
-    other.continuous.compiled_derivatives = lambda: None
-    return other
+def _full_cartpole_derivatives():
+    import numba
+
+    from torchslq.systems._numba_steps import cartpole_derivatives
+
+    @numba.njit
+    def full(x, u, p, fz, H):
+        for j in range(H.shape[0]):
+            for a in range(H.shape[1]):
+                for b in range(H.shape[2]):
+                    H[j, a, b] = 0.0
+        cartpole_derivatives(x, u, p, fz, H)
+
+    return full
+
+
+def _torch_results(step: ts.DiscretizedDynamics, *args):
+    """The step's Jacobians or Hessian blocks by the torch chain (its model's compiled
+    derivatives hidden)."""
+    c = step.continuous
+    old = c.__dict__.get("compiled_derivatives")
+    c.compiled_derivatives = lambda: None
+    try:
+        return step.jacobians(*args) if len(args) == 2 else step.vhp(*args)
+    finally:
+        del c.compiled_derivatives
+        if old is not None:
+            c.compiled_derivatives = old
 
 
 def _counting(monkeypatch, name):
@@ -61,86 +89,112 @@ def _counting(monkeypatch, name):
     ],
 )
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
-def test_kernels_equal_the_torch_chain(shapes, dtype, monkeypatch):
+@pytest.mark.parametrize("model", ["cartpole", "cartpole-scan", "mass-chain"])
+def test_kernels_equal_the_torch_chain(model, shapes, dtype, monkeypatch):
     """Jacobians and Hessian blocks from the kernels == the torch chain through the
-    stages (CartPole.jacobians / CartPole.vhp), in broadcast layouts and both dtypes;
-    the kernels must have run."""
+    stages (the model's jacobians / vhp), in broadcast layouts and both dtypes; the
+    kernels must have run."""
     g = torch.Generator().manual_seed(4)
     xs, us, ss = shapes
-    step = _step(dtype)
-    x = (1.5 * torch.randn(*xs, 4, generator=g, dtype=F64)).to(dtype)
-    u = torch.randn(*us, 1, generator=g, dtype=F64).to(dtype)
-    s = torch.randn(*ss, 4, generator=g, dtype=F64).to(dtype)
+    step = _step(dtype, model=model)
+    n, m = step.state_dim, step.control_dim
+    x = (1.5 * torch.randn(*xs, n, generator=g, dtype=F64)).to(dtype)
+    u = torch.randn(*us, m, generator=g, dtype=F64).to(dtype)
+    s = torch.randn(*ss, n, generator=g, dtype=F64).to(dtype)
     jac_calls = _counting(monkeypatch, "rk4_jacobians_compiled")
     vhp_calls = _counting(monkeypatch, "rk4_vhp_compiled")
     A, B = step.jacobians(x, u)
     H = step.vhp(x, u, s)
     assert (len(jac_calls), len(vhp_calls)) == (1, 1)
-    ref = _torch_chain(step)
-    A2, B2 = ref.jacobians(x, u)
-    H2 = ref.vhp(x, u, s)
+    A2, B2 = _torch_results(step, x, u)
+    H2 = _torch_results(step, x, u, s)
     assert (len(jac_calls), len(vhp_calls)) == (1, 1)  # the reference did not use them
     tol = 1e-13 if dtype == F64 else 3e-6
     for a, b in zip((A, B, *H), (A2, B2, *H2), strict=True):
         assert a.dtype == dtype and a.shape == torch.broadcast_shapes(a.shape, b.shape)
         b = b.expand_as(a)
         assert float((a - b).abs().max()) <= tol * (1 + float(b.abs().max()))
-    assert float(H[0].abs().max()) > 1e-3 and float(H[2].abs().max()) > 1e-3
+    assert float(H[0].abs().max()) > 1e-3
+    if model != "mass-chain":  # (only its positions are curved)
+        assert float(H[2].abs().max()) > 1e-3
 
 
-def test_kernels_equal_automatic_differentiation_of_the_step():
+@pytest.mark.parametrize("model", ["cartpole", "cartpole-scan", "mass-chain"])
+def test_kernels_equal_automatic_differentiation_of_the_step(model):
     """Independent of the chain formulas: A, B = jacrev of the RK4 step and the Hessian
     blocks = torch.func.hessian of s · step(x, u), row by row (float64)."""
     g = torch.Generator().manual_seed(11)
-    step = _step(dt=0.1)
-    x = 2.0 * torch.randn(6, 4, generator=g, dtype=F64)
-    u = 3.0 * torch.randn(6, 1, generator=g, dtype=F64)
-    s = torch.randn(6, 4, generator=g, dtype=F64)
+    step = _step(dt=0.1, model=model)
+    n, m = step.state_dim, step.control_dim
+    x = 2.0 * torch.randn(6, n, generator=g, dtype=F64)
+    u = 3.0 * torch.randn(6, m, generator=g, dtype=F64)
+    s = torch.randn(6, n, generator=g, dtype=F64)
     A, B = step.jacobians(x, u)
     Hxx, Huu, Hux = step.vhp(x, u, s)
 
-    def flat(z, i):
-        return step(z[:4].unsqueeze(0), z[4:].unsqueeze(0))[0]
+    def flat(z):
+        return step(z[:n].unsqueeze(0), z[n:].unsqueeze(0))[0]
 
     for i in range(6):
         z = torch.cat([x[i], u[i]])
-        J = jacrev(flat)(z, i)
-        Hz = hessian(lambda z, i=i: (s[i] * flat(z, i)).sum())(z)
-        torch.testing.assert_close(A[i], J[:, :4], rtol=1e-12, atol=1e-13)
-        torch.testing.assert_close(B[i], J[:, 4:], rtol=1e-12, atol=1e-13)
-        torch.testing.assert_close(Hxx[i], Hz[:4, :4], rtol=1e-10, atol=1e-12)
-        torch.testing.assert_close(Huu[i], Hz[4:, 4:], rtol=1e-10, atol=1e-12)
-        torch.testing.assert_close(Hux[i], Hz[4:, :4], rtol=1e-10, atol=1e-12)
+        J = jacrev(flat)(z)
+        Hz = hessian(lambda z, i=i: (s[i] * flat(z)).sum())(z)
+        torch.testing.assert_close(A[i], J[:, :n], rtol=1e-12, atol=1e-13)
+        torch.testing.assert_close(B[i], J[:, n:], rtol=1e-12, atol=1e-13)
+        torch.testing.assert_close(Hxx[i], Hz[:n, :n], rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(Huu[i], Hz[n:, n:], rtol=1e-10, atol=1e-12)
+        torch.testing.assert_close(Hux[i], Hz[n:, :n], rtol=1e-10, atol=1e-12)
+        assert float(Hz.abs().max()) > 1e-3
 
 
-def test_cartpole_compiled_derivatives_equal_its_torch_derivatives():
-    """CartPole.compiled_derivatives (one row) == CartPole.jacobians and the Hessian of
-    each output by torch.func.hessian; an empty H asks for the Jacobians only."""
+@pytest.mark.parametrize("name", ["cartpole", "mass-chain"])
+def test_compiled_derivatives_equal_the_models_torch_derivatives(name):
+    """A model's compiled derivatives (one row) == its torch jacobians and the Hessian
+    of each output by torch.func.hessian, which is zero outside the declared pattern
+    (entries there are left untouched); an empty H asks for the Jacobians only."""
     import numpy as np
 
-    model = CartPole(mc=1.1, mp=0.3, l=0.7, g=9.0)
-    derivs = model.compiled_derivatives()
+    from torchslq.dynamics import CompiledDerivatives
+
+    if name == "cartpole":
+        model = CartPole(mc=1.1, mp=0.3, l=0.7, g=9.0)
+    else:
+        model = MassChain(3, mass=1.3, k=0.8, k3=0.7, damping=0.2)
+    n, m = model.state_dim, model.control_dim
+    cd = model.compiled_derivatives()
+    assert isinstance(cd, CompiledDerivatives)
     _, params = model.compiled_rhs()
+    outs, ents = list(cd.curved_outputs), list(cd.curved_entries)
+    pattern = torch.zeros(n, n + m, n + m, dtype=torch.bool)
+    pattern[torch.tensor(outs)[:, None, None], torch.tensor(ents)[:, None], torch.tensor(ents)] = (
+        True
+    )
     g = torch.Generator().manual_seed(2)
     for _ in range(5):
-        x = 2.0 * torch.randn(4, generator=g, dtype=F64)
-        u = torch.randn(1, generator=g, dtype=F64)
-        fz, H = np.zeros((4, 5)), np.full((4, 5, 5), np.nan)
-        derivs(x.numpy(), u.numpy(), params, fz, H)
+        x = 2.0 * torch.randn(n, generator=g, dtype=F64)
+        u = torch.randn(m, generator=g, dtype=F64)
+        fz, H = np.zeros((n, n + m)), np.full((n, n + m, n + m), np.nan)
+        cd.derivatives(x.numpy(), u.numpy(), params, fz, H)
         fx, fu = model.jacobians(x, u)
         torch.testing.assert_close(torch.from_numpy(fz), torch.cat([fx, fu], -1))
-        for j in range(4):
-            Hj = hessian(lambda z, j=j: model(z[:4], z[4:])[j])(torch.cat([x, u]))
-            torch.testing.assert_close(torch.from_numpy(H[j]), Hj, rtol=1e-12, atol=1e-13)
-        fz2 = np.full((4, 5), np.nan)
-        derivs(x.numpy(), u.numpy(), params, fz2, np.zeros((0, 5, 5)))
+        Ht = torch.stack(
+            [hessian(lambda z, j=j: model(z[:n], z[n:])[j])(torch.cat([x, u])) for j in range(n)]
+        )
+        assert float(Ht[~pattern].abs().max()) == 0.0 and float(Ht.abs().max()) > 1e-3
+        torch.testing.assert_close(
+            torch.from_numpy(H)[pattern], Ht[pattern], rtol=1e-12, atol=1e-13
+        )
+        assert bool(np.isnan(H[~pattern.numpy()]).all())  # untouched
+        fz2 = np.full((n, n + m), np.nan)
+        cd.derivatives(x.numpy(), u.numpy(), params, fz2, np.zeros((0, n + m, n + m)))
         assert np.array_equal(fz, fz2)
 
 
-def test_nan_states_give_nan_derivatives():
+@pytest.mark.parametrize("model", ["cartpole", "cartpole-scan"])
+def test_nan_states_give_nan_derivatives(model):
     """A NaN state is not skipped as 'not curved': its Jacobians and Hessians are NaN,
     the other rows are unaffected."""
-    step = _step()
+    step = _step(model=model)
     x = torch.zeros(3, 4, dtype=F64)
     x[1, 1] = float("nan")
     u = torch.ones(3, 1, dtype=F64)

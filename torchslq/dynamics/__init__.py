@@ -1,6 +1,6 @@
 """Dynamics models: base classes, discretisation and linearisation."""
 
-from .base import ContinuousDynamics, Dynamics, state_control_dims
+from .base import CompiledDerivatives, ContinuousDynamics, Dynamics, state_control_dims
 from .discretize import DiscretizedDynamics, discretize
 from .linearize import (
     LearnedDynamics,
@@ -12,6 +12,7 @@ from .linearize import (
 )
 
 __all__ = [
+    "CompiledDerivatives",
     "ContinuousDynamics",
     "DiscretizedDynamics",
     "Dynamics",

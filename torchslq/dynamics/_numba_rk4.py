@@ -88,94 +88,129 @@ def rk4_jacobians_kernel(r0, r1, rhs, derivs, p, dt, x, u, A, B):
 
 
 @numba.njit(nogil=True)
-def rk4_second_derivatives_kernel(r0, r1, rhs, derivs, p, dt, x, u, S, Hxx, Huu, Hux):
+def _curvature(Hi, n, nz, outs, sup):
+    """The outputs of one stage with a nonzero Hessian (into ``outs``) and the ``z``
+    entries where any of them is curved (into ``sup``); returns their counts. NaN
+    entries count as nonzero, so NaNs propagate."""
+    no = 0
+    for j in range(n):
+        curved = False
+        for a in range(nz):
+            for b in range(nz):
+                if Hi[j, a, b] != 0.0:
+                    curved = True
+                    break
+            if curved:
+                break
+        if curved:
+            outs[no] = j
+            no += 1
+    ns = 0
+    for a in range(nz):
+        curved = False
+        for jj in range(no):
+            j = outs[jj]
+            for b in range(nz):
+                if Hi[j, a, b] != 0.0:
+                    curved = True
+                    break
+            if curved:
+                break
+        if curved:
+            sup[ns] = a
+            ns += 1
+    return no, ns
+
+
+@numba.njit(nogil=True)
+def rk4_second_derivatives_kernel(
+    r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hxx, Huu, Hux
+):
     """Hessian blocks of ``s · step(x, u)`` for every weight vector ``s = S[w, r]``:
     ``sum_i Z_i' (mu_i · f_zz(zeta_i)) Z_i`` with ``Z_i = d zeta_i / dz`` and the adjoint
     weights ``mu_3 = c_3 s``, ``mu_{i-1} = c_{i-1} s + a_i dt f_x(zeta_i)' mu_i``
     (``c_i = w_i dt / 6``).
 
-    Per row, the stages and each curved output's congruence ``G_ij = Z_i' f_j,zz Z_i``
-    (restricted to the ``z`` entries where some output is curved) are computed once;
-    each weight vector then only sums ``mu_ij G_ij``. x ``(R, n)``, u ``(R, m)``,
-    S ``(W, R, n)``; outputs Hxx ``(W, R, n, n)``, Huu ``(W, R, m, m)``, Hux
-    ``(W, R, m, n)``. Rows ``r0 <= r < r1``."""
+    Only the curved outputs and ``z`` entries enter: the model's static pattern
+    (``curved_outputs``, ``curved_entries``, int arrays; the model then fills only those
+    entries of ``H``) or, when these are empty, the nonzero entries found per stage.
+    With several weight vectors per point (DDP's value mode asks for the output basis)
+    each curved output's congruence ``G_ij = Z_i' f_j,zz Z_i`` is computed once and
+    weighted; with few, ``mu_i · f_zz`` is formed first and one congruence taken per
+    weight (whichever needs fewer products).
+
+    x ``(R, n)``, u ``(R, m)``, S ``(W, R, n)``; outputs Hxx ``(W, R, n, n)``, Huu
+    ``(W, R, m, m)``, Hux ``(W, R, m, n)``. Rows ``r0 <= r < r1``."""
     n = x.shape[1]
     m = u.shape[1]
     nz = n + m
     W = S.shape[0]
+    static = curved_outputs.shape[0] > 0
     fz = np.empty((4, n, nz), dtype=x.dtype)
     dk = np.empty((4, n, nz), dtype=x.dtype)
-    H = np.empty((4, n, nz, nz), dtype=x.dtype)
+    H = np.zeros((4, n, nz, nz), dtype=x.dtype)
     G = np.empty((4, n, nz, nz), dtype=x.dtype)  # upper triangles of Z_i' f_j,zz Z_i
     xi = np.empty(n, dtype=x.dtype)
     k = np.empty(n, dtype=x.dtype)
-    sup = np.empty(nz, dtype=np.int64)  # the curved z entries of a stage
     outs = np.empty((4, n), dtype=np.int64)  # per stage: the curved outputs
+    sup = np.empty((4, nz), dtype=np.int64)  # per stage: the curved z entries
     nout = np.empty(4, dtype=np.int64)
-    Zs = np.empty((nz, nz), dtype=x.dtype)  # rows of Z_i at the curved entries
+    nsup = np.empty(4, dtype=np.int64)
+    Zs = np.empty((4, nz, nz), dtype=x.dtype)  # rows of Z_i at the curved entries
+    h = np.empty((nz, nz), dtype=x.dtype)
     T1 = np.empty((nz, nz), dtype=x.dtype)
     acc = np.empty((nz, nz), dtype=x.dtype)
     mu = np.empty(n, dtype=x.dtype)
     mu2 = np.empty(n, dtype=x.dtype)
+    if static:
+        for i in range(4):
+            nout[i] = curved_outputs.shape[0]
+            nsup[i] = curved_entries.shape[0]
+            for jj in range(nout[i]):
+                outs[i, jj] = curved_outputs[jj]
+            for a in range(nsup[i]):
+                sup[i, a] = curved_entries[a]
     for r in range(r0, r1):
         _stages(rhs, derivs, p, dt, x[r], u[r], fz, H, dk, xi, k, True)
+        work_g = 0
+        work_f = 0
         for i in range(4):
-            Hi = H[i]
-            no = 0
-            for j in range(n):
-                curved = False
-                for a in range(nz):
-                    for b in range(nz):
-                        if Hi[j, a, b] != 0.0:
-                            curved = True
-                            break
-                    if curved:
-                        break
-                if curved:
-                    outs[i, no] = j
-                    no += 1
-            nout[i] = no
+            if not static:
+                nout[i], nsup[i] = _curvature(H[i], n, nz, outs[i], sup[i])
+            no, ns = nout[i], nsup[i]
             if no == 0:
                 continue
-            ns = 0
-            for a in range(nz):
-                curved = False
-                for jj in range(no):
-                    j = outs[i, jj]
-                    for b in range(nz):
-                        if Hi[j, a, b] != 0.0:
-                            curved = True
-                            break
-                    if curved:
-                        break
-                if curved:
-                    sup[ns] = a
-                    ns += 1
-            # Z_i = [[I + a_i dt dk_x, a_i dt dk_u], [0, I]] at the curved rows
             scale = _rk4_a(i) * dt
-            for a in range(ns):
-                za = sup[a]
+            for a in range(ns):  # Z_i = [[I + a_i dt dk_x, a_i dt dk_u], [0, I]]
+                za = sup[i, a]
                 for c in range(nz):
                     v = 1.0 if c == za else 0.0
                     if i > 0 and za < n:
                         v += scale * dk[i - 1, za, c]
-                    Zs[a, c] = v
-            for jj in range(no):
-                j = outs[i, jj]
-                Hj = Hi[j]
-                Gj = G[i, j]
-                for a in range(ns):  # T1 = f_j,zz[S, S] Zs
-                    for c in range(nz):
-                        v = 0.0
-                        for b in range(ns):
-                            v += Hj[sup[a], sup[b]] * Zs[b, c]
-                        T1[a, c] = v
-                for c1 in range(nz):  # G = Zs' T1 (symmetric: upper half)
-                    for c2 in range(c1, nz):
-                        v = 0.0
-                        for a in range(ns):
-                            v += Zs[a, c1] * T1[a, c2]
-                        Gj[c1, c2] = v
+                    Zs[i, a, c] = v
+            cong = ns * ns * nz + (nz * (nz + 1) // 2) * ns
+            work_g += no * cong + W * no * (nz * (nz + 1) // 2)
+            work_f += W * (no * ns * ns + cong)
+        per_output = work_g < work_f
+        if per_output:
+            for i in range(4):
+                no, ns = nout[i], nsup[i]
+                for jj in range(no):
+                    j = outs[i, jj]
+                    Hj = H[i, j]
+                    Gj = G[i, j]
+                    for a in range(ns):  # T1 = f_j,zz[S, S] Zs
+                        for c in range(nz):
+                            v = 0.0
+                            for b in range(ns):
+                                v += Hj[sup[i, a], sup[i, b]] * Zs[i, b, c]
+                            T1[a, c] = v
+                    for c1 in range(nz):  # G = Zs' T1 (symmetric: upper half)
+                        for c2 in range(c1, nz):
+                            v = 0.0
+                            for a in range(ns):
+                                v += Zs[i, a, c1] * T1[a, c2]
+                            Gj[c1, c2] = v
         for w in range(W):
             s = S[w, r]
             for a in range(nz):
@@ -184,14 +219,38 @@ def rk4_second_derivatives_kernel(r0, r1, rhs, derivs, p, dt, x, u, S, Hxx, Huu,
             for j in range(n):
                 mu[j] = (_rk4_w(3) * dt / 6.0) * s[j]
             for i in range(3, -1, -1):
-                for jj in range(nout[i]):
-                    j = outs[i, jj]
-                    mj = mu[j]
-                    if mj != 0.0:
-                        Gj = G[i, j]
-                        for a in range(nz):
-                            for b in range(a, nz):
-                                acc[a, b] += mj * Gj[a, b]
+                no, ns = nout[i], nsup[i]
+                if per_output:
+                    for jj in range(no):
+                        j = outs[i, jj]
+                        mj = mu[j]
+                        if mj != 0.0:
+                            Gj = G[i, j]
+                            for a in range(nz):
+                                for b in range(a, nz):
+                                    acc[a, b] += mj * Gj[a, b]
+                elif no > 0:
+                    for a in range(ns):  # h = mu · f_zz on the curved entries
+                        za = sup[i, a]
+                        for b in range(ns):
+                            zb = sup[i, b]
+                            v = 0.0
+                            for jj in range(no):
+                                j = outs[i, jj]
+                                v += mu[j] * H[i, j, za, zb]
+                            h[a, b] = v
+                    for a in range(ns):  # T1 = h Zs
+                        for c in range(nz):
+                            v = 0.0
+                            for b in range(ns):
+                                v += h[a, b] * Zs[i, b, c]
+                            T1[a, c] = v
+                    for c1 in range(nz):  # acc += Zs' T1 (upper half)
+                        for c2 in range(c1, nz):
+                            v = 0.0
+                            for a in range(ns):
+                                v += Zs[i, a, c1] * T1[a, c2]
+                            acc[c1, c2] += v
                 if i > 0:
                     scale = _rk4_a(i) * dt
                     cw = _rk4_w(i - 1) * dt / 6.0

@@ -11,10 +11,13 @@ mass for inputs of shape ``(B, T, n)``.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from typing import NamedTuple
+
 import torch
 from torch import Tensor, nn
 
-__all__ = ["Dynamics", "ContinuousDynamics"]
+__all__ = ["Dynamics", "ContinuousDynamics", "CompiledDerivatives"]
 
 
 class Dynamics(nn.Module):
@@ -68,6 +71,18 @@ class Dynamics(nn.Module):
         return None
 
 
+class CompiledDerivatives(NamedTuple):
+    """What :meth:`ContinuousDynamics.compiled_derivatives` may return: the numba
+    function and the model's curvature pattern, the same at every point: the outputs
+    whose Hessian can be nonzero and the ``z = (x, u)`` entries (rows and columns of
+    those Hessians) where it can be; ``derivatives`` writes only those entries of ``H``
+    and the kernel reads only those (instead of scanning the whole ``H`` per point)."""
+
+    derivatives: Callable
+    curved_outputs: tuple[int, ...]
+    curved_entries: tuple[int, ...]
+
+
 class ContinuousDynamics(nn.Module):
     """Continuous-time dynamics ``xdot = f(x, u, t)``.
 
@@ -111,14 +126,17 @@ class ContinuousDynamics(nn.Module):
         return None
 
     def compiled_derivatives(self):
-        """Optional, with :meth:`compiled_rhs`: a numba function
-        ``derivatives(x, u, params, fz, H)`` taking ``compiled_rhs``'s ``params``, that
-        writes ``[f_x | f_u]`` at one row into ``fz (n, n + m)`` and, unless ``H`` is
-        empty (``H.shape[0] == 0``), every output's Hessian in ``z = (x, u)`` into
-        ``H (n, n + m, n + m)`` (all entries, zeros included); or None (the default).
-        :func:`torchslq.discretize`'s RK4 step then computes its Jacobians and
-        second derivatives on CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`) when
-        nothing needs autograd. It must agree with :meth:`jacobians` and :meth:`vhp`."""
+        """Optional, with :meth:`compiled_rhs`: the model's first and second derivatives as
+        a numba function ``derivatives(x, u, params, fz, H)`` taking ``compiled_rhs``'s
+        ``params``, that writes ``[f_x | f_u]`` at one row into ``fz (n, n + m)`` and,
+        unless ``H`` is empty (``H.shape[0] == 0``), every output's Hessian in
+        ``z = (x, u)`` into ``H (n, n + m, n + m)``; or a :class:`CompiledDerivatives`
+        giving that function with the model's curvature pattern (the function then
+        writes only those entries of ``H``; the others are known zeros); or None (the
+        default). :func:`torchslq.discretize`'s RK4 step then computes its Jacobians
+        and second derivatives on CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`)
+        when nothing needs autograd. It must agree with :meth:`jacobians` and
+        :meth:`vhp`."""
         return None
 
 

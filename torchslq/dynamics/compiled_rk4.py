@@ -13,15 +13,19 @@ in one kernel call (:mod:`torchslq.dynamics._numba_rk4`). Call only where
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from types import ModuleType
+from typing import NamedTuple
 
+import numpy as np
 import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from ..lq.compiled import _launch
+from .base import CompiledDerivatives
 
-__all__ = ["rk4_jacobians_compiled", "rk4_vhp_compiled"]
+__all__ = ["rk4_hooks", "rk4_jacobians_compiled", "rk4_vhp_compiled"]
 
 _module: ModuleType | None = None
 
@@ -33,6 +37,29 @@ def _kernels() -> ModuleType:
 
         _module = _numba_rk4
     return _module
+
+
+class RK4Hooks(NamedTuple):
+    rhs: Callable
+    derivatives: Callable
+    params: np.ndarray
+    curved_outputs: np.ndarray  # int64, empty: scan each point's Hessians
+    curved_entries: np.ndarray
+
+
+def rk4_hooks(rhs, derivatives) -> RK4Hooks:
+    """The kernels' arguments from a model's :meth:`~torchslq.ContinuousDynamics.compiled_rhs`
+    ``(rhs, params)`` and :meth:`~torchslq.ContinuousDynamics.compiled_derivatives` (a
+    function or a :class:`~torchslq.dynamics.CompiledDerivatives`)."""
+    fn, params = rhs
+    if isinstance(derivatives, CompiledDerivatives):
+        outs = np.asarray(derivatives.curved_outputs, dtype=np.int64).reshape(-1)
+        ents = np.asarray(derivatives.curved_entries, dtype=np.int64).reshape(-1)
+        if outs.size == 0 or ents.size == 0:
+            raise ValueError("a CompiledDerivatives pattern needs curved outputs and entries")
+        return RK4Hooks(fn, derivatives.derivatives, params, outs, ents)
+    empty = np.zeros(0, dtype=np.int64)
+    return RK4Hooks(fn, derivatives, params, empty, empty)
 
 
 def _rows(x: Tensor, u: Tensor, lead=None) -> tuple[torch.Size, int, Tensor, Tensor]:
@@ -47,8 +74,7 @@ def _rows(x: Tensor, u: Tensor, lead=None) -> tuple[torch.Size, int, Tensor, Ten
 
 def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """``(A (..., n, n), B (..., n, m))`` of the RK4 step of ``dt`` at ``x (..., n)``,
-    ``u (..., m)`` (leading dims broadcast); ``hooks = (rhs, derivatives, params)``."""
-    rhs, derivs, params = hooks
+    ``u (..., m)`` (leading dims broadcast); ``hooks`` from :func:`rk4_hooks`."""
     n, m = x.shape[-1], u.shape[-1]
     lead, R, xr, ur = _rows(x, u)
     A = torch.empty(R, n, n, dtype=x.dtype)
@@ -57,9 +83,9 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
         _kernels().rk4_jacobians_kernel,
         R,
         1,
-        rhs,
-        derivs,
-        params,
+        hooks.rhs,
+        hooks.derivatives,
+        hooks.params,
         float(dt),
         xr.numpy(),
         ur.numpy(),
@@ -77,7 +103,6 @@ def rk4_vhp_compiled(
     leading dims and ``W`` the dims ``s`` has beyond them (several weight vectors per
     point, e.g. the output basis for all output Hessians: the stages are computed once
     per point for all of them)."""
-    rhs, derivs, params = hooks
     n, m = x.shape[-1], u.shape[-1]
     nl = len(broadcast_shapes(x.shape[:-1], u.shape[:-1]))
     full = broadcast_shapes(s.shape[:-1], x.shape[:-1], u.shape[:-1])
@@ -92,10 +117,12 @@ def rk4_vhp_compiled(
         _kernels().rk4_second_derivatives_kernel,
         R,
         W,
-        rhs,
-        derivs,
-        params,
+        hooks.rhs,
+        hooks.derivatives,
+        hooks.params,
         float(dt),
+        hooks.curved_outputs,
+        hooks.curved_entries,
         xr.numpy(),
         ur.numpy(),
         S.numpy(),

@@ -8,7 +8,7 @@ from torch import Tensor
 from .._shapes import broadcast_shapes
 from ..lq.compiled import can_use_compiled, stage_congruence_compiled
 from .base import ContinuousDynamics, Dynamics, identity_like
-from .compiled_rk4 import rk4_jacobians_compiled, rk4_vhp_compiled
+from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
 
 __all__ = ["discretize", "DiscretizedDynamics"]
 
@@ -82,7 +82,7 @@ class DiscretizedDynamics(Dynamics):
         return A, B
 
     def _compiled_derivatives(self, *tensors: Tensor):
-        """``(rhs, derivatives, params)`` of the continuous model when this RK4 step's
+        """The continuous model's compiled functions (:func:`~.compiled_rk4.rk4_hooks`) when this RK4 step's
         derivatives can run on the CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`):
         the model has :meth:`~ContinuousDynamics.compiled_rhs` and
         :meth:`~ContinuousDynamics.compiled_derivatives`, ``tensors`` are CPU float
@@ -100,7 +100,7 @@ class DiscretizedDynamics(Dynamics):
         rhs = c.compiled_rhs()
         if rhs is None:
             return None
-        return rhs[0], derivs, rhs[1]
+        return rk4_hooks(rhs, derivs)
 
     def _rk4_chain(
         self, x: Tensor, u: Tensor, keep_stages: bool = False

@@ -81,3 +81,20 @@ def _full(e: Scalar, lead: torch.Size, like: Tensor) -> Tensor:
     if isinstance(e, Tensor):
         return e.expand(lead)
     return torch.full(lead, float(e), dtype=like.dtype, device=like.device)
+
+
+def scalar_params_array(module: nn.Module, names: tuple[str, ...]):
+    """The parameters ``names`` as a 1-d float64 numpy array for a model's compiled
+    functions (:meth:`torchslq.ContinuousDynamics.compiled_rhs`), or None when one is a
+    tensor with batch dims (per-element parameters)."""
+    vals = []
+    for name in names:
+        p = getattr(module, name)
+        if isinstance(p, Tensor):
+            if p.ndim > 0:
+                return None
+            p = float(p.detach())
+        vals.append(float(p))
+    import numpy as np
+
+    return np.array(vals, dtype=np.float64)

@@ -35,8 +35,10 @@ def cartpole_rhs(x, u, p, out):
 @numba.njit(cache=True, nogil=True)
 def cartpole_derivatives(x, u, p, fz, H):
     """:class:`torchslq.systems.CartPole`'s ``[f_x | f_u]`` into ``fz (4, 5)`` and, when
-    ``H`` is not empty, each output's Hessian in ``z = (x, u)`` into ``H (4, 5, 5)``
-    (the formulas of ``CartPole.jacobians`` and ``CartPole.vhp``); ``p = [mc, mp, l, g]``."""
+    ``H`` is not empty, the Hessians of the accelerations (outputs 2, 3) in
+    ``(theta, theta_dot, F)`` (entries 1, 3, 4 of ``z = (x, u)``) into ``H (4, 5, 5)``,
+    the other entries untouched (zero everywhere: ``CARTPOLE_CURVATURE``); the formulas
+    of ``CartPole.jacobians`` and ``CartPole.vhp``. ``p = [mc, mp, l, g]``."""
     mc, mp, l, g = p[0], p[1], p[2], p[3]
     th, thd, F = x[1], x[3], u[0]
     sn, c = math.sin(th), math.cos(th)
@@ -68,10 +70,6 @@ def cartpole_derivatives(x, u, p, fz, H):
     N2aa = F * c + 4.0 * mp * l * thd * thd * sn * c + (mc + mp) * g * sn
     N2ab = -2.0 * mp * l * thd * c2
     N2bb = -2.0 * mp * l * c * sn
-    for i in range(4):
-        for a in range(5):
-            for b in range(5):
-                H[i, a, b] = 0.0
     for o in range(2):
         if o == 0:
             haa = (N1aa - 2.0 * qa * dD - sdd * ddD) / D
@@ -83,14 +81,83 @@ def cartpole_derivatives(x, u, p, fz, H):
             hab = (N2ab - rb * dD) / D / l
             haF = (sn - rF * dD) / D / l
             hbb = N2bb / D / l
-        Ho = H[2 + o]
+        Ho = H[2 + o]  # the entries (th, thd, F) of the pattern, zeros included
         Ho[1, 1] = haa
         Ho[1, 3] = hab
         Ho[3, 1] = hab
         Ho[1, 4] = haF
         Ho[4, 1] = haF
         Ho[3, 3] = hbb
+        Ho[3, 4] = 0.0
+        Ho[4, 3] = 0.0
+        Ho[4, 4] = 0.0
 
+
+@numba.njit(cache=True, nogil=True)
+def mass_chain_rhs(x, u, p, out):
+    """:class:`torchslq.systems.MassChain`'s ``xdot``; ``p = [mass, k, k3, damping]``,
+    ``N = len(u)`` masses."""
+    N = u.shape[0]
+    m, k, k3, c = p[0], p[1], p[2], p[3]
+    s_next = 0.0  # the tension of spring i + 1 (none beyond the last mass)
+    for i in range(N - 1, -1, -1):
+        e = x[i] - x[i - 1] if i > 0 else x[0]
+        si = e * (k + k3 * e * e)
+        out[N + i] = ((s_next - si) - c * x[N + i] + u[i]) / m
+        out[i] = x[N + i]
+        s_next = si
+
+
+@numba.njit(cache=True, nogil=True)
+def mass_chain_derivatives(x, u, p, fz, H):
+    """:class:`torchslq.systems.MassChain`'s ``[f_x | f_u]`` into ``fz (2N, 3N)`` and,
+    when ``H`` is not empty, the Hessians of the accelerations (outputs ``N..2N-1``) in
+    the positions (entries ``0..N-1``), the other entries untouched (zero everywhere:
+    ``mass_chain_curvature(N)``): the formulas of ``MassChain.jacobians`` and ``vhp``."""
+    N = u.shape[0]
+    m, k, k3, c = p[0], p[1], p[2], p[3]
+    for a in range(2 * N):
+        for b in range(3 * N):
+            fz[a, b] = 0.0
+    for i in range(N):
+        fz[i, N + i] = 1.0
+        fz[N + i, N + i] = -c / m
+        fz[N + i, 2 * N + i] = 1.0 / m
+        e = x[i] - x[i - 1] if i > 0 else x[0]
+        ds = (k + 3.0 * k3 * e * e) / m  # s'(e_i) / m
+        fz[N + i, i] -= ds
+        if i > 0:  # spring i pulls masses i - 1 and i
+            fz[N + i, i - 1] += ds
+            fz[N + i - 1, i - 1] -= ds
+            fz[N + i - 1, i] += ds
+    if H.shape[0] == 0:
+        return
+    for i in range(N):
+        for a in range(N):
+            for b in range(N):
+                H[N + i, a, b] = 0.0
+    for i in range(N):
+        e = x[i] - x[i - 1] if i > 0 else x[0]
+        d = 6.0 * k3 * e / m  # s''(e_i) / m: in a_i with sign -, in a_{i-1} with +
+        H[N + i, i, i] -= d
+        if i > 0:
+            H[N + i, i - 1, i - 1] -= d
+            H[N + i, i, i - 1] += d
+            H[N + i, i - 1, i] += d
+            H[N + i - 1, i, i] += d
+            H[N + i - 1, i - 1, i - 1] += d
+            H[N + i - 1, i, i - 1] -= d
+            H[N + i - 1, i - 1, i] -= d
+
+
+def mass_chain_curvature(N: int) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The outputs and ``z`` entries where mass_chain_derivatives' Hessians can be
+    nonzero: the accelerations, in the positions."""
+    return tuple(range(N, 2 * N)), tuple(range(N))
+
+
+# the outputs and z entries where cartpole_derivatives' Hessians can be nonzero
+CARTPOLE_CURVATURE = ((2, 3), (1, 3, 4))
 
 _RK4_STEPS: dict = {}
 

@@ -7,7 +7,14 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from ..dynamics import ContinuousDynamics
-from ._common import get_param, lead_shape, set_param, stack_matrix, stack_vector
+from ._common import (
+    get_param,
+    lead_shape,
+    scalar_params_array,
+    set_param,
+    stack_matrix,
+    stack_vector,
+)
 
 __all__ = ["CartPole"]
 
@@ -51,26 +58,20 @@ class CartPole(ContinuousDynamics):
     def compiled_rhs(self):
         """``xdot`` as a numba function (see :meth:`torchslq.ContinuousDynamics.compiled_rhs`);
         None when a parameter is a tensor with batch dims."""
-        vals = []
-        for k in ("mc", "mp", "l", "g"):
-            p = getattr(self, k)
-            if isinstance(p, Tensor):
-                if p.ndim > 0:
-                    return None
-                p = float(p.detach())
-            vals.append(p)
-        import numpy as np
-
+        params = scalar_params_array(self, ("mc", "mp", "l", "g"))
+        if params is None:
+            return None
         from ._numba_steps import cartpole_rhs
 
-        return cartpole_rhs, np.array(vals, dtype=np.float64)
+        return cartpole_rhs, params
 
     def compiled_derivatives(self):
         """:meth:`jacobians` and the per-output Hessians of :meth:`vhp` as a numba
         function (see :meth:`torchslq.ContinuousDynamics.compiled_derivatives`)."""
-        from ._numba_steps import cartpole_derivatives
+        from ..dynamics import CompiledDerivatives
+        from ._numba_steps import CARTPOLE_CURVATURE, cartpole_derivatives
 
-        return cartpole_derivatives
+        return CompiledDerivatives(cartpole_derivatives, *CARTPOLE_CURVATURE)
 
     def _params(self, x: Tensor):
         return tuple(get_param(self, k, x) for k in ("mc", "mp", "l", "g"))

@@ -7,7 +7,7 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from ..dynamics import ContinuousDynamics
-from ._common import get_param, set_param
+from ._common import get_param, scalar_params_array, set_param
 
 __all__ = ["MassChain"]
 
@@ -48,6 +48,24 @@ class MassChain(ContinuousDynamics):
         set_param(self, "k", k)
         set_param(self, "k3", k3)
         set_param(self, "damping", damping, nonneg=True)
+
+    def compiled_rhs(self):
+        """``xdot`` as a numba function (see :meth:`torchslq.ContinuousDynamics.compiled_rhs`);
+        None when a parameter is a tensor with batch dims."""
+        params = scalar_params_array(self, ("mass", "k", "k3", "damping"))
+        if params is None:
+            return None
+        from ._numba_steps import mass_chain_rhs
+
+        return mass_chain_rhs, params
+
+    def compiled_derivatives(self):
+        """:meth:`jacobians` and the spring Hessians of :meth:`vhp` as a numba function
+        with their pattern (see :meth:`torchslq.ContinuousDynamics.compiled_derivatives`)."""
+        from ..dynamics import CompiledDerivatives
+        from ._numba_steps import mass_chain_curvature, mass_chain_derivatives
+
+        return CompiledDerivatives(mass_chain_derivatives, *mass_chain_curvature(self.n_masses))
 
     def _params(self, x: Tensor):
         out = []
