@@ -2,12 +2,17 @@
 
 from __future__ import annotations
 
+import math
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 from .._shapes import broadcast_shapes
+from ..lq.compiled import _launch, can_use_compiled
 
 __all__ = ["CostExpansion", "QuadraticCost"]
 
@@ -169,6 +174,9 @@ class QuadraticCost(nn.Module):
         QT = self.Qf if self.Qf is not None else Qs[:, -1]  # (n, n) or (Bq, n, n)
         Rs = self._time_varying(self.R, T, "R", 2)
         xr, ur = self.references(T, x)
+        J = _quadratic_cost_compiled(x, u, xr, ur, Qs, QT, Rs)
+        if J is not None:
+            return J
         dx, du = x - xr, u - ur
         # per-row products then a row-wise sum over time: unlike einsum (which may turn
         # into a batched GEMM whose blocking depends on B), this gives every element the
@@ -207,6 +215,59 @@ class QuadraticCost(nn.Module):
         lx = (Q @ (x - xr).unsqueeze(-1)).squeeze(-1)
         lu = (R @ (u - ur).unsqueeze(-1)).squeeze(-1)
         return CostExpansion(lxx=Q, luu=R, lux=None, lx=lx, lu=lu)
+
+
+# the CPU kernel's dense per-row forms are for small weights (diagonal ones of large
+# states are cheaper as the torch path's elementwise products)
+_COMPILED_MAX_DIM = 32
+_compiled_costs: ContextVar[bool] = ContextVar("torchslq_compiled_costs", default=False)
+
+
+@contextmanager
+def compiled_cost_evaluation() -> Iterator[None]:
+    """Within this context :class:`QuadraticCost` values are computed on a CPU kernel
+    where it applies (float64 CPU tensors, no autograd, dimensions up to 32). Its sums
+    run in another order than the torch path's, so the two differ in the last bits: a
+    solver enables it only around loops where every cost it compares is evaluated
+    without autograd (the SLQ/iLQR/DDP loop), never where costs with and without a
+    graph are compared (GoPRONTO's line search)."""
+    token = _compiled_costs.set(True)
+    try:
+        yield
+    finally:
+        _compiled_costs.reset(token)
+
+
+def _quadratic_cost_compiled(x, u, xr, ur, Qs, QT, Rs) -> Tensor | None:
+    """The cost on the CPU kernel (:mod:`torchslq.costs._numba_cost`) inside
+    :func:`compiled_cost_evaluation`: one pass per row instead of a dozen torch ops over
+    the whole batch (line searches evaluate it for every trial step); the same value
+    per row whatever batch it is evaluated in. None where it does not apply: the
+    caller takes the torch path."""
+    if not _compiled_costs.get() or x.dtype != torch.float64:
+        return None
+    n, m = x.shape[-1], u.shape[-1]
+    if n > _COMPILED_MAX_DIM or m > _COMPILED_MAX_DIM:
+        return None
+    QT = QT if QT.ndim == 3 else QT.unsqueeze(0)
+    if not can_use_compiled(x, u, xr, ur, Qs, QT, Rs):
+        return None
+    Bw = broadcast_shapes(*((t.shape[0],) for t in (xr, ur, Qs, QT, Rs)))
+    lead = broadcast_shapes(x.shape[:-2], u.shape[:-2], Bw)
+    B = lead[-1]
+    rows = math.prod(lead)
+    J = torch.empty(rows, dtype=x.dtype)
+    xs = x.detach().expand(*lead, *x.shape[-2:]).reshape(rows, *x.shape[-2:])
+    us = u.detach().expand(*lead, *u.shape[-2:]).reshape(rows, *u.shape[-2:])
+    arrays = [t.detach().contiguous().numpy() for t in (xs, us, xr, ur, Qs, QT, Rs)]
+    _launch(_cost_kernels().quadratic_cost_kernel, rows, x.shape[-2], B, *arrays, J.numpy())
+    return J.view(lead)
+
+
+def _cost_kernels():
+    from . import _numba_cost
+
+    return _numba_cost
 
 
 def _quadratic_terms(W: Tensor, d: Tensor, diagonal: bool) -> Tensor:

@@ -25,6 +25,7 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
+from ..costs.quadratic import compiled_cost_evaluation
 from ..dynamics.linearize import linearize
 from ..lq.riccati import riccati_backward, rollout_linear
 from ..status import Status
@@ -217,7 +218,9 @@ class SLQ:
         self._begin(x0)
         t_start = time.perf_counter()
 
-        with torch.no_grad():
+        # every cost of the loop is evaluated without autograd, so quadratic costs may use
+        # the CPU kernel (whose last bits differ from the torch path's) throughout
+        with torch.no_grad(), compiled_cost_evaluation():
             x = rollout(f, x0, u) if x_init is None else x_init
             J = cost_fn(x, u)
             status = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=x0.device)

@@ -1,0 +1,49 @@
+"""numba kernel for :class:`torchslq.QuadraticCost`'s value, imported on first use."""
+
+from __future__ import annotations
+
+import numba
+
+
+@numba.njit(cache=True, nogil=True)
+def quadratic_cost_kernel(r0, r1, B, x, u, xr, ur, Q, QT, R, J):
+    """``J[r] = 1/2 (sum_t |x_t - xr_t|^2_Q_t + |x_T - xr_T|^2_QT + sum_t |u_t - ur_t|^2_R_t)``
+    per row. x ``(Rows, T+1, n)``, u ``(Rows, T, m)``; row ``r`` is batch element
+    ``b = r % B``; the weights and references have a batch dim of 1 or ``B`` and a time
+    dim of 1 or the horizon: xr ``(., 1|T+1, n)``, ur ``(., 1|T, m)``, Q ``(., 1|T, n,
+    n)``, QT ``(., n, n)``, R ``(., 1|T, m, m)``. Rows ``r0 <= r < r1``."""
+    T = u.shape[1]
+    n = x.shape[2]
+    m = u.shape[2]
+    xr_t = xr.shape[1] > 1
+    ur_t = ur.shape[1] > 1
+    Q_t = Q.shape[1] > 1
+    R_t = R.shape[1] > 1
+    for r in range(r0, r1):
+        b = r % B
+        bxr = b if xr.shape[0] > 1 else 0
+        bur = b if ur.shape[0] > 1 else 0
+        bq = b if Q.shape[0] > 1 else 0
+        bqt = b if QT.shape[0] > 1 else 0
+        br = b if R.shape[0] > 1 else 0
+        s = 0.0
+        for t in range(T + 1):
+            tx = t if xr_t else 0
+            tq = t if Q_t else 0
+            for i in range(n):
+                di = x[r, t, i] - xr[bxr, tx, i]
+                v = 0.0
+                for j in range(n):
+                    w = Q[bq, tq, i, j] if t < T else QT[bqt, i, j]
+                    v += w * (x[r, t, j] - xr[bxr, tx, j])
+                s += di * v
+        for t in range(T):
+            tu = t if ur_t else 0
+            tr = t if R_t else 0
+            for i in range(m):
+                di = u[r, t, i] - ur[bur, tu, i]
+                v = 0.0
+                for j in range(m):
+                    v += R[br, tr, i, j] * (u[r, t, j] - ur[bur, tu, j])
+                s += di * v
+        J[r] = 0.5 * s
