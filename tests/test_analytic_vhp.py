@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from vhp_cases import VHP_LAYOUTS
 
 import torchslq as ts
 from torchslq.dynamics import ContinuousDynamics, dynamics_hessians, dynamics_vhp
@@ -270,12 +271,7 @@ def test_mass_chain_mpc_exact_gradients_and_ddp_with_analytic_second_derivatives
 
 @pytest.mark.parametrize(
     "shapes",
-    [
-        ((3, 4), (3, 4), (3, 4)),  # s per point (DDP's costate mode)
-        ((3, 4), (3, 4), (5, 1, 1)),  # extra leading weight dim (all output Hessians)
-        ((1, 4), (1, 4), (3, 4)),  # one trajectory, several weights per point
-        ((3, 4), (3, 1), (1, 4)),  # broadcast controls and weights
-    ],
+    VHP_LAYOUTS,
 )
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_compiled_rk4_congruence_matches_the_torch_chain(shapes, dtype, monkeypatch):

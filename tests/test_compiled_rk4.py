@@ -9,6 +9,7 @@ import sys
 import pytest
 import torch
 from torch.func import hessian, jacrev
+from vhp_cases import VHP_LAYOUTS
 
 import torchslq as ts
 from torchslq.lq import compiled
@@ -80,10 +81,7 @@ def _counting(monkeypatch, name):
 @pytest.mark.parametrize(
     "shapes",
     [
-        ((3, 4), (3, 4), (3, 4)),  # s per point (DDP's costate mode)
-        ((3, 4), (3, 4), (5, 1, 1)),  # extra leading weight dim (all output Hessians)
-        ((1, 4), (1, 4), (3, 4)),  # one trajectory, several weights per point
-        ((3, 4), (3, 1), (1, 4)),  # broadcast controls and weights
+        *VHP_LAYOUTS,
         ((3, 1), (3, 6), (2, 3, 6)),  # broadcast states, a weight dim
         ((), (), ()),  # one point
     ],

@@ -87,38 +87,34 @@ def rk4_jacobians_kernel(r0, r1, rhs, derivs, p, dt, x, u, A, B):
                     B[r, j, q - n] = c * s
 
 
+@numba.njit(nogil=True, inline="always")
+def _row_curved(Hi, j, a, nz):
+    """Whether row ``a`` of output ``j``'s Hessian has a nonzero (or NaN) entry."""
+    for b in range(nz):
+        if Hi[j, a, b] != 0.0:
+            return True
+    return False
+
+
 @numba.njit(nogil=True)
 def _curvature(Hi, n, nz, outs, sup):
     """The outputs of one stage with a nonzero Hessian (into ``outs``) and the ``z``
-    entries where any of them is curved (into ``sup``); returns their counts. NaN
-    entries count as nonzero, so NaNs propagate."""
+    entries where any of them is curved (into ``sup``, ascending); returns their counts.
+    NaN entries count as nonzero, so NaNs propagate."""
     no = 0
     for j in range(n):
-        curved = False
         for a in range(nz):
-            for b in range(nz):
-                if Hi[j, a, b] != 0.0:
-                    curved = True
-                    break
-            if curved:
+            if _row_curved(Hi, j, a, nz):
+                outs[no] = j
+                no += 1
                 break
-        if curved:
-            outs[no] = j
-            no += 1
     ns = 0
     for a in range(nz):
-        curved = False
         for jj in range(no):
-            j = outs[jj]
-            for b in range(nz):
-                if Hi[j, a, b] != 0.0:
-                    curved = True
-                    break
-            if curved:
+            if _row_curved(Hi, outs[jj], a, nz):
+                sup[ns] = a
+                ns += 1
                 break
-        if curved:
-            sup[ns] = a
-            ns += 1
     return no, ns
 
 
