@@ -53,8 +53,8 @@ def rk4_hooks(rhs, derivatives) -> RK4Hooks:
     function or a :class:`~torchslq.dynamics.CompiledDerivatives`)."""
     fn, params = rhs
     if isinstance(derivatives, CompiledDerivatives):
-        outs = np.asarray(derivatives.curved_outputs, dtype=np.int64).reshape(-1)
-        ents = np.asarray(derivatives.curved_entries, dtype=np.int64).reshape(-1)
+        outs = np.unique(np.asarray(derivatives.curved_outputs, dtype=np.int64))
+        ents = np.unique(np.asarray(derivatives.curved_entries, dtype=np.int64))  # ascending
         if outs.size == 0 or ents.size == 0:
             raise ValueError("a CompiledDerivatives pattern needs curved outputs and entries")
         return RK4Hooks(fn, derivatives.derivatives, params, outs, ents)
