@@ -244,3 +244,35 @@ def test_ddp_solve_with_the_kernels_equals_the_torch_chain():
     assert torch.equal(fast.iterations, ref.iterations)
     torch.testing.assert_close(fast.cost, ref.cost, rtol=1e-10, atol=0)
     torch.testing.assert_close(fast.u, ref.u, rtol=1e-6, atol=1e-8)
+
+
+@pytest.mark.parametrize("model", ["cartpole", "mass-chain", "per-element", "autodiff"])
+def test_linearize_with_hessians_equals_the_separate_calls(model, monkeypatch):
+    """linearize_with_hessians == linearize and dynamics_hessians at the same point (bit
+    for bit); with compiled derivatives one kernel pass gives both (the Jacobian kernel
+    is not called), otherwise the Hessians come lazily from dynamics_hessians."""
+    from torchslq.dynamics import dynamics_hessians, linearize_with_hessians
+
+    if model == "per-element":
+        step = ts.discretize(CartPole(mc=torch.tensor([[1.0], [1.3]], dtype=F64)), 0.05)
+    elif model == "autodiff":
+        inner = _step()
+        step = lambda x, u: inner(x, u)  # noqa: E731 - a plain callable: autodiff
+    else:
+        step = _step(model=model)
+    n, m = (4, 1) if model != "mass-chain" else (6, 3)
+    g = torch.Generator().manual_seed(8)
+    x = torch.randn(2, 5, n, generator=g, dtype=F64)
+    u = torch.randn(2, 5, m, generator=g, dtype=F64)
+    jac_calls = _counting(monkeypatch, "rk4_jacobians_compiled")
+    A, B, hessians = linearize_with_hessians(step, x, u)
+    H = hessians()
+    shared_jac_calls = len(jac_calls)
+    A2, B2 = ts.linearize(step, x, u)
+    H2 = dynamics_hessians(step, x, u)
+    assert torch.equal(A, A2) and torch.equal(B, B2)
+    for a, b in zip(H, H2, strict=True):
+        assert a.shape == b.shape and torch.equal(a, b)
+    assert float(H[0].abs().max()) > 1e-4
+    if model in ("cartpole", "mass-chain"):
+        assert shared_jac_calls == 0 and len(jac_calls) == 1

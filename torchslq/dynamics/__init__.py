@@ -8,6 +8,7 @@ from .linearize import (
     dynamics_hessians,
     dynamics_vhp,
     linearize,
+    linearize_with_hessians,
     linearize_with_vhp,
 )
 
@@ -22,6 +23,7 @@ __all__ = [
     "dynamics_hessians",
     "dynamics_vhp",
     "linearize",
+    "linearize_with_hessians",
     "linearize_with_vhp",
     "state_control_dims",
 ]

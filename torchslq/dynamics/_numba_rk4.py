@@ -75,16 +75,22 @@ def rk4_jacobians_kernel(r0, r1, rhs, derivs, p, dt, x, u, A, B):
     H = np.empty((1, 0, nz, nz), dtype=x.dtype)  # no second derivatives wanted
     xi = np.empty(n, dtype=x.dtype)
     k = np.empty(n, dtype=x.dtype)
-    c = dt / 6.0
     for r in range(r0, r1):
         _stages(rhs, derivs, p, dt, x[r], u[r], fz, H, dk, xi, k, False)
-        for j in range(n):
-            for q in range(nz):
-                s = dk[0, j, q] + 2.0 * dk[1, j, q] + 2.0 * dk[2, j, q] + dk[3, j, q]
-                if q < n:
-                    A[r, j, q] = (1.0 if q == j else 0.0) + c * s
-                else:
-                    B[r, j, q - n] = c * s
+        _jacobians_from_stages(dk, dt, n, nz, A[r], B[r])
+
+
+@numba.njit(nogil=True)
+def _jacobians_from_stages(dk, dt, n, nz, A, B):
+    """``A = I + dt/6 sum_i w_i dk_i/dx``, ``B = dt/6 sum_i w_i dk_i/du`` of one row."""
+    c = dt / 6.0
+    for j in range(n):
+        for q in range(nz):
+            s = dk[0, j, q] + 2.0 * dk[1, j, q] + 2.0 * dk[2, j, q] + dk[3, j, q]
+            if q < n:
+                A[j, q] = (1.0 if q == j else 0.0) + c * s
+            else:
+                B[j, q - n] = c * s
 
 
 @numba.njit(nogil=True, inline="always")
@@ -120,7 +126,7 @@ def _curvature(Hi, n, nz, outs, sup):
 
 @numba.njit(nogil=True)
 def rk4_second_derivatives_kernel(
-    r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hxx, Huu, Hux
+    r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hxx, Huu, Hux, A, B
 ):
     """Hessian blocks of ``s · step(x, u)`` for every weight vector ``s = S[w, r]``:
     ``sum_i Z_i' (mu_i · f_zz(zeta_i)) Z_i`` with ``Z_i = d zeta_i / dz`` and the adjoint
@@ -136,11 +142,14 @@ def rk4_second_derivatives_kernel(
     weight (whichever needs fewer products).
 
     x ``(R, n)``, u ``(R, m)``, S ``(W, R, n)``; outputs Hxx ``(W, R, n, n)``, Huu
-    ``(W, R, m, m)``, Hux ``(W, R, m, n)``. Rows ``r0 <= r < r1``."""
+    ``(W, R, m, m)``, Hux ``(W, R, m, n)``; with ``A (R, n, n)``, ``B (R, n, m)`` not
+    empty, the step's Jacobians too (as :func:`rk4_jacobians_kernel`, from the same
+    stages). Rows ``r0 <= r < r1``."""
     n = x.shape[1]
     m = u.shape[1]
     nz = n + m
     W = S.shape[0]
+    jacobians = A.shape[0] > 0
     static = curved_outputs.shape[0] > 0
     fz = np.empty((4, n, nz), dtype=x.dtype)
     dk = np.empty((4, n, nz), dtype=x.dtype)
@@ -168,6 +177,8 @@ def rk4_second_derivatives_kernel(
                 sup[i, a] = curved_entries[a]
     for r in range(r0, r1):
         _stages(rhs, derivs, p, dt, x[r], u[r], fz, H, dk, xi, k, True)
+        if jacobians:
+            _jacobians_from_stages(dk, dt, n, nz, A[r], B[r])
         work_g = 0
         work_f = 0
         for i in range(4):

@@ -96,13 +96,14 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
 
 
 def rk4_vhp_compiled(
-    hooks, dt: float, x: Tensor, u: Tensor, s: Tensor
-) -> tuple[Tensor, Tensor, Tensor]:
+    hooks, dt: float, x: Tensor, u: Tensor, s: Tensor, with_jacobians: bool = False
+):
     """Hessian blocks ``(Hxx, Huu, Hux)`` of ``s · step(x, u)`` for the RK4 step of
     ``dt``, each ``(*W, *lead, ., .)`` with ``lead`` the broadcast of ``x``'s and ``u``'s
     leading dims and ``W`` the dims ``s`` has beyond them (several weight vectors per
     point, e.g. the output basis for all output Hessians: the stages are computed once
-    per point for all of them)."""
+    per point for all of them). With ``with_jacobians`` returns ``((A, B), blocks)``,
+    the step's Jacobians (``(*lead, ., .)``) from the same stages."""
     n, m = x.shape[-1], u.shape[-1]
     nl = len(broadcast_shapes(x.shape[:-1], u.shape[:-1]))
     full = broadcast_shapes(s.shape[:-1], x.shape[:-1], u.shape[:-1])
@@ -113,6 +114,8 @@ def rk4_vhp_compiled(
     Hxx = torch.empty(W, R, n, n, dtype=x.dtype)
     Huu = torch.empty(W, R, m, m, dtype=x.dtype)
     Hux = torch.empty(W, R, m, n, dtype=x.dtype)
+    A = torch.empty(R if with_jacobians else 0, n, n, dtype=x.dtype)
+    B = torch.empty(R if with_jacobians else 0, n, m, dtype=x.dtype)
     _launch(
         _kernels().rk4_second_derivatives_kernel,
         R,
@@ -129,9 +132,10 @@ def rk4_vhp_compiled(
         Hxx.numpy(),
         Huu.numpy(),
         Hux.numpy(),
+        A.numpy(),
+        B.numpy(),
     )
-    return (
-        Hxx.view(*full, n, n),
-        Huu.view(*full, m, m),
-        Hux.view(*full, m, n),
-    )
+    blocks = (Hxx.view(*full, n, n), Huu.view(*full, m, m), Hux.view(*full, m, n))
+    if with_jacobians:
+        return (A.view(*lead, n, n), B.view(*lead, n, m)), blocks
+    return blocks

@@ -182,6 +182,19 @@ class DiscretizedDynamics(Dynamics):
         A, B, stages = self._rk4_chain(x, u, keep_stages=True)
         return A, B, lambda s: self._vhp_from_stages(u, s, stages)
 
+    def jacobians_and_hessians(self, x: Tensor, u: Tensor):
+        """``(A, B, (Hxx, Huu, Hux))``: the step's Jacobians and every output's Hessian
+        blocks (each ``(n, *lead, ., .)``, :func:`~torchslq.dynamics.dynamics_hessians`'
+        layout) from one pass over the RK4 stages on the CPU kernels (DDP's value mode
+        needs both at the same points); None where the kernels do not apply."""
+        hooks = self._compiled_derivatives(x, u)
+        if hooks is None:
+            return None
+        n = x.shape[-1]
+        basis = torch.eye(n, dtype=x.dtype).reshape(n, *([1] * (x.ndim - 1)), n)
+        (A, B), blocks = rk4_vhp_compiled(hooks, self.dt, x, u, basis, with_jacobians=True)
+        return A, B, blocks
+
     def _vhp_from_stages(self, u: Tensor, s: Tensor, stages: list):
         """The RK4 chain of :meth:`vhp` from :meth:`_rk4_chain`'s kept stages."""
         f, dt = self.continuous, self.dt

@@ -234,6 +234,25 @@ def linearize_with_vhp(
     return A, B, lambda s: dynamics_vhp(dynamics, x, u, s)
 
 
+def linearize_with_hessians(
+    dynamics: Callable, x: Tensor, u: Tensor, *, method: str = "auto"
+) -> tuple[Tensor, Tensor, Callable[[], tuple[Tensor, Tensor, Tensor]]]:
+    """``(A, B, hessians)``: :func:`linearize` at ``(x, u)`` and ``hessians()`` =
+    :func:`dynamics_hessians` ``(dynamics, x, u)`` at the same point. With a model whose
+    Jacobians and Hessians come from one pass of compiled kernels
+    (:meth:`torchslq.DiscretizedDynamics.jacobians_and_hessians`) both are computed
+    together; otherwise ``hessians`` computes them when called. Detached results."""
+    share = getattr(dynamics, "jacobians_and_hessians", None)
+    if share is not None and x.shape[:-1] == u.shape[:-1]:
+        with torch.no_grad():
+            out = share(x.detach(), u.detach())
+        if out is not None:
+            A, B, blocks = out
+            return A, B, lambda: blocks
+    A, B = linearize(dynamics, x, u, method=method)
+    return A, B, lambda: dynamics_hessians(dynamics, x, u)
+
+
 def _analytic_vhp(f, x: Tensor, u: Tensor, s: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """The model's own :meth:`~torchslq.Dynamics.vhp`, at full shape ``(*lead, ., .)``
     with ``lead`` the broadcast of ``s``'s and ``x``'s leading dims."""

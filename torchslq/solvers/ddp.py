@@ -25,7 +25,12 @@ from typing import TYPE_CHECKING, Any
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from ..dynamics.linearize import dynamics_hessians, dynamics_vhp, linearize_with_vhp
+from ..dynamics.linearize import (
+    dynamics_hessians,
+    dynamics_vhp,
+    linearize_with_hessians,
+    linearize_with_vhp,
+)
 from ..lq.riccati import StageHook
 from .ilqr import ILQR
 
@@ -67,10 +72,24 @@ class DDP(ILQR):
         self.second_order = second_order
 
     def _linearize(self, problem: Problem, x: Tensor, u: Tensor):
-        if self.second_order != "costate":
-            return super()._linearize(problem, x, u)
-        # the costate mode's VHP at the same steps follows: share what the model allows
-        return linearize_with_vhp(problem.transition, x, u, method=self.options.linearize_method)
+        method = self.options.linearize_method
+        if self.second_order == "costate":
+            # the costate mode's VHP at the same steps follows: share what the model allows
+            return linearize_with_vhp(problem.transition, x, u, method=method)
+        if self._all_hessians(problem, x):
+            # every output's Hessians at the same steps follow: one pass where the model
+            # allows (the third item is then a function returning them)
+            return linearize_with_hessians(problem.transition, x, u, method=method)
+        return super()._linearize(problem, x, u)
+
+    def _all_hessians(self, problem: Problem, x: Tensor) -> bool:
+        """Whether the value mode takes all ``n`` output Hessians of every step at once
+        (they fit in ``vhp_memory_limit``) rather than one product per step."""
+        if self.vhp_memory_limit is None:
+            return False
+        n, m, T = problem.state_dim, problem.control_dim, problem.horizon
+        need = x.shape[0] * T * n * (n + m) ** 2 * x.element_size()
+        return need <= self.vhp_memory_limit
 
     def _second_order(
         self, problem: Problem, x: Tensor, u: Tensor, lam: Tensor, e, vhp=None
@@ -86,11 +105,10 @@ class DDP(ILQR):
             e.lux = Hux if e.lux is None else e.lux.expand_as(Hux) + Hux
             return None
 
-        if self.vhp_memory_limit is not None:
-            Bsz, m = x.shape[0], problem.control_dim
-            need = Bsz * T * n * (n + m) ** 2 * x.element_size()
-            if need <= self.vhp_memory_limit:
-                return self._tensor_hook(problem.dynamics, x[:, :T], u, n)
+        if self._all_hessians(problem, x):
+            if vhp is not None:  # from _linearize, possibly computed with the Jacobians
+                return _HessianHook(*vhp())
+            return self._tensor_hook(problem.dynamics, x[:, :T], u, n)
 
         def hook(t: int, Vh_next: Tensor) -> Tensor:
             s = Vh_next[..., :n, n].unsqueeze(-2)  # v_{t+1}, (B, 1, n)
