@@ -110,3 +110,33 @@ def test_skip_settled_hands_only_the_needed_trials_to_evaluate():
     )
     assert float(out[0][3]) == float(ref[0][3]) > 0
     assert float(out[0][4]) == 0.0 and not bool(out[2][4])
+
+
+def test_trial_recorder_selects_each_elements_first_matching_trial():
+    """TrialRecorder.select over several recorded passes == a per-element loop: the
+    trajectories of the first trial (in recording order) whose step equals the chosen
+    one, the very first trial where none does (alpha = 0 after a failed search)."""
+    from torchslq.solvers.line_search import TrialRecorder
+
+    g = torch.Generator().manual_seed(1)
+    B = 6
+    rec = TrialRecorder()
+    passes = []
+    for Na, steps in ((4, [1.0, 0.5, 0.25, 0.125]), (3, [0.0625, 0.03125, 0.5])):
+        alphas = torch.tensor(steps, dtype=torch.float64)[:, None].expand(Na, B).clone()
+        alphas[1, 2] = float("nan")  # a skipped trial
+        x = torch.randn(Na, B, 5, 2, generator=g, dtype=torch.float64)
+        u = torch.randn(Na, B, 4, generator=g, dtype=torch.float64)
+        rec.record(alphas, x, u)
+        passes.append((alphas, x, u))
+    chosen = torch.tensor([1.0, 0.25, 0.5, 0.0625, 0.0, 0.5], dtype=torch.float64)
+    xs, us = rec.select(chosen)
+    for b in range(B):
+        ref = None
+        for alphas, x, u in passes:
+            for j in range(alphas.shape[0]):
+                if ref is None and float(alphas[j, b]) == float(chosen[b]):
+                    ref = (x[j, b], u[j, b])
+        if ref is None:
+            ref = (passes[0][1][0, b], passes[0][2][0, b])
+        assert torch.equal(xs[b], ref[0]) and torch.equal(us[b], ref[1])

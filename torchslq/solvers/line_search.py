@@ -39,13 +39,27 @@ class TrialRecorder:
         self._tensors.append(tensors)
 
     def select(self, alpha: Tensor) -> tuple[Tensor, ...]:
-        alphas = torch.cat(self._alphas, dim=0)  # (N, B)
-        idx = torch.argmax((alphas == alpha.unsqueeze(0)).to(torch.int8), dim=0)  # (B,)
-        out = []
-        for parts in zip(*self._tensors, strict=True):
-            allt = torch.cat(parts, dim=0)  # (N, B, ...)
-            ix = idx.reshape(1, -1, *([1] * (allt.ndim - 2))).expand(1, *allt.shape[1:])
-            out.append(allt.gather(0, ix)[0])
+        # per recorded pass, without concatenating the passes' trajectories (a copy of
+        # every trial to keep one per element): the first pass with a matching step wins
+        out: list[Tensor] = []
+        have = None
+        for alphas, tensors in zip(self._alphas, self._tensors, strict=True):
+            hit = alphas == alpha.unsqueeze(0)  # (Na, B)
+            idx = torch.argmax(hit.to(torch.int8), dim=0)  # (B,) first match, else 0
+            picked = []
+            for t in tensors:
+                ix = idx.reshape(1, -1, *([1] * (t.ndim - 2))).expand(1, *t.shape[1:])
+                picked.append(t.gather(0, ix)[0])
+            found = hit.any(dim=0)
+            if have is None:
+                out, have = picked, found
+                continue
+            new = found & ~have
+            out = [
+                torch.where(new.reshape(-1, *([1] * (o.ndim - 1))), p, o)
+                for o, p in zip(out, picked, strict=True)
+            ]
+            have = have | found
         return tuple(out)
 
 
