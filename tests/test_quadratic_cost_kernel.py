@@ -44,6 +44,10 @@ def _cost(layout: str, g) -> ts.QuadraticCost:
         kw["Qf"] = _spd(B, k=n, g=g)
         kw["x_ref"] = torch.randn(B, T + 1, n, generator=g, dtype=F64)
         kw["u_ref"] = torch.randn(B, T, m, generator=g, dtype=F64)
+    elif layout == "terminal-only":  # Q = 0 (the cart-pole benchmark's cost)
+        Q, R = torch.zeros(n, n, dtype=F64), _spd(k=m, g=g, diagonal=True)
+        kw["Qf"] = _spd(k=n, g=g)
+        kw["x_ref"] = torch.randn(n, generator=g, dtype=F64)
     else:  # references only
         Q, R = _spd(k=n, g=g), _spd(k=m, g=g, diagonal=True)
         kw["x_ref"] = torch.randn(n, generator=g, dtype=F64)
@@ -51,7 +55,8 @@ def _cost(layout: str, g) -> ts.QuadraticCost:
 
 
 @pytest.mark.parametrize(
-    "layout", ["constant-diagonal", "constant-dense", "time-varying", "per-element", "refs"]
+    "layout",
+    ["constant-diagonal", "constant-dense", "time-varying", "per-element", "terminal-only", "refs"],
 )
 @pytest.mark.parametrize("lead", [(B,), (4, B), (1,)])
 def test_kernel_equals_the_torch_path(layout, lead, monkeypatch):

@@ -6,12 +6,13 @@ import numba
 
 
 @numba.njit(cache=True, nogil=True)
-def quadratic_cost_kernel(r0, r1, B, x, u, xr, ur, Q, QT, R, J):
+def quadratic_cost_kernel(r0, r1, B, x, u, xr, ur, Q, QT, R, stage_states, J):
     """``J[r] = 1/2 (sum_t |x_t - xr_t|^2_Q_t + |x_T - xr_T|^2_QT + sum_t |u_t - ur_t|^2_R_t)``
     per row. x ``(Rows, T+1, n)``, u ``(Rows, T, m)``; row ``r`` is batch element
     ``b = r % B``; the weights and references have a batch dim of 1 or ``B`` and a time
     dim of 1 or the horizon: xr ``(., 1|T+1, n)``, ur ``(., 1|T, m)``, Q ``(., 1|T, n,
-    n)``, QT ``(., n, n)``, R ``(., 1|T, m, m)``. Rows ``r0 <= r < r1``."""
+    n)``, QT ``(., n, n)``, R ``(., 1|T, m, m)``; ``stage_states`` False when ``Q`` is
+    zero (only the terminal state is weighted). Rows ``r0 <= r < r1``."""
     T = u.shape[1]
     n = x.shape[2]
     m = u.shape[2]
@@ -27,7 +28,7 @@ def quadratic_cost_kernel(r0, r1, B, x, u, xr, ur, Q, QT, R, J):
         bqt = b if QT.shape[0] > 1 else 0
         br = b if R.shape[0] > 1 else 0
         s = 0.0
-        for t in range(T + 1):
+        for t in range(0 if stage_states else T, T + 1):
             tx = t if xr_t else 0
             tq = t if Q_t else 0
             for i in range(n):

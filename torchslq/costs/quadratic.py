@@ -260,7 +260,16 @@ def _quadratic_cost_compiled(x, u, xr, ur, Qs, QT, Rs) -> Tensor | None:
     xs = x.detach().expand(*lead, *x.shape[-2:]).reshape(rows, *x.shape[-2:])
     us = u.detach().expand(*lead, *u.shape[-2:]).reshape(rows, *u.shape[-2:])
     arrays = [t.detach().contiguous().numpy() for t in (xs, us, xr, ur, Qs, QT, Rs)]
-    _launch(_cost_kernels().quadratic_cost_kernel, rows, x.shape[-2], B, *arrays, J.numpy())
+    stage_states = bool(Qs.detach().any())  # (a terminal-only state cost skips T forms)
+    _launch(
+        _cost_kernels().quadratic_cost_kernel,
+        rows,
+        x.shape[-2],
+        B,
+        *arrays,
+        stage_states,
+        J.numpy(),
+    )
     return J.view(lead)
 
 
