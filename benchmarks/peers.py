@@ -396,13 +396,13 @@ def record(rows, problem_name, B, name, u, t, Jref, problem, x0, **extra):
     }
     rows.append(row)
     SAVE()
-    flag = "" if nm == solved else f"  MISMATCH ({nm}/{solved})"
     ext = " (extrapolated)" if row.get("extrapolated") else ""
-    print(
-        f"  {problem_name:9s} B={B:<4d} {name:30s} {t:9.3f} s{ext}  "
-        f"match {nm}/{solved}  max rel gap {rel:.1e}{flag}",
-        flush=True,
-    )
+    if nm is None:  # the reference itself (no IPOPT run: the first torchslq solver)
+        check = "(reference)"
+    else:
+        flag = "" if nm == solved else f"  MISMATCH ({nm}/{solved})"
+        check = f"match {nm}/{solved}  max rel gap {rel:.1e}{flag}"
+    print(f"  {problem_name:9s} B={B:<4d} {name:30s} {t:9.3f} s{ext}  {check}", flush=True)
     return J
 
 
