@@ -40,10 +40,7 @@ def _stages(rhs, derivs, p, dt, xr, ur, fz, H, dk, xi, k, with_hessians):
         else:
             for j in range(n):
                 xi[j] = xr[j] + (a * dt) * k[j]
-        if with_hessians:
-            derivs(xi, ur, p, fz[i], H[i])
-        else:
-            derivs(xi, ur, p, fz[i], H[0])
+        derivs(xi, ur, p, fz[i], H[i if with_hessians else 0])
         f = fz[i]
         d = dk[i]
         if i == 0:

@@ -6,7 +6,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from ..lq.compiled import can_use_compiled, stage_congruence_compiled
+from ..lq.compiled import can_use_compiled, module_needs_grad, stage_congruence_compiled
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
 
@@ -90,9 +90,7 @@ class DiscretizedDynamics(Dynamics):
         if self.method != "rk4" or not can_use_compiled(*tensors):
             return None
         c = self.continuous
-        if torch.is_grad_enabled() and any(
-            t.requires_grad for t in (*c.parameters(), *c.buffers())
-        ):
+        if module_needs_grad(c):
             return None
         derivs = c.compiled_derivatives()
         if derivs is None:

@@ -19,6 +19,7 @@ from .base import Dynamics, state_control_dims
 __all__ = [
     "linearize",
     "linearize_with_vhp",
+    "linearize_with_hessians",
     "dynamics_vhp",
     "dynamics_hessians",
     "LearnedDynamics",

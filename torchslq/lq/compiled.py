@@ -136,6 +136,16 @@ def can_use_compiled(*tensors: Tensor) -> bool:
     return _kernels() is not None
 
 
+def module_needs_grad(module) -> bool:
+    """Whether autograd is recording and a parameter or buffer of ``module`` (an
+    ``nn.Module``; anything else: False) requires grad: a model's compiled functions,
+    which take its parameters as numbers, would then cut the graph. (A tensor given as
+    a model parameter may be a buffer that requires grad.)"""
+    if not torch.is_grad_enabled() or not isinstance(module, torch.nn.Module):
+        return False
+    return any(t.requires_grad for t in (*module.parameters(), *module.buffers()))
+
+
 # Below this many element-steps per thread a pass is not split (thread hand-off costs
 # tens of microseconds).
 MIN_STEPS_PER_THREAD = 4096

@@ -25,12 +25,7 @@ from typing import TYPE_CHECKING, Any
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from ..dynamics.linearize import (
-    dynamics_hessians,
-    dynamics_vhp,
-    linearize_with_hessians,
-    linearize_with_vhp,
-)
+from ..dynamics.linearize import dynamics_vhp, linearize_with_hessians, linearize_with_vhp
 from ..lq.riccati import StageHook
 from .ilqr import ILQR
 
@@ -105,10 +100,11 @@ class DDP(ILQR):
             e.lux = Hux if e.lux is None else e.lux.expand_as(Hux) + Hux
             return None
 
-        if self._all_hessians(problem, x):
-            if vhp is not None:  # from _linearize, possibly computed with the Jacobians
-                return _HessianHook(*vhp())
-            return self._tensor_hook(problem.dynamics, x[:, :T], u, n)
+        if vhp is not None:
+            # _linearize gave every output's Hessians of all steps (they fit in
+            # vhp_memory_limit), possibly from one pass with the Jacobians: contracted
+            # with v_{t+1} inside the Riccati loop
+            return _HessianHook(*vhp())
 
         def hook(t: int, Vh_next: Tensor) -> Tensor:
             s = Vh_next[..., :n, n].unsqueeze(-2)  # v_{t+1}, (B, 1, n)
@@ -116,13 +112,6 @@ class DDP(ILQR):
             return _block(Hxx, Huu, Hux)[:, 0]  # [u; x] ordering, (B, m+n, m+n)
 
         return hook
-
-    @staticmethod
-    def _tensor_hook(dynamics, x: Tensor, u: Tensor, n: int) -> StageHook:
-        """All ``n`` output Hessians for every step in one batched call
-        (:func:`torchslq.dynamics.dynamics_hessians`), contracted with ``v_{t+1}`` inside
-        the Riccati loop (same result as the step-by-step VHP)."""
-        return _HessianHook(*dynamics_hessians(dynamics, x, u))
 
 
 class _HessianHook:

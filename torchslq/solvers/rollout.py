@@ -13,6 +13,7 @@ from ..lq.compiled import (
     closed_loop_feedback_compiled,
     closed_loop_rollout_compiled,
     costate_compiled,
+    module_needs_grad,
 )
 
 __all__ = ["rollout", "rollout_closed_loop", "costate_gradient"]
@@ -124,12 +125,8 @@ def _compiled_step(f):
     """``f.compiled_step()`` (:meth:`torchslq.Dynamics.compiled_step`) when ``f`` has one
     and its parameters need no autograd here, else None."""
     get = getattr(f, "compiled_step", None)
-    if get is None:
+    if get is None or module_needs_grad(f):
         return None
-    if torch.is_grad_enabled() and isinstance(f, torch.nn.Module):
-        # (a tensor given as a model parameter may be a buffer that requires grad)
-        if any(t.requires_grad for t in (*f.parameters(), *f.buffers())):
-            return None
     return get()
 
 
