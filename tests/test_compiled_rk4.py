@@ -276,3 +276,44 @@ def test_linearize_with_hessians_equals_the_separate_calls(model, monkeypatch):
     assert float(H[0].abs().max()) > 1e-4
     if model in ("cartpole", "mass-chain"):
         assert shared_jac_calls == 0 and len(jac_calls) == 1
+
+
+@pytest.mark.parametrize("model", ["cartpole", "mass-chain"])
+@pytest.mark.parametrize("R", [1, 63, 64, 65, 150])
+def test_lanes_kernel_equals_the_row_by_row_kernel(model, R):
+    """The lanes kernel (sums across blocks of rows) gives each row bitwise what the
+    row-by-row kernel gives with the same declared pattern and per-output congruences,
+    for a partial last block, a chunk of rows (others untouched) and W = 0, 1 and n
+    weight vectors (W = 0: Jacobians only)."""
+    import numpy as np
+
+    from torchslq.dynamics import _numba_rk4 as k
+    from torchslq.dynamics.compiled_rk4 import rk4_hooks
+
+    cont = _step(model=model).continuous
+    h = rk4_hooks(cont.compiled_rhs(), cont.compiled_derivatives())
+    n, m = cont.state_dim, cont.control_dim
+    rng = np.random.default_rng(R)
+    x, u = rng.normal(size=(R, n)), rng.normal(size=(R, m))
+    x[R // 2, 1] = np.nan  # a NaN row stays in its row
+    r0, r1 = (0, R) if R < 4 else (2, R - 1)
+    for W in (0, 1, n):
+        # the row kernel picks per-output congruences (the lanes kernel's form) for many
+        # weight vectors: the lanes kernel's W are compared to the first of its 2n
+        S = rng.normal(size=(2 * n, R, n))
+        got, want = [], []
+        for kernel, out in ((k.rk4_lanes_kernel, got), (k.rk4_second_derivatives_kernel, want)):
+            Wk = W if kernel is k.rk4_lanes_kernel else 2 * n
+            arrays = [np.full((Wk, R, a, b), 7.0) for a, b in ((n, n), (m, m), (m, n))]
+            arrays += [np.full((R, n, n), 7.0), np.full((R, n, m), 7.0)]
+            args = (h.rhs, h.derivatives, h.params, 0.07, h.curved_outputs, h.curved_entries)
+            kernel(r0, r1, *args, x, u, np.ascontiguousarray(S[:Wk]), *arrays)
+            out.extend(arrays)
+        for g, w in zip(got[:3], want[:3], strict=True):
+            np.testing.assert_array_equal(g, w[: g.shape[0]])
+        for g, w in zip(got[3:], want[3:], strict=True):
+            np.testing.assert_array_equal(g, w)
+        assert (got[3][:r0] == 7.0).all() and (got[3][r1:] == 7.0).all()
+        assert np.isnan(got[3][R // 2]).any()
+        if R > 2:
+            assert np.isfinite(got[3][R // 2 + 1]).all()

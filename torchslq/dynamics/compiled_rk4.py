@@ -5,8 +5,9 @@ Jacobians and Hessians through the four RK4 stages with batched torch products: 
 small products on ``(rows, n, n + m)`` tensors per stage, dispatch- and memory-bound.
 When the model gives its right-hand side and its derivatives as numba functions
 (:meth:`~torchslq.ContinuousDynamics.compiled_rhs`,
-:meth:`~torchslq.ContinuousDynamics.compiled_derivatives`) the same chain runs row by row
-in one kernel call (:mod:`torchslq.dynamics._numba_rk4`). Call only where
+:meth:`~torchslq.ContinuousDynamics.compiled_derivatives`) the same chain runs in one kernel
+call (:mod:`torchslq.dynamics._numba_rk4`: the model row by row, the chain's sums across
+blocks of rows). Call only where
 :func:`torchslq.lq.compiled.can_use_compiled` holds for ``x``, ``u`` (and ``s``).
 """
 
@@ -79,16 +80,24 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
     lead, R, xr, ur = _rows(x, u)
     A = torch.empty(R, n, n, dtype=x.dtype)
     B = torch.empty(R, n, m, dtype=x.dtype)
+    xa, ua = xr.numpy(), ur.numpy()
+    no_pattern = np.zeros(0, dtype=np.int64)
+    no_weights = np.zeros((0, R, n), dtype=xa.dtype)  # W = 0: no Hessians asked
+    blocks = [np.zeros((0, R, a, b), dtype=xa.dtype) for a, b in ((n, n), (m, m), (m, n))]
     _launch(
-        _kernels().rk4_jacobians_kernel,
+        _kernels().rk4_lanes_kernel,
         R,
         1,
         hooks.rhs,
         hooks.derivatives,
         hooks.params,
         float(dt),
-        xr.numpy(),
-        ur.numpy(),
+        no_pattern,
+        no_pattern,
+        xa,
+        ua,
+        no_weights,
+        *blocks,
         A.numpy(),
         B.numpy(),
     )
@@ -116,8 +125,11 @@ def rk4_vhp_compiled(
     Hux = torch.empty(W, R, m, n, dtype=x.dtype)
     A = torch.empty(R if with_jacobians else 0, n, n, dtype=x.dtype)
     B = torch.empty(R if with_jacobians else 0, n, m, dtype=x.dtype)
+    # a declared pattern: the lanes kernel; else each point's Hessians are scanned
+    static = hooks.curved_outputs.size > 0
+    kernels = _kernels()
     _launch(
-        _kernels().rk4_second_derivatives_kernel,
+        kernels.rk4_lanes_kernel if static else kernels.rk4_second_derivatives_kernel,
         R,
         W,
         hooks.rhs,
