@@ -131,3 +131,48 @@ def test_skipping_settled_trials_changes_no_solve(solver, compact, monkeypatch):
     assert seen and all(seen)
     assert len(set(ref.iterations.tolist())) > 1  # finished elements during the solve
     _same(fast, ref)
+
+
+@pytest.mark.parametrize("solver", ["ddp", "ilqr-bounds", "slq"])
+def test_armijo_passes_change_no_solve(solver, monkeypatch):
+    """How many trials each pass rolls out (``armijo_passes``) changes which trials are
+    rolled out, not the solve: the same to the last bit for the CPU default (1, 3), all
+    at once after 4 (the other devices' default) and one at a time; the option reaches
+    armijo_search."""
+    import sys
+
+    problem, x0 = cartpole_swingup(batch=6, horizon=25, seed=3)
+    make = {
+        "ddp": lambda **kw: ts.DDP(max_iter=40, progress=False, **kw),
+        "ilqr-bounds": lambda **kw: ts.ILQR(
+            max_iter=40, progress=False, u_min=-3.0, u_max=3.0, **kw
+        ),
+        "slq": lambda **kw: ts.SLQ(
+            line_search="armijo", rollout="closed_loop", max_iter=40, progress=False, **kw
+        ),
+    }[solver]  # fmt: skip
+    module = sys.modules["torchslq.solvers." + ("slq" if solver == "slq" else "ilqr")]
+    real = module.armijo_search
+    seen = []
+
+    def spy(*a, **kw):
+        seen.append((kw["first_trials"], kw["pass_size"]))
+        return real(*a, **kw)
+
+    monkeypatch.setattr(module, "armijo_search", spy)
+    default = make().solve(problem, x0)
+    assert set(seen) == {(1, 3)}
+    for passes in [(4, None), (1, 1)]:
+        seen.clear()
+        _same(make(armijo_passes=passes).solve(problem, x0), default)
+        assert set(seen) == {passes}
+
+
+def test_armijo_passes_default_by_device_and_validation():
+    s = ts.ILQR()
+    assert s._armijo_passes(torch.device("cpu")) == (1, 3)
+    assert s._armijo_passes(torch.device("meta")) == (4, None)
+    assert ts.DDP(armijo_passes=[2, None])._armijo_passes(torch.device("cpu")) == (2, None)
+    for bad in [(0, 3), (1, 0), (1.0, 3), 3, (1, 2, 3), (True, 3)]:
+        with pytest.raises(ValueError, match="armijo_passes"):
+            ts.SLQ(armijo_passes=bad)

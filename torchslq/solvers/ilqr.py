@@ -139,7 +139,9 @@ class ILQR(SLQ):
         hessian_floor: when set, the eigenvalues of every stage cost Hessian (the joint
             ``(n+m)`` block) and of the terminal Hessian are clipped to at least this
             value (the paper uses ``sqrt(eps)``); None leaves them as they are.
-        armijo_c1, armijo_beta, max_backtracks: line search on the expected improvement.
+        armijo_c1, armijo_beta, max_backtracks: line search on the expected improvement;
+            armijo_passes: how many trials each batched pass rolls out (as for
+            :class:`torchslq.SLQ`; the accepted steps do not depend on it).
         u_min, u_max: optional control bounds, a float or a tensor of shape ``(m,)``,
             ``(T, m)`` or ``(B, T, m)`` (``-inf``/``+inf`` entries allowed; None: no
             bound on that side). ``u_init`` is clamped into the box. When every bound is
@@ -488,6 +490,7 @@ class ILQR(SLQ):
             trials.record(alphas, xc, uc)
             return cost_fn(xc, uc)
 
+        first_trials, pass_size = self._armijo_passes(J.device)
         alpha, J_new, ok = armijo_search(
             evaluate,
             J,
@@ -498,6 +501,8 @@ class ILQR(SLQ):
             max_backtracks=o.max_backtracks,
             active=d.get("running"),
             skip_settled=True,
+            first_trials=first_trials,
+            pass_size=pass_size,
         )
         x_new, u_new = trials.select(alpha)
         return alpha, J_new, ok, x_new, u_new

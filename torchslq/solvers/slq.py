@@ -73,6 +73,21 @@ def _checked_x_init(x_init: Tensor, x0: Tensor, T: int) -> Tensor:
     return x.detach().clone()
 
 
+def _check_passes(passes) -> tuple[int, int | None]:
+    """``armijo_passes`` as a ``(first, then)`` tuple of positive ints (``then`` may be
+    None), or ValueError."""
+
+    def positive_int(v) -> bool:
+        return isinstance(v, int) and not isinstance(v, bool) and v >= 1
+
+    ok = isinstance(passes, (tuple, list)) and len(passes) == 2
+    if ok and positive_int(passes[0]) and (passes[1] is None or positive_int(passes[1])):
+        return (passes[0], passes[1])
+    raise ValueError(
+        f"armijo_passes must be (first, then) with positive ints (then may be None), got {passes!r}"
+    )
+
+
 @dataclass
 class SLQOptions:
     """Options of :class:`SLQ` (see its docstring)."""
@@ -88,6 +103,7 @@ class SLQOptions:
     armijo_c1: float = 1e-4
     armijo_beta: float = 0.5
     max_backtracks: int = 20
+    armijo_passes: tuple[int, int | None] | None = None
     linearize_method: str = "auto"
     progress: bool = True
     compact: bool = False
@@ -119,6 +135,12 @@ class SLQ:
         rollout: ``"open_loop"`` (the paper's ``U + αŪ``) or ``"closed_loop"`` (the line
             search applies the LQ feedback: ``u = u + α k + K (x_new - x)``).
         armijo_c1, armijo_beta, max_backtracks: Armijo constants.
+        armijo_passes: ``(first, then)``: the Armijo trials are rolled out ``first`` at a
+            time, then ``then`` at a time (None: all the rest at once) while some element
+            has accepted none; the accepted steps are the same for any choice. Default
+            (None): ``(1, 3)`` on the CPU, where each trial rollout costs in proportion
+            (cart-pole DDP B=512: 13% faster than ``(4, None)``), ``(4, None)`` on other
+            devices, where each pass costs a host sync.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: show a tqdm bar when a solve takes longer than a second.
         compact: compute each iteration only on the elements still running (finished
@@ -150,6 +172,15 @@ class SLQ:
             raise ValueError(f"stall_iters must be a non-negative int, got {o.stall_iters!r}")
         if o.stop not in _STOPS:
             raise ValueError(f"stop must be one of {_STOPS}, got {o.stop!r}")
+        if o.armijo_passes is not None:
+            o.armijo_passes = _check_passes(o.armijo_passes)
+
+    def _armijo_passes(self, device: torch.device) -> tuple[int, int | None]:
+        """``(first_trials, pass_size)`` of :func:`armijo_search` (option
+        ``armijo_passes``, or the device's default)."""
+        if self.options.armijo_passes is not None:
+            return self.options.armijo_passes
+        return (1, 3) if device.type == "cpu" else (4, None)
 
     # ------------------------------------------------------------------ one SLQ direction
     def direction(self, problem: Problem, x: Tensor, u: Tensor) -> dict[str, Tensor]:
@@ -400,6 +431,7 @@ class SLQ:
         if o.line_search == "exact":
             alpha, J_new, ok = exact_search(evaluate, J, slope=d["slope"])
         else:
+            first_trials, pass_size = self._armijo_passes(J.device)
             alpha, J_new, ok = armijo_search(
                 evaluate,
                 J,
@@ -409,6 +441,8 @@ class SLQ:
                 max_backtracks=o.max_backtracks,
                 active=d.get("running"),
                 skip_settled=True,
+                first_trials=first_trials,
+                pass_size=pass_size,
             )
         x_new, u_new = trials.select(alpha)
         return alpha, J_new, ok, x_new, u_new
