@@ -304,16 +304,56 @@ def test_lanes_kernel_equals_the_row_by_row_kernel(model, R):
         got, want = [], []
         for kernel, out in ((k.rk4_lanes_kernel, got), (k.rk4_second_derivatives_kernel, want)):
             Wk = W if kernel is k.rk4_lanes_kernel else 2 * n
-            arrays = [np.full((Wk, R, a, b), 7.0) for a, b in ((n, n), (m, m), (m, n))]
+            arrays = [np.full((Wk, R, n + m, n + m), 7.0)]  # [u; x] blocks
             arrays += [np.full((R, n, n), 7.0), np.full((R, n, m), 7.0)]
             args = (h.rhs, h.derivatives, h.params, 0.07, h.curved_outputs, h.curved_entries)
             kernel(r0, r1, *args, x, u, np.ascontiguousarray(S[:Wk]), *arrays)
             out.extend(arrays)
-        for g, w in zip(got[:3], want[:3], strict=True):
-            np.testing.assert_array_equal(g, w[: g.shape[0]])
-        for g, w in zip(got[3:], want[3:], strict=True):
+        np.testing.assert_array_equal(got[0], want[0][:W])
+        for g, w in zip(got[1:], want[1:], strict=True):
             np.testing.assert_array_equal(g, w)
-        assert (got[3][:r0] == 7.0).all() and (got[3][r1:] == 7.0).all()
-        assert np.isnan(got[3][R // 2]).any()
+        assert (got[1][:r0] == 7.0).all() and (got[1][r1:] == 7.0).all()
+        assert np.isnan(got[1][R // 2]).any()
         if R > 2:
-            assert np.isfinite(got[3][R // 2 + 1]).all()
+            assert np.isfinite(got[1][R // 2 + 1]).all()
+
+
+def test_hessian_blocks_are_views_of_one_joint_block_read_whole_by_riccati(monkeypatch):
+    """The kernels' output Hessians are views of one [u; x] tensor (lower-left block
+    filled too); lq.compiled.joint_hessians finds it (not for separate tensors), the
+    Riccati kernel then reads each step's block whole: a DDP solve is the same to the
+    last bit as with the three blocks read separately."""
+    from torchslq.dynamics import linearize_with_hessians
+
+    step = _step(model="mass-chain")
+    n, m = step.state_dim, step.control_dim
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(3, 7, n, dtype=F64, generator=g)
+    u = torch.randn(3, 7, m, dtype=F64, generator=g)
+    Hxx, Huu, Hux = linearize_with_hessians(step, x, u)[2]()
+    joint = compiled.joint_hessians(Hxx, Huu, Hux)
+    assert joint is not None and joint.shape == (n, 3, 7, n + m, n + m)
+    assert torch.equal(joint[..., :m, :m], Huu) and torch.equal(joint[..., m:, m:], Hxx)
+    assert torch.equal(joint[..., :m, m:], Hux)
+    assert torch.equal(joint[..., m:, :m], Hux.transpose(-1, -2))
+    assert compiled.joint_hessians(Hxx.clone(), Huu.clone(), Hux.clone()) is None
+    assert compiled.joint_hessians(Hxx, Huu, Hux[..., :1, :].expand_as(Hux)) is None
+
+    from torchslq.tasks import cartpole_swingup
+
+    problem, x0 = cartpole_swingup(batch=5, horizon=30, seed=1)
+    seen = []
+    real = compiled.joint_hessians
+
+    def spy(*blocks):
+        out = real(*blocks)
+        seen.append(out is not None)
+        return out
+
+    monkeypatch.setattr(compiled, "joint_hessians", spy)
+    whole = ts.DDP(max_iter=30, progress=False).solve(problem, x0)
+    assert seen and all(seen)
+    monkeypatch.setattr(compiled, "joint_hessians", lambda *blocks: None)
+    blocks = ts.DDP(max_iter=30, progress=False).solve(problem, x0)
+    for name in ("u", "cost", "K", "k", "iterations"):
+        assert torch.equal(getattr(whole, name), getattr(blocks, name)), name

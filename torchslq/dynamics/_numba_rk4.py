@@ -80,6 +80,12 @@ def _jacobians_from_stages(dk, dt, n, nz, A, B):
 
 
 @numba.njit(nogil=True, inline="always")
+def _joint(c, n, m):
+    """Index in ``[u; x]`` order of entry ``c`` of ``z = (x, u)``."""
+    return c - n if c >= n else m + c
+
+
+@numba.njit(nogil=True, inline="always")
 def _row_curved(Hi, j, a, nz):
     """Whether row ``a`` of output ``j``'s Hessian has a nonzero (or NaN) entry."""
     for b in range(nz):
@@ -112,7 +118,7 @@ def _curvature(Hi, n, nz, outs, sup):
 
 @numba.njit(nogil=True)
 def rk4_second_derivatives_kernel(
-    r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hxx, Huu, Hux, A, B
+    r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hz, A, B
 ):
     """Hessian blocks of ``s · step(x, u)`` for every weight vector ``s = S[w, r]``:
     ``sum_i Z_i' (mu_i · f_zz(zeta_i)) Z_i`` with ``Z_i = d zeta_i / dz`` and the adjoint
@@ -127,8 +133,8 @@ def rk4_second_derivatives_kernel(
     weighted; with few, ``mu_i · f_zz`` is formed first and one congruence taken per
     weight (whichever needs fewer products).
 
-    x ``(R, n)``, u ``(R, m)``, S ``(W, R, n)``; outputs Hxx ``(W, R, n, n)``, Huu
-    ``(W, R, m, m)``, Hux ``(W, R, m, n)``; with ``A (R, n, n)``, ``B (R, n, m)`` not
+    x ``(R, n)``, u ``(R, m)``, S ``(W, R, n)``; output Hz ``(W, R, m+n, m+n)``, the
+    Hessians in ``[u; x]`` order; with ``A (R, n, n)``, ``B (R, n, m)`` not
     empty, the step's Jacobians too (as :func:`rk4_jacobians_kernel`, from the same
     stages). Rows ``r0 <= r < r1``."""
     n = x.shape[1]
@@ -254,17 +260,13 @@ def rk4_second_derivatives_kernel(
                         mu2[q] = cw * s[q] + scale * v
                     for q in range(n):
                         mu[q] = mu2[q]
+            Hr = Hz[w, r]
             for c1 in range(nz):
+                j1 = _joint(c1, n, m)
                 for c2 in range(c1, nz):
-                    v = acc[c1, c2]
-                    if c2 < n:
-                        Hxx[w, r, c1, c2] = v
-                        Hxx[w, r, c2, c1] = v
-                    elif c1 >= n:
-                        Huu[w, r, c1 - n, c2 - n] = v
-                        Huu[w, r, c2 - n, c1 - n] = v
-                    else:
-                        Hux[w, r, c2 - n, c1] = v
+                    j2 = _joint(c2, n, m)
+                    Hr[j1, j2] = acc[c1, c2]
+                    Hr[j2, j1] = acc[c1, c2]
 
 
 # Rows per block of rk4_lanes_kernel. The block's sums run over the rows innermost; with
@@ -388,9 +390,7 @@ def _lane_weighted_sum(dt, n, s, fzL, G, outs, mu, mu2, acc):
 
 
 @numba.njit(nogil=True)
-def rk4_lanes_kernel(
-    r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hxx, Huu, Hux, A, B
-):
+def rk4_lanes_kernel(r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hz, A, B):
     """The RK4 step's Jacobians and the Hessian blocks of ``s · step(x, u)`` for every
     weight vector ``s = S[w, r]``, as :func:`rk4_second_derivatives_kernel` computes
     them with a declared curvature pattern (``curved_outputs``, ``curved_entries``, int
@@ -398,8 +398,8 @@ def rk4_lanes_kernel(
     in blocks of :data:`LANES` rows (the last block padded with its last row).
 
     x ``(R, n)``, u ``(R, m)``, S ``(W, R, n)`` (``W = 0``: Jacobians only, the model
-    is then asked for no Hessians); outputs Hxx ``(W, R, n, n)``, Huu ``(W, R, m, m)``,
-    Hux ``(W, R, m, n)``, and ``A (R, n, n)``, ``B (R, n, m)`` when not empty. Rows
+    is then asked for no Hessians); outputs Hz ``(W, R, m+n, m+n)`` (``[u; x]`` order)
+    and ``A (R, n, n)``, ``B (R, n, m)`` when not empty. Rows
     ``r0 <= r < r1``."""
     n = x.shape[1]
     m = u.shape[1]
@@ -462,16 +462,9 @@ def rk4_lanes_kernel(
                     sL[q, lane] = S[w, rows[lane], q]
             _lane_weighted_sum(dt, n, sL, fzL, G, outs, mu, mu2, acc)
             for lane in range(nl):
-                rr = rows[lane]
+                Hr = Hz[w, rows[lane]]
                 for e in range(ntri):
-                    c1 = tri1[e]
-                    c2 = tri2[e]
-                    v = acc[e, lane]
-                    if c2 < n:
-                        Hxx[w, rr, c1, c2] = v
-                        Hxx[w, rr, c2, c1] = v
-                    elif c1 >= n:
-                        Huu[w, rr, c1 - n, c2 - n] = v
-                        Huu[w, rr, c2 - n, c1 - n] = v
-                    else:
-                        Hux[w, rr, c2 - n, c1] = v
+                    j1 = _joint(tri1[e], n, m)
+                    j2 = _joint(tri2[e], n, m)
+                    Hr[j1, j2] = acc[e, lane]
+                    Hr[j2, j1] = acc[e, lane]

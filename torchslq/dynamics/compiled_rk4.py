@@ -83,7 +83,7 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
     xa, ua = xr.numpy(), ur.numpy()
     no_pattern = np.zeros(0, dtype=np.int64)
     no_weights = np.zeros((0, R, n), dtype=xa.dtype)  # W = 0: no Hessians asked
-    blocks = [np.zeros((0, R, a, b), dtype=xa.dtype) for a, b in ((n, n), (m, m), (m, n))]
+    no_hessians = np.zeros((0, R, n + m, n + m), dtype=xa.dtype)
     _launch(
         _kernels().rk4_lanes_kernel,
         R,
@@ -97,7 +97,7 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
         xa,
         ua,
         no_weights,
-        *blocks,
+        no_hessians,
         A.numpy(),
         B.numpy(),
     )
@@ -120,9 +120,10 @@ def rk4_vhp_compiled(
     lead, R, xr, ur = _rows(x, u, full[len(full) - nl :])
     W = math.prod(Wdims)
     S = s.detach().expand(*full, n).reshape(W, R, n).contiguous()
-    Hxx = torch.empty(W, R, n, n, dtype=x.dtype)
-    Huu = torch.empty(W, R, m, m, dtype=x.dtype)
-    Hux = torch.empty(W, R, m, n, dtype=x.dtype)
+    # one [u; x] block per row and weight: the returned blocks are views of it, and a
+    # Riccati pass reads it whole (lq.compiled.joint_hessians)
+    Hz = torch.empty(W, R, m + n, m + n, dtype=x.dtype)
+    Hxx, Huu, Hux = Hz[:, :, m:, m:], Hz[:, :, :m, :m], Hz[:, :, :m, m:]
     A = torch.empty(R if with_jacobians else 0, n, n, dtype=x.dtype)
     B = torch.empty(R if with_jacobians else 0, n, m, dtype=x.dtype)
     # a declared pattern: the lanes kernel; else each point's Hessians are scanned
@@ -141,9 +142,7 @@ def rk4_vhp_compiled(
         xr.numpy(),
         ur.numpy(),
         S.numpy(),
-        Hxx.numpy(),
-        Huu.numpy(),
-        Hux.numpy(),
+        Hz.numpy(),
         A.numpy(),
         B.numpy(),
     )

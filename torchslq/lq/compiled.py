@@ -540,7 +540,38 @@ def _hessian_arrays(hessians, dtype: torch.dtype) -> tuple:
         return empty, (empty, empty, empty)
     if isinstance(hessians, Tensor):
         return hessians.detach().contiguous().numpy(), (empty, empty, empty)
+    joint = joint_hessians(*hessians)
+    if joint is not None:  # the kernel reads each step's [u; x] block whole (as Hz)
+        return joint.detach().permute(2, 0, 1, 3, 4).numpy(), (empty, empty, empty)
     return empty, tuple(h.detach().contiguous().numpy() for h in hessians)
+
+
+def joint_hessians(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor | None:
+    """The ``(..., m+n, m+n)`` tensor in ``[u; x]`` order whose blocks ``Hxx (..., n,
+    n)``, ``Huu (..., m, m)``, ``Hux (..., m, n)`` are views (as
+    :func:`torchslq.dynamics.compiled_rk4.rk4_vhp_compiled` returns them, its lower-left
+    block filled too), or None when they are separate tensors."""
+    m, n = Huu.shape[-1], Hxx.shape[-1]
+    nz = m + n
+    lead, lead_st = Huu.shape[:-2], Huu.stride()[:-2]
+
+    def rows_of_joint(h: Tensor) -> bool:  # rows nz apart, entries adjacent (size 1: any)
+        r, c = h.shape[-2:]
+        return (r == 1 or h.stride(-2) == nz) and (c == 1 or h.stride(-1) == 1)
+
+    ptr = Huu.untyped_storage().data_ptr()
+    same = all(
+        h.untyped_storage().data_ptr() == ptr
+        and h.shape[:-2] == lead
+        and h.stride()[:-2] == lead_st
+        and h.dtype == Huu.dtype
+        and rows_of_joint(h)
+        for h in (Hxx, Huu, Hux)
+    )
+    o = Huu.storage_offset()
+    if not (same and Hux.storage_offset() == o + m and Hxx.storage_offset() == o + m * nz + m):
+        return None
+    return Huu.as_strided((*lead, nz, nz), (*lead_st, nz, 1), o)
 
 
 def _np_dtype(dtype: torch.dtype) -> np.dtype:
