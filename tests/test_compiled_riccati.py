@@ -669,3 +669,45 @@ def test_whole_rollout_kernel_skips_rows_with_a_nan_step(torch_path, model):
     for x in (xs, xr):  # the initial state, then NaN
         assert bool(torch.isnan(x[skip][:, 1:]).all()) and torch.equal(x[..., 0, :], xs[..., 0, :])
     assert torch.equal(xs[~skip], full_x[~skip]) and torch.equal(us[~skip], full_u[~skip])
+
+
+@pytest.mark.parametrize("model", ["unicycle", "cartpole-rk4"])
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_open_loop_rollout_with_the_models_compiled_step(torch_path, model, dtype):
+    """rollout() runs a model with a compiled step in one kernel call where no graph is
+    needed: the torch path's states up to the last bits of cos/sin, each state the
+    model's step of the previous one, leading dims broadcast (x0 shared, u per
+    element), ``u`` left untouched; with ``u`` requiring grad the torch model runs and
+    the graph is kept."""
+    import sys
+
+    from torchslq.solvers.rollout import rollout
+    from torchslq.systems import CartPole, Unicycle
+
+    if model == "unicycle":
+        f, n, m = Unicycle(0.1).to(dtype), 3, 2
+    else:
+        f, n, m = ts.discretize(CartPole(mc=torch.tensor(1.3, dtype=dtype)), 0.05), 4, 1
+    g = torch.Generator().manual_seed(3)
+    x0 = torch.randn(n, generator=g, dtype=dtype)
+    u = torch.randn(2, 5, 9, m, generator=g, dtype=dtype)
+    u_before = u.clone()
+    rmod = sys.modules["torchslq.solvers.rollout"]
+    real, calls = rmod.closed_loop_rollout_compiled, []
+    rmod.closed_loop_rollout_compiled = lambda *a: calls.append(1) or real(*a)
+    try:
+        xf = rollout(f, x0, u)
+    finally:
+        rmod.closed_loop_rollout_compiled = real
+    assert calls and torch.equal(u, u_before)
+    with torch_path:
+        xr = rollout(f, x0, u)
+    assert xf.shape == xr.shape == (2, 5, 10, n) and xf.dtype == dtype
+    tol = 1e-12 if dtype == F64 else 5e-5
+    assert float((xf - xr).abs().max()) <= tol
+    torch.testing.assert_close(xf[..., 1:, :], f(xf[..., :-1, :], u), rtol=0, atol=tol)
+    ug = u.clone().requires_grad_(True)
+    xg = rollout(f, x0, ug)
+    assert xg.requires_grad
+    (gu,) = torch.autograd.grad(xg.sum(), ug)
+    assert torch.isfinite(gu).all() and float(gu.abs().max()) > 0
