@@ -72,7 +72,7 @@ def test_finished_elements_do_not_hold_up_the_line_search(module, monkeypatch):
     searches (never again once finished) at least as long as its accepted steps."""
     import importlib
 
-    mod = importlib.import_module(f"torchslq.solvers.{module}")
+    mod = importlib.import_module("torchslq.solvers.slq")  # SLQ._armijo serves both
     seen = []
     orig = mod.armijo_search
 
@@ -118,7 +118,7 @@ def test_skipping_settled_trials_changes_no_solve(solver, compact, monkeypatch):
         ),
     }[solver]  # fmt: skip
     fast = make().solve(problem, x0)
-    module = sys.modules["torchslq.solvers." + ("slq" if solver == "slq" else "ilqr")]
+    module = sys.modules["torchslq.solvers.slq"]  # SLQ._armijo serves all three
     real = module.armijo_search
     seen = []
 
@@ -151,7 +151,7 @@ def test_armijo_passes_change_no_solve(solver, monkeypatch):
             line_search="armijo", rollout="closed_loop", max_iter=40, progress=False, **kw
         ),
     }[solver]  # fmt: skip
-    module = sys.modules["torchslq.solvers." + ("slq" if solver == "slq" else "ilqr")]
+    module = sys.modules["torchslq.solvers.slq"]  # SLQ._armijo serves all three
     real = module.armijo_search
     seen = []
 

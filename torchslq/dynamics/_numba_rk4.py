@@ -135,8 +135,10 @@ def rk4_second_derivatives_kernel(
 
     x ``(R, n)``, u ``(R, m)``, S ``(W, R, n)``; output Hz ``(W, R, m+n, m+n)``, the
     Hessians in ``[u; x]`` order; with ``A (R, n, n)``, ``B (R, n, m)`` not
-    empty, the step's Jacobians too (as :func:`rk4_jacobians_kernel`, from the same
-    stages). Rows ``r0 <= r < r1``."""
+    empty, the step's Jacobians too (from the same stages). Rows ``r0 <= r < r1``.
+
+    ``compiled_rk4`` sends declared patterns to :func:`rk4_lanes_kernel`; this kernel's
+    declared-pattern path is the row-by-row reference it is tested against (bitwise)."""
     n = x.shape[1]
     m = u.shape[1]
     nz = n + m

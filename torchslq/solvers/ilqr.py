@@ -39,7 +39,7 @@ from torch import Tensor
 from ..costs.general import project_psd
 from ..dynamics.linearize import linearize
 from ..lq.riccati import Restarts, RiccatiFactors, StageHook, riccati_backward
-from .line_search import TrialRecorder, armijo_search
+from .line_search import TrialRecorder
 from .rollout import costate_gradient, rollout_closed_loop
 from .slq import SLQ, _checked_x_init
 
@@ -479,7 +479,6 @@ class ILQR(SLQ):
 
     # -------------------------------------------------------------- forward pass
     def _line_search(self, f, cost_fn, x0, x, u, J, d) -> tuple[Tensor, ...]:
-        o = self.options
         trials = TrialRecorder()
 
         def evaluate(alphas: Tensor) -> Tensor:
@@ -490,19 +489,6 @@ class ILQR(SLQ):
             trials.record(alphas, xc, uc)
             return cost_fn(xc, uc)
 
-        first_trials, pass_size = self._armijo_passes(J.device)
-        alpha, J_new, ok = armijo_search(
-            evaluate,
-            J,
-            d["slope"],
-            curvature=d["curvature"],
-            c1=o.armijo_c1,
-            beta=o.armijo_beta,
-            max_backtracks=o.max_backtracks,
-            active=d.get("running"),
-            skip_settled=True,
-            first_trials=first_trials,
-            pass_size=pass_size,
-        )
+        alpha, J_new, ok = self._armijo(evaluate, J, d, curvature=d["curvature"])
         x_new, u_new = trials.select(alpha)
         return alpha, J_new, ok, x_new, u_new

@@ -431,18 +431,26 @@ class SLQ:
         if o.line_search == "exact":
             alpha, J_new, ok = exact_search(evaluate, J, slope=d["slope"])
         else:
-            first_trials, pass_size = self._armijo_passes(J.device)
-            alpha, J_new, ok = armijo_search(
-                evaluate,
-                J,
-                d["slope"],
-                c1=o.armijo_c1,
-                beta=o.armijo_beta,
-                max_backtracks=o.max_backtracks,
-                active=d.get("running"),
-                skip_settled=True,
-                first_trials=first_trials,
-                pass_size=pass_size,
-            )
+            alpha, J_new, ok = self._armijo(evaluate, J, d)
         x_new, u_new = trials.select(alpha)
         return alpha, J_new, ok, x_new, u_new
+
+    def _armijo(self, evaluate, J: Tensor, d: dict, curvature: Tensor | None = None):
+        """:func:`armijo_search` with the solver's constants and pass sizes, told which
+        elements are running (settled trials are not rolled out); ``curvature`` for the
+        quadratic model of iLQR/DDP's expected improvement."""
+        o = self.options
+        first_trials, pass_size = self._armijo_passes(J.device)
+        return armijo_search(
+            evaluate,
+            J,
+            d["slope"],
+            curvature=curvature,
+            c1=o.armijo_c1,
+            beta=o.armijo_beta,
+            max_backtracks=o.max_backtracks,
+            active=d.get("running"),
+            skip_settled=True,
+            first_trials=first_trials,
+            pass_size=pass_size,
+        )
