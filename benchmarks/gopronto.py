@@ -30,12 +30,16 @@ import dataclasses
 import json
 import platform
 import pstats
+import sys
 import time
 from pathlib import Path
 
 import torch
 
-from torchslq.paper.gopronto import PAPER_TABLE3, make_solver, pendulum_train_problem
+# the paper reproductions live in the checkout's reproductions/, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from reproductions.gopronto import PAPER_TABLE3, make_solver, pendulum_train_problem  # noqa: E402
 
 OUT = Path(__file__).resolve().parent / "results"
 

@@ -69,6 +69,7 @@ import torch
 
 from torchslq import SLQ, linearize, riccati_backward, rollout_linear
 from torchslq.solvers import costate_gradient, rollout
+from torchslq.tasks import drag_vehicle_problem as _drag_builder
 from torchslq.tasks import pendulum_swingup
 
 DRAG_BETAS = (0.01, 0.05, 0.1, 0.5)
@@ -91,34 +92,7 @@ PIECES = ("linearize", "quad+grad", "riccati+rollout", "line search")
 
 
 # ---------------------------------------------------------------------------- problems
-def _drag_local(betas, dtype=torch.float64):
-    """The drag-vehicle problem built here (used when torchslq.paper.sideris is missing)."""
-    from torchslq.costs import QuadraticCost
-    from torchslq.problem import Problem
-    from torchslq.systems import DragVehicle
-
-    m, N, q, r, qfin = 0.0259, 500, 1.0, 10.0, 1e6
-    Ts = 1.0 / N
-    beta = torch.as_tensor(betas, dtype=dtype).reshape(-1, 1)
-    x_ref = torch.zeros(N + 1, 2, dtype=dtype)
-    x_ref[N, 0] = 10.0
-    cost = QuadraticCost(
-        Q=2.0 * Ts * q * torch.eye(2, dtype=dtype),
-        R=torch.full((1, 1), 2.0 * Ts * r, dtype=dtype),
-        Qf=torch.diag(torch.tensor([2.0 * qfin, 0.0], dtype=dtype)),
-        x_ref=x_ref,
-    )
-    problem = Problem(DragVehicle(beta=beta, m=m, Ts=Ts), cost, horizon=N)
-    return problem, torch.zeros(beta.shape[0], 2, dtype=dtype)
-
-
-try:
-    from torchslq.paper.sideris import drag_vehicle_problem as _drag_builder
-
-    DRAG_SOURCE = "torchslq.paper.sideris.drag_vehicle_problem"
-except ImportError:  # pragma: no cover - depends on the checkout
-    _drag_builder = _drag_local
-    DRAG_SOURCE = "benchmarks/slq.py (local builder from torchslq.systems.DragVehicle)"
+DRAG_SOURCE = "torchslq.tasks.drag_vehicle_problem"
 
 
 def drag_betas(B: int, start: int = 0) -> list[float]:

@@ -1,7 +1,8 @@
 """Cart-pole swing-up with the non-convex running cost of the continuous-time iLQR paper.
 
-Lieskovsky et al. (2025), Section V.B (``shared/papers/continuous-time-ilqr-2025.md``),
-with the model readings of ``shared/PAPER-NOTES.md``: cart mass mc = 1, tip mass
+J. Lieskovský, J. Bušek and T. Vyhlídal, "Continuous-time iterative linear-quadratic
+regulator", arXiv:2505.15525, 2025, Section V.B, with these model readings (they match the
+authors' public code): cart mass mc = 1, tip mass
 mp = 0.1, pole length l = 0.2, g = 9.81, theta = 0 hanging down;
 ``x0 = [0, 1e-3 pi, 0, 0]``, ``u = 0`` initially, horizon 2 s, running cost
 
@@ -12,9 +13,8 @@ running cost integrated as ``dt * l(x_t, u_t)``, then solved by ``ILQR`` and ``D
 (``second_order="value"``), tol 1e-6 on the gradient norm.
 
 The paper reports 3.668 (its own adaptive-step continuous-time solver); an independent
-NLP solve of the problem as stated (PAPER-NOTES) gives the local optimum 2.6656, and
-PAPER-NOTES note the paper's numbers are about 1 higher than the stated problem's in
-both variants (cause unknown). Our discrete cost is printed beside both.
+NLP solve of the problem as stated gives the local optimum 2.6656; the paper's numbers
+are about 1 higher than the stated problem's in both variants (cause unknown). Our discrete cost is printed beside both.
 
     python examples/cartpole_nonconvex.py            # ~ a few minutes on 1 thread
     python examples/cartpole_nonconvex.py --max-iter 100 --no-ddp
@@ -74,7 +74,7 @@ def main(argv=None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     print(f"\nnon-convex cart-pole (l = 0.2, RK4, N = {args.N}, dt = {dt:g}), u_init = 0")
-    print("| solver | cost J | paper | NLP (PAPER-NOTES) | J - NLP | iterations | status | "
+    print("| solver | cost J | paper | NLP optimum | J - NLP | iterations | status | "
           "grad norm | time [s] |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|")
     for name, (r, wall) in results.items():
@@ -100,7 +100,7 @@ def main(argv=None) -> None:
     print(f"\nfigures in {out}/")
     print(
         "Note: the paper's 3.668 comes from its continuous-time adaptive-step solver; "
-        "the stated problem's NLP optimum is 2.6656 (PAPER-NOTES: the paper's values are "
+        "the stated problem's NLP optimum is 2.6656 (the paper's values are "
         "about 1 higher in both variants, cause unknown). The RK4/N=500 discretisation "
         "differs from the continuous problem by O(dt^4) in the dynamics and O(dt) in the "
         "left-rectangle cost quadrature."

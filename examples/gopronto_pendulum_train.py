@@ -25,12 +25,16 @@ import argparse
 import dataclasses
 import json
 import platform
+import sys
 import time
 from pathlib import Path
 
 import torch
 
-from torchslq.paper.gopronto import (
+# the paper reproductions live in the checkout's reproductions/, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from reproductions.gopronto import (  # noqa: E402
     PAPER_FIG7,
     PAPER_TABLE2,
     first_below,
@@ -60,7 +64,7 @@ def _cmd_flag() -> str:
 
 
 NOTE = (
-    "Problem: Section V with the PAPER-NOTES readings (cos erratum, T = 10 s = 200 RK4 "
+    "Problem: Section V with these readings (cos erratum, T = 10 s = 200 RK4 "
     "steps of 0.05 s, reference centred at T/2, ||x||_Q^2 = x'Qx), Table I parameters, "
     "spring term as printed (-ks w_{i+1} + ks w_{i-1}), Qf = DARE at the upright "
     "equilibrium, projection weights Q_reg = Q, R_reg = I (paper) or R_reg = R (files "

@@ -15,20 +15,24 @@ import argparse
 import shlex
 import sys
 import time
+from pathlib import Path
 
 import torch
 
-from torchslq.paper.sideris import HOPPER_TARGETS, hopper_report
+# the paper reproductions live in the checkout's reproductions/, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from reproductions.sideris import HOPPER_TARGETS, hopper_report  # noqa: E402
 
 NOTES = """\
 ### Notes
 
-* Eq. (66) is garbled in the paper; this is the literal reading of `shared/PAPER-NOTES.md`
+* Eq. (66) is garbled in the paper; this is its literal reading
   (qfin multiplies only the height error, ẏ(N)^2 has weight 1).
 * The problem is non-convex (contact switching) and only C^1 (the smoothed spring has a
   jump in its second derivative at e = 0 and e = α), so different line searches can end
   in different local optima and the Gauss-Newton model is poor near the kinks.
-* PAPER-NOTES: the paper's counts (3 for y° = 1, 166 for y° = 50) were not reproduced by
+* The paper's counts (3 for y° = 1, 166 for y° = 50) were not reproduced by
   independent attempts under any reading or line search (about 100-140 iterations for
   y° = 1; y° = 50 did not meet a 1e-6 gradient test in 1000). Our counts are reported
   as observed; y° = 20 is the case where independent methods agree on the optimum.

@@ -15,22 +15,26 @@ import argparse
 import shlex
 import sys
 import time
+from pathlib import Path
 
 import torch
 
-from torchslq.paper.sideris import TABLE1_BETAS, table1_report
+# the paper reproductions live in the checkout's reproductions/, beside this folder
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from reproductions.sideris import TABLE1_BETAS, table1_report  # noqa: E402
 
 NOTES = """\
 ### Notes
 
-* Problem readings are those of `shared/PAPER-NOTES.md` (m in kilograms; eq. 65 has no
-  1/2, which does not change the minimiser or the SLQ directions).
+* Problem readings: m = 25.9 g in kilograms (with m = 25.9 the target is never reached);
+  eq. 65 has no 1/2, which does not change the minimiser or the SLQ directions).
 * The paper's "quadratic fit" line search is not fully specified. `armijo` is
   backtracking from 1 (c1 = 1e-4, halving); `exact` minimises J(U + αŪ) over a grid
-  in (0, 1] refined by one quadratic fit. PAPER-NOTES regard counts within about ±10
-  of Table 1 as a fair reproduction.
-* beta = 1: the paper reports no convergence within 300 iterations, and PAPER-NOTES
-  say that is the expected outcome: explicit Euler of v' = -(β/m) v|v| is unstable for
+  in (0, 1] refined by one quadratic fit. Counts within about ±10
+  of Table 1 are a fair reproduction.
+* beta = 1: the paper reports no convergence within 300 iterations, and that is
+  the expected outcome: explicit Euler of v' = -(β/m) v|v| is unstable for
   |v| > m/(β Ts) = 12.95 m/s, and the optimal speed exceeds that (column `max speed`),
   so the discrete problem is pathological. Our status for beta = 1 is reported as
   observed, not tuned. When it is `line_search_failed` with ‖∇J‖ about 1e-5, the

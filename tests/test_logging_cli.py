@@ -122,6 +122,26 @@ def test_cli_errors_are_one_line_exit_2(args, needle):
     assert needle in lines[0]
 
 
+def test_cli_reproduce_without_reproductions_says_where_they_are(monkeypatch, capsys):
+    """Installed without a checkout, ``reproduce`` names the repository's folder."""
+    import torchslq.cli as cli
+
+    monkeypatch.setattr(cli, "_reproductions", lambda: None)
+    assert main(["reproduce", "sideris-table1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "reproductions/" in err[0] and "repository" in err[0]
+
+
+def test_cli_finds_reproductions_from_a_checkout(tmp_path):
+    """Run from outside the repository, the command still finds the checkout's package."""
+    code = "import torchslq.cli as c, sys; m = c._reproductions(); print(m.__name__, m.sideris.__name__)"
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["reproductions", "reproductions.sideris"]
+
+
 def test_float32_solve_runs(tmp_path):
     problem, x0 = pendulum_swingup(batch=3, horizon=30, dtype=torch.float32)
     res = ts.SLQ(max_iter=30, tol=1e-3, rollout="closed_loop", progress=False).solve(problem, x0)

@@ -10,13 +10,13 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchslq import Problem, QuadraticCost, Status
-from torchslq.paper import (
+from reproductions import (
     drag_vehicle_problem,
     format_table,
     hopper_problem,
 )
-from torchslq.paper.sideris import DRAG, HOPPER, table1_rows
+from reproductions.sideris import DRAG, HOPPER, table1_rows
+from torchslq import Problem, QuadraticCost, Status
 from torchslq.solvers import GradientMethod, SolverResult
 from torchslq.systems import DragVehicle
 
@@ -33,7 +33,7 @@ def _eq65(x, u, *, q, r, qfin, N, target):
 
 
 def _eq66(x, u, *, y_target, qfin, q, r, N, tf):
-    """Eq. (66), literal reading of PAPER-NOTES, by an explicit loop."""
+    """Eq. (66), literal reading of the garbled equation, by an explicit loop."""
     J = 0.5 * qfin * (x[N, 0] - y_target) ** 2 + x[N, 1] ** 2
     for n in range(N):
         J = J + tf / (2 * N) * (q * x[n, 2] ** 2 + r * u[n, 0] ** 2)

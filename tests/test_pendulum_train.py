@@ -11,14 +11,14 @@ import scipy.linalg
 import torch
 
 import torchslq
-from torchslq.lq import dare, dare_gain, dare_residual
-from torchslq.paper.gopronto import (
+from reproductions.gopronto import (
     PAPER_TABLE1_PARAMS,
     pendulum_train_dynamics,
     pendulum_train_problem,
     theta_reference,
     upright_linearization,
 )
+from torchslq.lq import dare, dare_gain, dare_residual
 from torchslq.systems import PendulumCartTrain, PendulumCartTrainRK4
 
 DT = torch.float64

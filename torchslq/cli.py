@@ -105,15 +105,42 @@ def _run(system: str, args: argparse.Namespace, title: str) -> int:
     return 0
 
 
+def _reproductions():
+    """The checkout's ``reproductions`` package (not installed with torchslq), or None.
+
+    Found on ``sys.path`` (running from the repository root) or beside this package's
+    folder when torchslq is installed from a checkout (``pip install -e .``)."""
+    import importlib
+
+    try:
+        return importlib.import_module("reproductions")
+    except ImportError:
+        pass
+    root = Path(__file__).resolve().parents[1]
+    if (root / "reproductions" / "__init__.py").is_file():
+        sys.path.insert(0, str(root))
+        try:
+            return importlib.import_module("reproductions")
+        except ImportError:
+            return None
+    return None
+
+
 def _reproduce(name: str, args: argparse.Namespace) -> int:
     if name not in REPRODUCTIONS:
         return _fail(f"unknown reproduction {name!r}; choose from {', '.join(REPRODUCTIONS)}")
+    if _reproductions() is None:
+        return _fail(
+            "the paper reproductions are not part of the installed package: they live in "
+            "the repository's reproductions/ folder; run this command from a checkout of "
+            "the repository (its root directory)"
+        )
     if name == "gopronto-fig5":
-        from .paper import gopronto
+        from reproductions import gopronto
 
         print(gopronto.format_rows(gopronto.reproduce_figure5()))
         return 0
-    from .paper import sideris
+    from reproductions import sideris
 
     if name == "sideris-table1":
         rows = sideris.reproduce_table1(line_search=args.line_search)

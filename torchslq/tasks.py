@@ -7,7 +7,7 @@ so runs are repeatable.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import torch
 from torch import Tensor
@@ -15,9 +15,17 @@ from torch import Tensor
 from .costs import QuadraticCost
 from .dynamics import discretize
 from .problem import Problem
-from .systems import CartPole, Pendulum
+from .systems import CartPole, DragVehicle, Hopper, Pendulum
 
-__all__ = ["TASKS", "pendulum_swingup", "cartpole_swingup", "make_task", "swingup_success"]
+__all__ = [
+    "TASKS",
+    "pendulum_swingup",
+    "cartpole_swingup",
+    "drag_vehicle_problem",
+    "hopper_problem",
+    "make_task",
+    "swingup_success",
+]
 
 
 def _gen(seed: int) -> torch.Generator:
@@ -85,19 +93,113 @@ def swingup_success(x: Tensor, angle_index: int = 0, tol: float = 0.1) -> Tensor
     return err.abs() < tol
 
 
-def _drag(batch: int = 5, seed: int = 0, device="cpu", dtype=torch.float64, **_):
-    from .paper.sideris import drag_vehicle_problem
+#: Sideris & Bobrow (2005), Section 4.1 constants (m = 25.9 g read as 0.0259 kg: with
+#: m = 25.9 kg the target is never reached and Table 1 cannot be reproduced).
+DRAG = {"m": 0.0259, "N": 500, "q": 1.0, "r": 10.0, "qfin": 1e6, "target": 10.0}
+#: Sideris & Bobrow (2005), Section 4.2 constants (the gas-actuated hopper).
+HOPPER = {
+    "k_over_m": 500.0,
+    "g": 386.4,
+    "alpha": 0.1,
+    "tf": 1.0,
+    "N": 100,
+    "qfin": 1000.0,
+    "q": 1000.0,
+    "r": 1.0,
+}
 
-    betas = [0.01, 0.05, 0.1, 0.5, 1.0]
+
+#: Table 1's drag coefficients and Section 4.2's target heights.
+TABLE1_BETAS = (0.01, 0.05, 0.1, 0.5, 1.0)
+HOPPER_TARGETS = (1.0, 20.0, 50.0)
+
+
+def _as_column(values: float | Sequence[float] | Tensor, dtype, device) -> Tensor:
+    t = torch.as_tensor(values, dtype=dtype, device=device).reshape(-1, 1)
+    if t.numel() == 0:
+        raise ValueError("need at least one value")
+    return t
+
+
+def drag_vehicle_problem(
+    betas: float | Sequence[float] | Tensor = TABLE1_BETAS,
+    *,
+    m: float = DRAG["m"],
+    N: int = DRAG["N"],
+    q: float = DRAG["q"],
+    r: float = DRAG["r"],
+    qfin: float = DRAG["qfin"],
+    target: float = DRAG["target"],
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> tuple[Problem, Tensor]:
+    """The viscous-drag vehicle of Sideris & Bobrow (2005), Section 4.1, eqs. (63)-(65),
+    one batch element per beta; the cost is eq. (65) as printed (no 1/2).
+
+    Returns ``(problem, x0)`` with ``x0 = 0`` of shape ``(B, 2)``; ``beta`` is a ``(B, 1)``
+    parameter of :class:`torchslq.systems.DragVehicle`.
+    """
+    beta = _as_column(betas, dtype, device)
+    Ts = 1.0 / N
+    dyn = DragVehicle(beta=beta, m=m, Ts=Ts)
+    eye = torch.eye(2, dtype=dtype, device=device)
+    x_ref = torch.zeros(N + 1, 2, dtype=dtype, device=device)
+    x_ref[N, 0] = target
+    cost = QuadraticCost(
+        Q=2.0 * Ts * q * eye,
+        R=torch.full((1, 1), 2.0 * Ts * r, dtype=dtype, device=device),
+        Qf=torch.diag(torch.tensor([2.0 * qfin, 0.0], dtype=dtype, device=device)),
+        x_ref=x_ref,
+    )
+    x0 = torch.zeros(beta.shape[0], 2, dtype=dtype, device=device)
+    return Problem(dyn, cost, horizon=N), x0
+
+
+def hopper_problem(
+    y_targets: float | Sequence[float] | Tensor = HOPPER_TARGETS,
+    *,
+    qfin: float = HOPPER["qfin"],
+    q: float = HOPPER["q"],
+    r: float = HOPPER["r"],
+    N: int = HOPPER["N"],
+    tf: float = HOPPER["tf"],
+    k_over_m: float = HOPPER["k_over_m"],
+    g: float = HOPPER["g"],
+    alpha: float = HOPPER["alpha"],
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> tuple[Problem, Tensor]:
+    """The gas-actuated hopper of Sideris & Bobrow (2005), Section 4.2, with the literal
+    reading of the garbled eq. (66), one batch element per target height ``y°`` (a
+    per-element terminal reference).
+
+    Returns ``(problem, x0)`` with ``x0 = 0`` of shape ``(B, 3)`` (state ``[y, ydot, yp]``).
+    """
+    yt = _as_column(y_targets, dtype, device)[:, 0]
+    Bsz = yt.shape[0]
+    dyn = Hopper(k_over_m=k_over_m, g=g, alpha=alpha, tf=tf, N=N)
+    w = tf / N
+    x_ref = torch.zeros(Bsz, N + 1, 3, dtype=dtype, device=device)
+    x_ref[:, N, 0] = yt
+    cost = QuadraticCost(
+        Q=torch.diag(torch.tensor([0.0, 0.0, q * w], dtype=dtype, device=device)),
+        R=torch.full((1, 1), r * w, dtype=dtype, device=device),
+        Qf=torch.diag(torch.tensor([qfin, 2.0, 0.0], dtype=dtype, device=device)),
+        x_ref=x_ref,
+    )
+    x0 = torch.zeros(Bsz, 3, dtype=dtype, device=device)
+    return Problem(dyn, cost, horizon=N), x0
+
+
+def _drag(batch: int = 5, seed: int = 0, device="cpu", dtype=torch.float64, **_):
+    betas = list(TABLE1_BETAS)
     betas = (betas * (batch // len(betas) + 1))[:batch]
     problem, x0 = drag_vehicle_problem(betas, dtype=dtype)
     return problem.to(device), x0.to(device)
 
 
 def _hopper(batch: int = 3, seed: int = 0, device="cpu", dtype=torch.float64, **_):
-    from .paper.sideris import hopper_problem
-
-    targets = [1.0, 20.0, 50.0]
+    targets = list(HOPPER_TARGETS)
     targets = (targets * (batch // len(targets) + 1))[:batch]
     problem, x0 = hopper_problem(targets, dtype=dtype)
     return problem.to(device), x0.to(device)

@@ -1,4 +1,8 @@
-"""Problems and reproductions of the papers torchslq implements."""
+"""Reproductions of the papers torchslq implements (tables, figures, report writers).
+
+Not part of the installed package: run from a checkout of the repository (the
+``torchslq reproduce`` command, ``examples/`` and ``tests/`` import it from here).
+"""
 
 from .sideris import (
     PAPER_HOPPER,

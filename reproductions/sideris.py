@@ -1,9 +1,13 @@
-"""Sideris & Bobrow (2005), Section 4: the viscous-drag vehicle (Table 1, Figures 1-2) and
-the gas-actuated hopper (eq. 66, Figure 3).
+"""Reproductions of A. Sideris and J. E. Bobrow, "A Fast Sequential Linear Quadratic
+Algorithm for Solving Unconstrained Nonlinear Optimal Control Problems", American Control
+Conference, 2005, Section 4: the viscous-drag vehicle (Table 1, Figures 1-2) and the
+gas-actuated hopper (eq. 66, Figure 3).
 
-The problems follow the readings of ``shared/PAPER-NOTES.md``:
+The problems are built by :func:`torchslq.tasks.drag_vehicle_problem` and
+:func:`torchslq.tasks.hopper_problem`, with these readings of the paper:
 
-* drag vehicle: ``m = 25.9 g = 0.0259 kg``, ``N = 500``, ``Ts = 1/N``, ``r = 10``,
+* drag vehicle: ``m = 25.9 g = 0.0259 kg`` (with ``m = 25.9`` the target is never
+  reached and the problem does not get harder with beta, contradicting Table 1), ``N = 500``, ``Ts = 1/N``, ``r = 10``,
   ``q = 1``, ``qfin = 1e6``; the cost is eq. (65) *as printed* (no 1/2)::
 
       J = qfin (x(N) - 10)^2 + Ts sum_{n<N} [q (x(n)^2 + v(n)^2) + r u(n)^2]
@@ -32,11 +36,17 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..costs import QuadraticCost
-from ..plotting import save_figure
-from ..problem import Problem
-from ..solvers import SLQ, GradientMethod, SolverResult
-from ..systems import DragVehicle, Hopper
+from torchslq.plotting import save_figure
+from torchslq.problem import Problem
+from torchslq.solvers import SLQ, GradientMethod, SolverResult
+from torchslq.tasks import (
+    DRAG,
+    HOPPER,
+    HOPPER_TARGETS,
+    TABLE1_BETAS,
+    drag_vehicle_problem,
+    hopper_problem,
+)
 
 __all__ = [
     "DRAG",
@@ -63,21 +73,6 @@ __all__ = [
     "table1_rows",
 ]
 
-#: Section 4.1 constants (m read as kilograms, see PAPER-NOTES).
-DRAG = {"m": 0.0259, "N": 500, "q": 1.0, "r": 10.0, "qfin": 1e6, "target": 10.0}
-#: Section 4.2 constants.
-HOPPER = {
-    "k_over_m": 500.0,
-    "g": 386.4,
-    "alpha": 0.1,
-    "tf": 1.0,
-    "N": 100,
-    "qfin": 1000.0,
-    "q": 1000.0,
-    "r": 1.0,
-}
-
-TABLE1_BETAS = (0.01, 0.05, 0.1, 0.5, 1.0)
 #: Table 1, SLQ column (a string where the paper reports no count).
 PAPER_TABLE1: dict[float, int | str] = {
     0.01: 9,
@@ -94,85 +89,8 @@ PAPER_TABLE1_NEWTON: dict[float, int | str] = {
     0.5: "no convergence in 300",
     1.0: "no convergence in 300",
 }
-HOPPER_TARGETS = (1.0, 20.0, 50.0)
 #: Section 4.2 text: "ranging from 3 for y° = 1, to 166 for y° = 50".
 PAPER_HOPPER: dict[float, int | str] = {1.0: 3, 20.0: "not stated", 50.0: 166}
-
-
-# ---------------------------------------------------------------------------- problems
-def _as_column(values: float | Sequence[float] | Tensor, dtype, device) -> Tensor:
-    t = torch.as_tensor(values, dtype=dtype, device=device).reshape(-1, 1)
-    if t.numel() == 0:
-        raise ValueError("need at least one value")
-    return t
-
-
-def drag_vehicle_problem(
-    betas: float | Sequence[float] | Tensor = TABLE1_BETAS,
-    *,
-    m: float = DRAG["m"],
-    N: int = DRAG["N"],
-    q: float = DRAG["q"],
-    r: float = DRAG["r"],
-    qfin: float = DRAG["qfin"],
-    target: float = DRAG["target"],
-    dtype: torch.dtype = torch.float64,
-    device: torch.device | str | None = None,
-) -> tuple[Problem, Tensor]:
-    """The viscous-drag vehicle of Section 4.1, eqs. (63)-(65), one batch element per beta.
-
-    Returns ``(problem, x0)`` with ``x0 = 0`` of shape ``(B, 2)``; ``beta`` is a ``(B, 1)``
-    parameter of :class:`torchslq.systems.DragVehicle`.
-    """
-    beta = _as_column(betas, dtype, device)
-    Ts = 1.0 / N
-    dyn = DragVehicle(beta=beta, m=m, Ts=Ts)
-    eye = torch.eye(2, dtype=dtype, device=device)
-    x_ref = torch.zeros(N + 1, 2, dtype=dtype, device=device)
-    x_ref[N, 0] = target
-    cost = QuadraticCost(
-        Q=2.0 * Ts * q * eye,
-        R=torch.full((1, 1), 2.0 * Ts * r, dtype=dtype, device=device),
-        Qf=torch.diag(torch.tensor([2.0 * qfin, 0.0], dtype=dtype, device=device)),
-        x_ref=x_ref,
-    )
-    x0 = torch.zeros(beta.shape[0], 2, dtype=dtype, device=device)
-    return Problem(dyn, cost, horizon=N), x0
-
-
-def hopper_problem(
-    y_targets: float | Sequence[float] | Tensor = HOPPER_TARGETS,
-    *,
-    qfin: float = HOPPER["qfin"],
-    q: float = HOPPER["q"],
-    r: float = HOPPER["r"],
-    N: int = HOPPER["N"],
-    tf: float = HOPPER["tf"],
-    k_over_m: float = HOPPER["k_over_m"],
-    g: float = HOPPER["g"],
-    alpha: float = HOPPER["alpha"],
-    dtype: torch.dtype = torch.float64,
-    device: torch.device | str | None = None,
-) -> tuple[Problem, Tensor]:
-    """The gas-actuated hopper of Section 4.2 with the literal reading of eq. (66), one
-    batch element per target height ``y°`` (a per-element terminal reference).
-
-    Returns ``(problem, x0)`` with ``x0 = 0`` of shape ``(B, 3)`` (state ``[y, ydot, yp]``).
-    """
-    yt = _as_column(y_targets, dtype, device)[:, 0]
-    Bsz = yt.shape[0]
-    dyn = Hopper(k_over_m=k_over_m, g=g, alpha=alpha, tf=tf, N=N)
-    w = tf / N
-    x_ref = torch.zeros(Bsz, N + 1, 3, dtype=dtype, device=device)
-    x_ref[:, N, 0] = yt
-    cost = QuadraticCost(
-        Q=torch.diag(torch.tensor([0.0, 0.0, q * w], dtype=dtype, device=device)),
-        R=torch.full((1, 1), r * w, dtype=dtype, device=device),
-        Qf=torch.diag(torch.tensor([qfin, 2.0, 0.0], dtype=dtype, device=device)),
-        x_ref=x_ref,
-    )
-    x0 = torch.zeros(Bsz, 3, dtype=dtype, device=device)
-    return Problem(dyn, cost, horizon=N), x0
 
 
 # ---------------------------------------------------------------------------- solving
@@ -749,7 +667,7 @@ def table1_report(
     if command:
         text += f"Command: `{command}`\n\n"
     text += (
-        "Problem: eqs. (63)-(65) with the PAPER-NOTES readings (m = 0.0259 kg, N = 500, "
+        "Problem: eqs. (63)-(65) with these readings (m = 0.0259 kg, N = 500, "
         "r = 10, q = 1, qfin = 1e6, eq. 65 without a 1/2), u = 0 initially, stop when "
         f"‖∇J‖ < {tol:g}. 'paper' is Table 1's SLQ column; all betas are one batch "
         "('ours'), 'one by one' solves each beta alone. `m/(β Ts)` is the speed above "
@@ -810,7 +728,7 @@ def hopper_report(
         text += f"Command: `{command}`\n\n"
     text += (
         "Problem: Euler hopper (k/m = 500, g = 386.4, alpha = 0.1, N = 100, tf = 1) with the "
-        "literal reading of eq. (66) from PAPER-NOTES, J = 1/2 qfin (y(N) - y°)^2 + ẏ(N)^2 "
+        "literal reading of the garbled eq. (66), J = 1/2 qfin (y(N) - y°)^2 + ẏ(N)^2 "
         "+ tf/(2N) Σ [q yp^2 + r u^2], qfin = q = 1000, r = 1; states and controls start "
         f"at 0; stop when ‖∇J‖ < {tol:g}. 'paper' is the count stated in Section 4.2 "
         "(3 for y° = 1, 166 for y° = 50; none for the y° = 20 of Figure 3). 'stance "

@@ -1,7 +1,11 @@
-"""Sforni, Notarnicola, Notarstefano (2022), GoPRONTO, Section V: the pendulum-on-cart
-train tracking problem.
+"""Reproduction of L. Sforni, S. Spedicato, I. Notarnicola and G. Notarstefano, "GoPRONTO: a
+Feedback-based Framework for Nonlinear Optimal Control", 2022, Section V: the
+pendulum-on-cart train tracking problem.
 
-The problem follows the paper with the readings of ``shared/PAPER-NOTES.md``:
+The problem follows the paper with these readings (the paper leaves the horizon unstated
+and its first pendulum equation has ``sin`` where ``cos`` belongs in front of ``w_ddot``:
+as printed, the input cannot reach the pendulum near upright and the Riccati equation
+for ``Qf`` has no stabilising solution):
 
 * dynamics :class:`torchslq.systems.PendulumCartTrain` (Section V.1, ``cos`` in front of
   ``w_ddot``) with the Table I parameters, discretised by RK4 with ``delta = 0.05 s``;
@@ -34,12 +38,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from ..costs import QuadraticCost
-from ..dynamics import DiscretizedDynamics, linearize
-from ..lq.dare import dare
-from ..plotting import save_figure
-from ..problem import Problem
-from ..systems import PendulumCartTrain, PendulumCartTrainRK4
+from torchslq.costs import QuadraticCost
+from torchslq.dynamics import DiscretizedDynamics, linearize
+from torchslq.lq.dare import dare
+from torchslq.plotting import save_figure
+from torchslq.problem import Problem
+from torchslq.systems import PendulumCartTrain, PendulumCartTrainRK4
 
 __all__ = [
     "SOLVER_LABELS",
@@ -76,7 +80,7 @@ PAPER_TABLE1_PARAMS = {
     "fc": 10.0,
     "g": 9.81,
 }
-#: Sampling period (s) of the RK4 discretisation and horizon (s) (PAPER-NOTES).
+#: Sampling period (s) of the RK4 discretisation and horizon (s; not stated in the paper).
 DT = 0.05
 HORIZON_S = 10.0
 #: Per-cart ``Q_i`` diagonal and ``R_i``.
