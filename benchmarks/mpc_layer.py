@@ -26,7 +26,7 @@ Problem (float64 unless ``--dtype``; ``torch.set_num_threads(1)``):
 * torchslq: ``MPC(..., solver=ILQR(tol=TOL on ||dJ/dU||, compact=True),
   backward="implicit" | "implicit_gn", warm_start="shift" | False)``; the MassChain's
   analytic Jacobians are used by the solver, and its analytic ``vhp`` (chained through
-  RK4) by DDP and the exact backward (autodiff before session 13). Method ``"torchslq implicit DDP-costate"``: the same with
+  RK4) by DDP and the exact backward. Method ``"torchslq implicit DDP-costate"``: the same with
   ``DDP(second_order="costate")`` as the solver (Newton steps on ``J(U)``: about half
   the iterations of ILQR's Gauss-Newton steps when warm started, each dearer).
 * mpc.pytorch: ``mpc.MPC(n, m, T + 1, eps=EPS on the full-step norm (max over the

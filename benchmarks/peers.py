@@ -6,6 +6,13 @@ Not part of the test suite. Run from the repo root (peers from the ``bench`` ext
     .venv/bin/python benchmarks/peers.py                      # B in {1, 64, 512}
     .venv/bin/python benchmarks/peers.py --batches 1 --out /tmp/peers   # a quick check
 
+The committed results are one file per problem and batch range (``--name``)::
+
+    python benchmarks/peers.py --problems cartpole --peers casadi,mpc --batches 64,512 --cap 300 --name peers_cartpole
+    python benchmarks/peers.py --problems unicycle --peers crocoddyl --batches 64,512 --repeats 7 --name peers_unicycle
+    python benchmarks/peers.py --problems cartpole,unicycle --peers casadi,mpc,crocoddyl --batches 1 --repeats 7 --cap 300 --name peers_b1
+    python benchmarks/peers.py --problems unicycle --peers crocoddyl --batches 4096 --name peers_unicycle_4096
+
 Problems (float64, ``torch.set_num_threads(1)``, OMP/MKL threads 1, crocoddyl
 ``ShootingProblem.nthreads = 1``):
 
@@ -661,6 +668,11 @@ def main(argv=None) -> int:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="benchmarks/results")
     ap.add_argument(
+        "--name",
+        default="peers",
+        help="results file stem: <out>/<name>.{json,md} (peers_cartpole, peers_unicycle, peers_b1, ...)",
+    )
+    ap.add_argument(
         "--repeats", type=int, default=1, help="unicycle: runs per solver, median reported"
     )
     args = ap.parse_args(argv)
@@ -690,10 +702,10 @@ def main(argv=None) -> int:
     def save():  # after every configuration, so a stopped run keeps what it measured
         meta["load_end"] = load()
         rat = ratios(rows)
-        (out / "peers.json").write_text(
+        (out / f"{args.name}.json").write_text(
             json.dumps({"meta": meta, "rows": rows, "ratios": rat}, indent=1, default=float)
         )
-        (out / "peers.md").write_text(markdown(meta, rows, rat))
+        (out / f"{args.name}.md").write_text(markdown(meta, rows, rat))
 
     global SAVE
     SAVE = save
@@ -703,7 +715,7 @@ def main(argv=None) -> int:
     if "cartpole" in probs:
         bench_cartpole(args, rows)
     save()
-    print(f"wrote {out / 'peers.json'} and {out / 'peers.md'}")
+    print(f"wrote {out / (args.name + '.json')} and {out / (args.name + '.md')}")
     return 0
 
 
