@@ -283,7 +283,7 @@ def test_compiled_rk4_congruence_matches_the_torch_chain(shapes, dtype, monkeypa
     the same chain written with torch products (the kernel must have run)."""
     import sys
 
-    from torchslq.lq import compiled
+    from torchslq._backend import dispatch as compiled
 
     if not compiled.compiled_available():
         pytest.skip("numba kernels not available")

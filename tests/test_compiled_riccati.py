@@ -1,4 +1,4 @@
-"""The compiled CPU Riccati kernel (torchslq.lq.compiled) against the torch path.
+"""The compiled CPU Riccati kernel (torchslq._backend) against the torch path.
 
 Both implement the same recursion; the torch path is itself checked against dense KKT
 solves and a literal transcription of the paper in test_lq_kernel.py.
@@ -10,7 +10,7 @@ import pytest
 import torch
 
 import torchslq as ts
-from torchslq.lq import compiled
+from torchslq._backend import dispatch as compiled
 from torchslq.lq.riccati import riccati_homogeneous
 from torchslq.solvers.ddp import _HessianHook
 
@@ -606,7 +606,7 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
     else:
         f = ts.discretize(CartPole(mc=torch.tensor(1.3, dtype=dtype)), 0.05)
     assert f.compiled_step() is not None
-    mod = sys.modules["torchslq.lq.compiled"]
+    mod = sys.modules["torchslq._backend.dispatch"]
     calls = []
     real = mod.closed_loop_rollout_compiled
     rmod = sys.modules["torchslq.solvers.rollout"]

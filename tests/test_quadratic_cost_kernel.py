@@ -9,8 +9,8 @@ import pytest
 import torch
 
 import torchslq as ts
+from torchslq._backend import dispatch as compiled
 from torchslq.costs.quadratic import compiled_cost_evaluation
-from torchslq.lq import compiled
 
 F64 = torch.float64
 B, T, n, m = 5, 6, 3, 2

@@ -11,8 +11,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor, nn
 
+from .._backend import _launch, can_use_compiled
 from .._shapes import broadcast_shapes
-from ..lq.compiled import _launch, can_use_compiled
 
 __all__ = ["CostExpansion", "QuadraticCost"]
 
@@ -274,7 +274,7 @@ def _quadratic_cost_compiled(x, u, xr, ur, Qs, QT, Rs) -> Tensor | None:
 
 
 def _cost_kernels():
-    from . import _numba_cost
+    from .._backend import _numba_cost
 
     return _numba_cost
 

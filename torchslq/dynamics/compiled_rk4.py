@@ -22,8 +22,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._backend import _launch
 from .._shapes import broadcast_shapes
-from ..lq.compiled import _launch
 from .base import CompiledDerivatives
 
 __all__ = ["rk4_hooks", "rk4_jacobians_compiled", "rk4_vhp_compiled"]

@@ -1,7 +1,7 @@
 """The batched LQ (Riccati) kernel shared by every solver."""
 
+from .._backend import compiled_available, set_compiled
 from .boxqp import BoxQPResult, box_qp
-from .compiled import compiled_available, set_compiled
 from .dare import dare, dare_gain, dare_residual
 from .riccati import (
     RiccatiFactors,

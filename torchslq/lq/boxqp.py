@@ -38,7 +38,7 @@ from .._shapes import broadcast_shapes
 
 __all__ = ["BoxQPResult", "box_qp"]
 
-# box_qp's defaults; the compiled control-limited Riccati pass (torchslq/lq/_numba_kernels.py)
+# box_qp's defaults; the compiled control-limited Riccati pass (torchslq/_backend/_numba_kernels.py)
 # receives the same values
 MAX_ITER, ARMIJO, STEP_DEC, N_STEPS = 100, 0.1, 0.6, 32
 

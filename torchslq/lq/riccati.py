@@ -33,9 +33,9 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._backend import PIECE_NDIMS, can_use_compiled, riccati_compiled, rollout_compiled
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
-from .compiled import PIECE_NDIMS, can_use_compiled, riccati_compiled, rollout_compiled
 
 StageHook = Callable[[int, Tensor], Tensor]
 
@@ -244,7 +244,7 @@ def riccati_homogeneous(
             ``sum_i v_{t+1,i} Hz[t, i]`` can expose ``Hz (T, n, B, m+n, m+n)``, or the
             same Hessians as blocks ``(Hxx, Huu, Hux)`` each ``(n, B, T, ., .)``, as its
             ``hessians`` attribute, which lets the compiled CPU kernel
-            (:mod:`torchslq.lq.compiled`) run the pass.
+            (:mod:`torchslq._backend`) run the pass.
         u_bounds: optional ``(lower, upper)`` bounds on the control ``u_t`` of this LQ
             problem (in deviation coordinates: bounds on ``δu_t``), each broadcastable
             to ``(B, T, m)``, infinite entries allowed, and containing 0 for the
@@ -253,7 +253,7 @@ def riccati_homogeneous(
 
     The batch sizes ``Bf, Bh, Bv`` broadcast (1 or B). On the CPU without autograd the
     pass (with or without bounds) runs as one compiled kernel
-    (:mod:`torchslq.lq.compiled`, same equations); otherwise as batched torch ops per
+    (:mod:`torchslq._backend`, same equations); otherwise as batched torch ops per
     step.
     """
     T = F.shape[-3]

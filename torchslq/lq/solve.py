@@ -21,9 +21,9 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
+from .._backend import adjoint_compiled, can_use_compiled
 from .._shapes import broadcast_shapes
 from ..status import Status
-from .compiled import adjoint_compiled, can_use_compiled
 from .riccati import (
     chol_solve,
     homogeneous_cost,

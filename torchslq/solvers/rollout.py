@@ -7,14 +7,14 @@ from collections.abc import Callable
 import torch
 from torch import Tensor
 
-from .._shapes import broadcast_shapes
-from ..lq.compiled import (
+from .._backend import (
     can_use_compiled,
     closed_loop_feedback_compiled,
     closed_loop_rollout_compiled,
     costate_compiled,
     module_needs_grad,
 )
+from .._shapes import broadcast_shapes
 
 __all__ = ["rollout", "rollout_closed_loop", "costate_gradient"]
 

@@ -1,4 +1,4 @@
-"""numba kernels of :mod:`torchslq.lq.compiled` (imported on first use: importing
+"""numba kernels of :mod:`torchslq._backend.dispatch` (imported on first use: importing
 numba and loading the cached machine code takes ~0.5 s, which a GPU-only user should
 never pay)."""
 
@@ -474,7 +474,7 @@ def riccati_kernel(
     L ``(B, T, m, m)``, failed ``(B,)``. An element whose factorisation fails (not
     positive definite, or not finite) is marked failed and its earlier steps are left
     at zero (the torch path's values there are meaningless too). Only elements
-    ``b0 <= b < b1`` are computed (see ``compiled._launch``).
+    ``b0 <= b < b1`` are computed (see ``dispatch._launch``).
 
     ``pieces``: when ``F`` is empty, the LQ data as ``(A, B, c, Q, R, S, q, r)`` (each
     ``(1 or B, 1 or T (T+1 for Q, q), ...)``, ``c, S, q, r`` possibly empty for zero);

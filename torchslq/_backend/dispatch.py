@@ -1,4 +1,5 @@
-"""The Riccati pass as one compiled CPU kernel (numba), for the CPU fast path.
+"""The compiled CPU backend's dispatch layer: the Riccati pass (and the other dispatch-bound
+loops) as compiled numba kernels, for the CPU fast path.
 
 :func:`torchslq.lq.riccati_homogeneous` runs its time loop as a handful of batched torch
 ops per step. On the CPU with small matrices (``n, m`` up to a few tens) those ops are
@@ -30,7 +31,7 @@ recursion (:func:`costate_compiled`), one RK4 stage's congruence of the chained 
 derivatives (:func:`stage_congruence_compiled`), and the Riccati kernel's own restarts
 of failed elements with a larger regularisation (``restarts``).
 
-The kernels live in :mod:`torchslq.lq._numba_kernels`, imported on the first CPU pass
+The kernels live in :mod:`torchslq._backend._numba_kernels`, imported on the first CPU pass
 (never by GPU-only use). numba compiles each on first use per dtype and argument layout
 and caches the machine code on disk (seconds, once); a new process then pays about
 0.5 s to import numba and load it, on its first CPU pass.
@@ -50,7 +51,6 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from . import boxqp
 
 __all__ = [
     "PIECE_NDIMS",
@@ -86,7 +86,7 @@ def _import_kernels() -> ModuleType:
 
 
 def _kernels() -> ModuleType | None:
-    """The numba kernels, imported on first use (see :mod:`torchslq.lq._numba_kernels`);
+    """The numba kernels, imported on first use (see :mod:`torchslq._backend._numba_kernels`);
     None (with one warning, and the torch path from then on) if that fails, e.g. when
     numba can neither write nor find a cache directory or its version does not match
     the installed numpy."""
@@ -287,7 +287,7 @@ def riccati_compiled(
         lower,
         upper,
         float(box_tol),
-        (boxqp.MAX_ITER, boxqp.ARMIJO, boxqp.STEP_DEC, boxqp.N_STEPS),
+        _box_opts(),
         Kk.numpy(),
         Vh.numpy(),
         L.numpy(),
@@ -572,6 +572,21 @@ def joint_hessians(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor | None:
     if not (same and Hux.storage_offset() == o + m and Hxx.storage_offset() == o + m * nz + m):
         return None
     return Huu.as_strided((*lead, nz, nz), (*lead_st, nz, 1), o)
+
+
+_BOX_OPTS: tuple | None = None
+
+
+def _box_opts() -> tuple:
+    """:func:`torchslq.lq.box_qp`'s defaults ``(MAX_ITER, ARMIJO, STEP_DEC, N_STEPS)`` for
+    the kernel's box QPs (read from :mod:`torchslq.lq.boxqp` on first use: ``lq``
+    imports this package, not the other way round)."""
+    global _BOX_OPTS
+    if _BOX_OPTS is None:
+        from ..lq import boxqp
+
+        _BOX_OPTS = (boxqp.MAX_ITER, boxqp.ARMIJO, boxqp.STEP_DEC, boxqp.N_STEPS)
+    return _BOX_OPTS
 
 
 def _np_dtype(dtype: torch.dtype) -> np.dtype:
