@@ -8,11 +8,11 @@ from __future__ import annotations
 
 import pytest
 import torch
+from lq_hooks import HessianHook as _HessianHook
 
 import torchslq as ts
 from torchslq._backend import dispatch as compiled
 from torchslq.lq.riccati import riccati_homogeneous
-from torchslq.solvers.ddp import _HessianHook
 
 F64 = torch.float64
 

@@ -1,8 +1,16 @@
-"""The batched LQ (Riccati) kernel shared by every solver."""
+"""The batched LQ (Riccati) kernel shared by every solver.
+
+The Riccati pass, its rollout and adjoint solve, the box QP and the DARE, with the
+Levenberg-Marquardt regularisation schedule and its restarts (:mod:`.regularization`).
+Each runs on the CPU as a compiled kernel or as batched torch ops
+(:mod:`torchslq._backend`), with the same meaning; :func:`set_compiled` switches the
+compiled form off (e.g. to compare the two).
+"""
 
 from .._backend import compiled_available, set_compiled
 from .boxqp import BoxQPResult, box_qp
 from .dare import dare, dare_gain, dare_residual
+from .regularization import RegularizationSchedule, Restarts
 from .riccati import (
     RiccatiFactors,
     homogeneous_cost,
@@ -17,6 +25,8 @@ from .solve import LQRSolution, lq_adjoint_solve, lq_objective, lqr_solve
 __all__ = [
     "BoxQPResult",
     "LQRSolution",
+    "RegularizationSchedule",
+    "Restarts",
     "RiccatiFactors",
     "box_qp",
     "compiled_available",

@@ -28,7 +28,7 @@ per element by ``cholesky_ex`` and never stops the batch.
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, fields, replace
 
 import torch
 from torch import Tensor
@@ -36,10 +36,12 @@ from torch import Tensor
 from .._backend import PIECE_NDIMS, can_use_compiled, riccati_compiled, rollout_compiled
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
+from .regularization import RegularizationSchedule, Restarts
 
 StageHook = Callable[[int, Tensor], Tensor]
 
 __all__ = [
+    "RegularizationSchedule",
     "Restarts",
     "RiccatiFactors",
     "riccati_backward",
@@ -60,7 +62,8 @@ class RiccatiFactors:
         v: value-function gradients ``(B, T+1, n)``.
         chol: lower Cholesky factors of ``Quu`` ``(B, T, m, m)``, reusable for a second
             solve with the same quadratic terms (the implicit backward pass).
-        failed: ``(B,)`` bool, True where some ``Quu`` was not positive definite.
+        failed: ``(B,)`` bool, True where some ``Quu`` was not positive definite (with
+            ``restarts``: where the last pass failed, non-finite gains included).
         Kk: ``(B, T, m, n+1)``, ``[K_t, k_t]`` side by side (what the rollout uses).
         Vh: ``(B, T+1, n+1, n+1)``, homogeneous value matrices (``Vh[..., n, n]`` is
             twice the constant term of the cost-to-go).
@@ -69,8 +72,9 @@ class RiccatiFactors:
             then holds the factor of the free block, identity on clamped rows/columns).
         dV: with control bounds only (else None): ``(B, 2)``, the expected-improvement
             terms ``[sum_t k_t'Q_u,t, sum_t k_t'(Q_uu,t + reg) k_t]`` of the step.
-        reg, reg_delta: where :func:`riccati_backward` made the ``restarts`` (else
-            None): ``(B,)``, each element's final regularisation and schedule factor.
+        reg, reg_delta: with the ``restarts`` of :func:`riccati_backward` (else None):
+            ``(B,)``, the regularisation ``mu`` of each element's last pass and its
+            schedule factor ``delta``, on every backend.
     """
 
     Kk: Tensor
@@ -97,28 +101,6 @@ class RiccatiFactors:
     @property
     def v(self) -> Tensor:
         return self.Vh[..., :-1, -1]
-
-
-@dataclass(frozen=True)
-class Restarts:
-    """Tassa, Erez & Todorov's (2012) restarts of a failed pass, made per element inside
-    the compiled kernel (see :func:`riccati_backward`).
-
-    An element whose pass fails (``Quu + reg I`` not positive definite, or non-finite
-    gains) and is ``allowed`` repeats it with ``delta := max(factor, delta factor)``,
-    ``reg := max(floor, reg delta)``, until it succeeds, ``reg > reg_max`` (that pass is
-    still made) or ``max_restarts`` restarts were made.
-
-    Attributes:
-        delta: ``(B,)`` the schedule's current factors; allowed ``(B,)`` bool.
-    """
-
-    delta: Tensor
-    allowed: Tensor
-    factor: float
-    floor: float
-    reg_max: float
-    max_restarts: int
 
 
 def with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
@@ -450,13 +432,13 @@ def _compiled_pieces_pass(
     if not can_use_compiled(*[p for p in pieces if p is not None], *(bounds or ()), *extra):
         return None
     if restarts is not None:
-        if not (isinstance(reg, Tensor) and len(batch) == 1):
-            raise ValueError("restarts need a per-element reg tensor and one batch dim")
+        _check_restart_batch(batch)
+        sched = restarts.schedule
         restarts = (
             reg,
-            restarts.delta,
-            restarts.allowed,
-            (restarts.factor, restarts.floor, restarts.reg_max, restarts.max_restarts),
+            _ones(restarts.delta, batch, A.dtype),
+            _ones(restarts.allowed, batch, torch.bool),
+            (float(sched.factor), sched.floor, float(sched.reg_max), int(sched.max_restarts)),
         )
     out = riccati_compiled(
         None,
@@ -471,6 +453,136 @@ def _compiled_pieces_pass(
         restarts=restarts,
     )
     return RiccatiFactors(*out)
+
+
+# the most rows one torch pass of side-by-side restarts may have (failing elements x
+# candidates; a constant, so that the passes an element needs do not depend on the
+# batch around it)
+RETRY_ROWS = 2048
+# dims after the batch dim of (A, B, Q, R, q, r, S, c) in riccati_backward
+_DATA_TAILS = (3, 3, 3, 3, 2, 2, 3, 2)
+
+
+def _check_restart_batch(batch) -> None:
+    if len(batch) != 1:
+        raise ValueError(f"restarts need one batch dim, got batch shape {tuple(batch)}")
+
+
+def _ones(t: Tensor | None, batch, dtype: torch.dtype) -> Tensor:
+    """``t`` (a restart's ``delta`` or ``allowed``) or ones, broadcast to ``batch``."""
+    if t is None:
+        return torch.ones(batch, dtype=dtype)
+    return t.to(dtype).expand(batch)
+
+
+def _failed(fac: RiccatiFactors) -> Tensor:
+    """``(B,)``: the pass failed, or its gains are not finite (a factorisation can succeed
+    and still give non-finite gains, e.g. DDP's second-order terms overflowing)."""
+    return fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
+
+
+def _restarted(data: tuple, reg: Tensor, hook, u_bounds, restarts: Restarts) -> RiccatiFactors:
+    """:func:`riccati_backward` with ``restarts`` on the torch path (``data = (A, B, Q, R,
+    q, r, S, c)``; ``reg`` a tensor): the kernel's restarts, element for element.
+
+    The failing rows repeat the pass for several next values of the schedule side by side
+    (as many as fit in :data:`RETRY_ROWS` rows) and each takes its first candidate that
+    succeeds (or the first with ``mu > reg_max``): the result equals the one-at-a-time
+    restarts (rows are independent), in far fewer dispatch-bound passes. A ``hook``
+    without ``subset`` cannot be restricted to rows: the whole batch repeats its pass,
+    the failing elements with the increased ``mu``, the others with theirs (which gives
+    them the same result again).
+    """
+    sched = restarts.schedule
+
+    def run(mu: Tensor, idx: Tensor | None = None) -> RiccatiFactors:
+        if idx is None:
+            return _torch_backward(*data, mu, hook, u_bounds)
+        sel = [_select_rows(t, tail, idx) for t, tail in zip(data, _DATA_TAILS, strict=True)]
+        bounds = None if u_bounds is None else tuple(_select_rows(b, 2, idx) for b in u_bounds)
+        sub = None if hook is None else hook.subset(idx)
+        return _torch_backward(*sel, mu, sub, bounds)
+
+    fac = run(reg)
+    batch = fac.failed.shape
+    _check_restart_batch(batch)
+    dev = fac.Kk.device
+    mu = reg.expand(batch).clone()
+    delta = _ones(restarts.delta, batch, mu.dtype).to(dev)
+    allowed = _ones(restarts.allowed, batch, torch.bool).to(dev)
+    bad = _failed(fac)
+    if hook is not None and not hasattr(hook, "subset"):
+        for _ in range(sched.max_restarts):
+            retry = bad & allowed & (mu <= sched.reg_max)
+            if not bool(retry.any()):
+                break
+            mu, delta = sched.increase(mu, delta, retry)
+            fac = run(mu)
+            bad = _failed(fac)
+        return replace(fac, failed=bad, reg=mu, reg_delta=delta)
+    tries = 0
+    while tries < sched.max_restarts:
+        # only allowed elements whose mu may still grow: a frozen (e.g. non-finite)
+        # element must not make the others repeat their pass
+        retry = bad & allowed & (mu <= sched.reg_max)
+        if not bool(retry.any()):
+            break
+        idx = retry.nonzero().squeeze(1)
+        nr = idx.shape[0]
+        n_cand = max(1, min(sched.max_restarts - tries, RETRY_ROWS // nr))
+        mu_r, delta_r = mu[idx], delta[idx]
+        mus, deltas = [], []
+        for _ in range(n_cand):
+            mu_r, delta_r = sched.increase(mu_r, delta_r)
+            mus.append(mu_r)
+            deltas.append(delta_r)
+        M, D = torch.stack(mus), torch.stack(deltas)  # (n_cand, nr)
+        fac_r = run(M.reshape(-1), idx.repeat(n_cand))
+        bad_r = _failed(fac_r).view(n_cand, nr)
+        # where one-at-a-time restarts stop: the first success, or the first mu > reg_max
+        stop = ~bad_r | (M > sched.reg_max)
+        first = torch.argmax(stop.to(torch.int8), dim=0)
+        pick = torch.where(stop.any(0), first, torch.full_like(first, n_cand - 1))
+        ar = torch.arange(nr, device=idx.device)
+        fac = _scatter_rows(fac, idx, _take_rows(fac_r, pick * nr + ar))
+        bad = bad.index_copy(0, idx, bad_r[pick, ar])
+        mu = mu.index_copy(0, idx, M[pick, ar])
+        delta = delta.index_copy(0, idx, D[pick, ar])
+        tries += n_cand
+    return replace(fac, failed=bad, reg=mu, reg_delta=delta)
+
+
+def _select_rows(t: Tensor | None, tail: int, idx: Tensor) -> Tensor | None:
+    """The rows ``idx`` of ``t``'s batch dim (the dim before its last ``tail`` dims); ``t``
+    itself where it has none or a batch dim of 1 (shared by every element)."""
+    if t is None or t.ndim <= tail or t.shape[0] == 1:
+        return t
+    return t.index_select(0, idx)
+
+
+def _take_rows(fac: RiccatiFactors, rows: Tensor) -> RiccatiFactors:
+    """The factors of the elements ``rows`` (an index tensor)."""
+
+    def take(t: Tensor | None) -> Tensor | None:
+        return None if t is None else t.index_select(0, rows)
+
+    return RiccatiFactors(**{f.name: take(getattr(fac, f.name)) for f in fields(RiccatiFactors)})
+
+
+def _scatter_rows(full: RiccatiFactors, idx: Tensor, part: RiccatiFactors) -> RiccatiFactors:
+    """``full`` with the rows ``idx`` replaced by ``part`` (passes repeated for ``idx``)."""
+
+    def put(ta: Tensor | None, tb: Tensor | None) -> Tensor | None:
+        if ta is None or tb is None:
+            return ta
+        return ta.index_copy(0, idx, tb.expand(idx.shape[0], *ta.shape[1:]))
+
+    return RiccatiFactors(
+        **{
+            f.name: put(getattr(full, f.name), getattr(part, f.name))
+            for f in fields(RiccatiFactors)
+        }
+    )
 
 
 def _tensors(*args) -> list[Tensor]:
@@ -539,16 +651,44 @@ def riccati_backward(
     ``(lower, upper)`` on ``u_t``, each broadcastable to ``(B, T, m)``) are passed to
     :func:`riccati_homogeneous`. No input validation: this is the inner-loop entry point.
 
-    ``restarts`` (with a ``(B,)`` ``reg``): where the pass runs on the compiled CPU
-    kernel, an element whose pass fails repeats it there with a larger ``reg``
-    (:class:`Restarts`), and the result's ``reg``, ``reg_delta`` report the last values
-    (a failure is then also non-finite gains). The torch path ignores it (``reg`` of
-    the result is None): the caller restarts the failed elements itself, as
-    :class:`torchslq.ILQR` does with the same schedule.
+    Restarts (Tassa et al. 2012; ``restarts=schedule.restarts(delta, allowed)``, see
+    :class:`~torchslq.lq.regularization.RegularizationSchedule`): with one batch dim ``B``
+    and ``reg = mu`` (a float or ``(B,)``, None for 0), every element whose pass fails,
+    i.e. some ``Quu + mu I`` (with bounds: the free block of a step's box QP) is not
+    positive definite *or its gains* ``[K, k]`` *are not finite*, and that is
+    ``restarts.allowed``, repeats its pass with ``delta := max(f, delta f)``,
+    ``mu := max(floor, mu delta)``, until the pass succeeds, ``mu > reg_max`` (that pass
+    is still made) or ``max_restarts`` restarts were made. Elements are independent: the
+    result of each is the one of passes repeated for it alone. The result then has
+
+    * ``reg``, ``reg_delta`` ``(B,)``: the ``mu`` and ``delta`` each element ended with
+      (its last pass's ``mu``; unchanged where no restart was made);
+    * ``failed`` ``(B,)``: the last pass failed (not positive definite, or non-finite
+      gains); the factors of a failed element are not meaningful (zeros on the compiled
+      path below the failing step);
+    * the factors (``Kk``, ``Vh``, ``chol``, ``clamped``, ``dV``) of each element's last
+      pass.
+
+    This holds on both backends alike (the compiled CPU kernel restarts an element inside
+    its loop; the torch path repeats the failing rows, several candidate ``mu`` side by
+    side in one pass, or the whole batch with a ``stage_hook`` that has no
+    ``subset(idx)`` to restrict it to some elements); ``tests/test_restarts.py`` checks
+    them against each other and against a per-element reference. Without ``restarts``
+    ``reg``, ``reg_delta`` are None and ``failed`` flags failed factorisations only.
     """
+    if restarts is not None:
+        reg = torch.as_tensor(0.0 if reg is None else reg, dtype=A.dtype, device=A.device)
     fac = _compiled_pieces_pass(A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds, restarts)
     if fac is not None:
         return fac
+    if restarts is None:
+        return _torch_backward(A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds)
+    return _restarted((A, B, Q, R, q, r, S, c), reg, stage_hook, u_bounds, restarts)
+
+
+def _torch_backward(A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds) -> RiccatiFactors:
+    """:func:`riccati_backward` without restarts through the homogeneous form (the torch
+    path, or the compiled kernel on ``F``, ``H`` where the pieces' shapes did not fit)."""
     T = A.shape[-3]
     F = homogeneous_dynamics(A, B, with_time(c, 1, T))
     H, VhT = homogeneous_cost(
