@@ -29,6 +29,10 @@ def _same(a, b):
         lambda **kw: ts.ILQR(max_iter=60, progress=False, **kw),
         lambda **kw: ts.ILQR(max_iter=60, progress=False, u_min=-4.0, u_max=4.0, **kw),
         lambda **kw: ts.DDP(max_iter=40, progress=False, **kw),
+        # its per-element search range (the last accepted step) is compacted too
+        lambda **kw: ts.GradientMethod(
+            line_search="armijo", tol=1.0, max_iter=60, progress=False, **kw
+        ),
     ],
 )
 def test_compact_equals_full_batch(make):
@@ -59,7 +63,9 @@ def test_compact_refuses_per_element_problem_tensors():
     with pytest.raises(ValueError, match="compact"):
         ts.SLQ(compact=True, progress=False).solve(problem, torch.zeros(2, 2, dtype=torch.float64))
     with pytest.raises(ValueError, match="compact"):
-        ts.GradientMethod(compact=True)
+        ts.GradientMethod(compact=True, progress=False).solve(
+            problem, torch.zeros(2, 2, dtype=torch.float64)
+        )
 
 
 @pytest.mark.parametrize("module", ["ilqr", "slq"])
@@ -72,7 +78,7 @@ def test_finished_elements_do_not_hold_up_the_line_search(module, monkeypatch):
     searches (never again once finished) at least as long as its accepted steps."""
     import importlib
 
-    mod = importlib.import_module("torchslq.solvers.slq")  # SLQ._armijo serves both
+    mod = importlib.import_module("torchslq.solvers.descent")  # one line search serves both
     seen = []
     orig = mod.armijo_search
 
@@ -118,7 +124,7 @@ def test_skipping_settled_trials_changes_no_solve(solver, compact, monkeypatch):
         ),
     }[solver]  # fmt: skip
     fast = make().solve(problem, x0)
-    module = sys.modules["torchslq.solvers.slq"]  # SLQ._armijo serves all three
+    module = sys.modules["torchslq.solvers.descent"]  # one line search serves all three
     real = module.armijo_search
     seen = []
 
@@ -151,7 +157,7 @@ def test_armijo_passes_change_no_solve(solver, monkeypatch):
             line_search="armijo", rollout="closed_loop", max_iter=40, progress=False, **kw
         ),
     }[solver]  # fmt: skip
-    module = sys.modules["torchslq.solvers.slq"]  # SLQ._armijo serves all three
+    module = sys.modules["torchslq.solvers.descent"]  # one line search serves all three
     real = module.armijo_search
     seen = []
 
@@ -169,10 +175,11 @@ def test_armijo_passes_change_no_solve(solver, monkeypatch):
 
 
 def test_armijo_passes_default_by_device_and_validation():
-    s = ts.ILQR()
-    assert s._armijo_passes(torch.device("cpu")) == (1, 3)
-    assert s._armijo_passes(torch.device("meta")) == (4, None)
-    assert ts.DDP(armijo_passes=[2, None])._armijo_passes(torch.device("cpu")) == (2, None)
+    search = ts.ILQR().rule().search
+    assert search.pass_sizes(torch.device("cpu")) == (1, 3)
+    assert search.pass_sizes(torch.device("meta")) == (4, None)
+    search = ts.DDP(armijo_passes=[2, None]).rule().search
+    assert search.pass_sizes(torch.device("cpu")) == (2, None)
     for bad in [(0, 3), (1, 0), (1.0, 3), 3, (1, 2, 3), (True, 3)]:
         with pytest.raises(ValueError, match="armijo_passes"):
             ts.SLQ(armijo_passes=bad)

@@ -114,7 +114,6 @@ def test_costate_ddp_step_is_the_newton_step(near_optimum):
     problem, x0, _, u = near_optimum
     x = problem.rollout(x0, u)
     solver = ts.DDP(second_order="costate", mu_init=0.0, mu_min=0.0, progress=False)
-    solver._begin(x0)
     d = solver.direction(problem, x, u)
     du = _open_loop_direction(problem, x, u, d)
     checked = 0
@@ -133,7 +132,6 @@ def test_value_ddp_tensor_and_stepwise_hooks_agree(near_optimum):
     dirs = []
     for limit in (None, 2**30):
         solver = ts.DDP(mu_init=0.0, progress=False, vhp_memory_limit=limit)
-        solver._begin(x0)
         dirs.append(solver.direction(problem, x, u))
     torch.testing.assert_close(dirs[0]["K"], dirs[1]["K"], rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(dirs[0]["k"], dirs[1]["k"], rtol=1e-10, atol=1e-12)
@@ -145,7 +143,6 @@ def test_ddp_differs_from_ilqr_away_from_optimum(near_optimum):
     x = problem.rollout(x0, u)
     ks = []
     for solver in (ts.ILQR(mu_init=0.0, progress=False), ts.DDP(mu_init=0.0, progress=False)):
-        solver._begin(x0)
         ks.append(solver.direction(problem, x, u)["k"])
     assert (ks[0] - ks[1]).abs().max() > 1e-6
 
@@ -215,10 +212,10 @@ def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
     by side in one pass (the default) gives the same solution bit for bit, in fewer
     passes. (These are the restarts of the torch path: on the compiled CPU path the
     kernel restarts the element itself, tested below, so it is switched off here.)"""
-    import torchslq.solvers.ilqr as ilqr_mod
+    import torchslq.solvers.newton as ilqr_mod  # iLQR/DDP's direction
     from torchslq.tasks import cartpole_swingup
 
-    monkeypatch.setattr(ilqr_mod.ILQR, "_restarts", lambda self: None)
+    monkeypatch.setattr(ilqr_mod.LevenbergMarquardt, "restarts", lambda self, *a: None)
     problem, x0 = cartpole_swingup(4, seed=3)
     rows_per_pass: list[int] = []
     kernel = ilqr_mod.riccati_backward
@@ -234,7 +231,7 @@ def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
     assert any(0 < r < x0.shape[0] for r in rows_per_pass), rows_per_pass
     monkeypatch.undo()
     # side by side (the default): the same solution to the last bit, in fewer passes
-    monkeypatch.setattr(ilqr_mod.ILQR, "_restarts", lambda self: None)
+    monkeypatch.setattr(ilqr_mod.LevenbergMarquardt, "restarts", lambda self, *a: None)
     passes_one_by_one = len(rows_per_pass)
     rows_per_pass.clear()
     monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
@@ -255,7 +252,7 @@ def test_restarts_inside_the_compiled_kernel_equal_the_repeated_passes(monkeypat
     of the same mu schedule: the solve is the same to the last bit as with the restarts
     made by repeating passes from Python, and no pass is repeated (one per iteration,
     plus none), while the repeated-pass version needed extra passes on this problem."""
-    import torchslq.solvers.ilqr as ilqr_mod
+    import torchslq.solvers.newton as ilqr_mod  # iLQR/DDP's direction
     from torchslq.tasks import cartpole_swingup
 
     problem, x0 = cartpole_swingup(6, seed=3)
@@ -276,7 +273,7 @@ def test_restarts_inside_the_compiled_kernel_equal_the_repeated_passes(monkeypat
     inside = solver.solve(problem, x0)
     n_inside, restarted_inside = len(passes), all(passes)
     passes.clear()
-    monkeypatch.setattr(ilqr_mod.ILQR, "_restarts", lambda self: None)
+    monkeypatch.setattr(ilqr_mod.LevenbergMarquardt, "restarts", lambda self, *a: None)
     repeated = solver.solve(problem, x0)
     assert restarted_inside  # every pass ran on the kernel with restarts
     for name in ("u", "x", "K", "cost", "iterations", "status"):

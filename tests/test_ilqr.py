@@ -382,7 +382,7 @@ def _row(res, j):
 
 def _count_riccati_passes(monkeypatch) -> dict[str, int]:
     """Count iLQR/DDP's Riccati passes: ``calls["n"]``."""
-    import torchslq.solvers.ilqr as ilqr_mod
+    import torchslq.solvers.newton as ilqr_mod  # iLQR/DDP's direction
 
     calls = {"n": 0}
     orig = ilqr_mod.riccati_backward
@@ -650,7 +650,7 @@ def test_x_init_skips_the_initial_rollout_and_gives_the_same_solve(bounded, monk
     initial rollout (one model rollout fewer); with bounds that clamp u_init the given
     states are not those of the clamped controls and are ignored (still the same result);
     a wrong shape or first state is an error."""
-    import torchslq.solvers.slq as slq_mod
+    import torchslq.solvers.base as slq_mod  # the descent solvers' initial rollout
     from torchslq import discretize
     from torchslq.solvers.rollout import rollout
 

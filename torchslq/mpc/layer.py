@@ -21,7 +21,6 @@ warn), ``"raise"`` or ``"zero"`` (their gradient is zero).
 
 from __future__ import annotations
 
-import copy
 import warnings
 from typing import Any
 
@@ -29,11 +28,10 @@ import torch
 from torch import Tensor, nn
 
 from ..problem import Problem
-from ..solvers.gradient import GradientMethod
 from ..solvers.ilqr import ILQR
+from ..solvers.newton import resolve_bounds
 from ..solvers.result import SolverResult
 from ..solvers.rollout import rollout_closed_loop
-from ..solvers.slq import SLQ
 from ..status import Status, status_names
 from .implicit import implicit_solution
 from .unroll import unrolled_solve
@@ -148,18 +146,22 @@ class MPC(nn.Module):
             solver = ILQR(max_iter=200, tol=DEFAULT_TOL[torch.float64], progress=False)
         if not callable(getattr(solver, "solve", None)):
             raise TypeError(f"solver must have a solve(problem, x0, u_init) method, got {solver!r}")
-        if (u_min is not None or u_max is not None) and not isinstance(solver, ILQR):
+        if (u_min is not None or u_max is not None) and not getattr(
+            solver, "supports_bounds", False
+        ):
             raise ValueError(
-                f"control bounds need an ILQR or DDP solver, got {type(solver).__name__}"
+                "control bounds need a solver with supports_bounds (ILQR or DDP), "
+                f"got {type(solver).__name__}"
             )
         if compact not in (True, False, "auto"):
             raise ValueError(f"compact must be True, False or 'auto', got {compact!r}")
         if unroll_iters is not None and (not isinstance(unroll_iters, int) or unroll_iters < 1):
             raise ValueError(f"unroll_iters must be a positive int, got {unroll_iters!r}")
-        solver = copy.deepcopy(solver)  # the layer owns its solver's options
         if u_min is not None or u_max is not None:
-            solver.u_min, solver.u_max = u_min, u_max
+            # a new solver with the bounds: the one given is never changed
+            solver = solver.with_options(u_min=u_min, u_max=u_max)
         self.solver = solver
+        self._solvers: dict[tuple, Any] = {}  # per (tol, compact): the solver a forward uses
         self.compact = compact
         self.u_min, self.u_max = u_min, u_max
         self.backward_mode = backward
@@ -274,16 +276,10 @@ class MPC(nn.Module):
         x0b = x0.reshape(-1, n)
         Bsz = x0b.shape[0]
         guess, guess_x = self._initial_guess(x0b, u_init)
-        if self._default_solver:
-            self.solver.options.tol = DEFAULT_TOL.get(x0b.dtype, DEFAULT_TOL[torch.float32])
-        if self._supports_compact():
-            compact = self.compact
-            if compact == "auto":
-                compact = self.problem.per_element_tensor(Bsz) is None
-            self.solver.options.compact = compact
+        solver = self._solver_for(x0b.dtype, Bsz)
         kw = {"x_init": guess_x} if guess_x is not None and self._supports_compact() else {}
         with torch.no_grad():
-            result = self.solver.solve(self.problem, x0b.detach(), guess, **kw)
+            result = solver.solve(self.problem, x0b.detach(), guess, **kw)
         self.last_result = result
         self._store_warm_start(result)
         x, u, status = result.x, result.u, result.status
@@ -295,7 +291,26 @@ class MPC(nn.Module):
         return MPCOutput(x, u, status, result)
 
     def _supports_compact(self) -> bool:
-        return isinstance(self.solver, SLQ) and not isinstance(self.solver, GradientMethod)
+        return getattr(self.solver, "supports_x_init", False)
+
+    def _solver_for(self, dtype: torch.dtype, batch_size: int) -> Any:
+        """The solver of a forward pass: the layer's, with the default solver's tolerance
+        for ``dtype`` and the ``compact`` choice for this problem (new solver objects,
+        made once per combination; the layer's own solver is never changed)."""
+        changes: dict[str, Any] = {}
+        if self._default_solver:
+            changes["tol"] = DEFAULT_TOL.get(dtype, DEFAULT_TOL[torch.float32])
+        if self._supports_compact():
+            compact = self.compact
+            if compact == "auto":
+                compact = self.problem.per_element_tensor(batch_size) is None
+            changes["compact"] = compact
+        if not changes:
+            return self.solver
+        key = tuple(sorted(changes.items()))
+        if key not in self._solvers:
+            self._solvers[key] = self.solver.with_options(**changes)
+        return self._solvers[key]
 
     def step(self, x: Tensor) -> Tensor:
         """Receding-horizon control: solve from the current state(s) ``x`` and return the
@@ -364,5 +379,4 @@ class MPC(nn.Module):
     def _bounds(self, x0: Tensor) -> tuple[Tensor | None, Tensor | None]:
         if self.u_min is None and self.u_max is None:
             return None, None
-        lo, hi = self.solver._resolve_bounds(self.problem, x0)
-        return lo, hi
+        return resolve_bounds(self.problem, x0, self.u_min, self.u_max)

@@ -104,9 +104,8 @@ includes it; ``grad_norm`` is that of the objective.
 
 from __future__ import annotations
 
-import time
-from dataclasses import asdict, dataclass, field
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass, field, fields, replace
+from typing import TYPE_CHECKING, Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -117,11 +116,12 @@ from ..costs.quadratic import CostExpansion
 from ..dynamics.linearize import linearize
 from ..lq.riccati import riccati_backward
 from ..status import Status
+from .base import Solver
+from .core import Advance, ElementState, Measure, iterate, shared
 from .line_search import TrialRecorder, armijo_search
-from .progress import progress_bar
+from .options import check_choice, check_int, check_passes, check_real, loggable, options_record
 from .result import SolverResult
 from .rollout import costate_gradient, rollout, rollout_closed_loop
-from .stopping import stall_update
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -208,7 +208,18 @@ def _where(mask: Tensor, a: Tensor, b: Tensor) -> Tensor:
 
 
 # ---------------------------------------------------------------------------- options / result
-@dataclass
+def _check_weight(name: str, w: Any) -> None:
+    if w is None or torch.is_tensor(w):
+        return
+    if isinstance(w, bool) or not isinstance(w, (int, float)):
+        raise TypeError(
+            f"{name} must be None, a positive number or a tensor, got {type(w).__name__}"
+        )
+    if not w > 0:
+        raise ValueError(f"{name} must be positive, got {w!r}")
+
+
+@dataclass(frozen=True)
 class GoPRONTOOptions:
     """Options of :class:`GoPRONTO` (see its docstring)."""
 
@@ -232,12 +243,109 @@ class GoPRONTOOptions:
     armijo_c1: float = 1e-4
     armijo_beta: float = 0.5
     max_backtracks: int = 30
-    armijo_chunk: int | None = None
+    armijo_passes: tuple[int, int | None] | None = None
     step0: float = 1.0
     armijo_growth: float = 4.0
     linearize_method: str = "auto"
     progress: bool = True
     stall_iters: int = 10
+
+    def __post_init__(self) -> None:
+        if self.variant not in _VARIANTS:
+            raise ValueError(f"variant must be one of {_VARIANTS}, got {self.variant!r}")
+        check_int("stall_iters", self.stall_iters, 0)
+        if isinstance(self.step, str):
+            if self.step != "armijo":
+                raise ValueError(f"step must be 'armijo' or a positive float, got {self.step!r}")
+        else:
+            check_real("step", self.step, 0.0)
+        check_int("max_iter", self.max_iter, 0)
+        check_real("tol", self.tol, 0.0)
+        check_real("gamma_hb", self.gamma_hb, 0.0, 1.0, lo_closed=True)
+        check_choice("cg_formula", self.cg_formula, _CG_FORMULAS)
+        check_real("cg_restart", self.cg_restart, 0.0)
+        for name in ("Q_reg", "R_reg", "Qf_reg"):
+            _check_weight(name, getattr(self, name))
+        check_choice("recompute", self.recompute, _RECOMPUTE)
+        check_real("stability_tol", self.stability_tol, 1.0)
+        if self.u_max is not None:
+            if torch.is_tensor(self.u_max):
+                if not self.u_max.is_floating_point() or not bool((self.u_max > 0).all()):
+                    raise ValueError("u_max must be positive (a float tensor of shape (m,))")
+            else:
+                check_real("u_max", self.u_max, 0.0)
+        check_real("barrier_weight", self.barrier_weight, 0.0)
+        check_real("barrier_decrease", self.barrier_decrease, 0.0, 1.0)
+        check_real("barrier_min", self.barrier_min, 0.0)
+        if self.barrier_min > self.barrier_weight:
+            raise ValueError(
+                f"barrier_min ({self.barrier_min}) must not exceed barrier_weight "
+                f"({self.barrier_weight})"
+            )
+        check_real("barrier_margin", self.barrier_margin, 0.0, 1.0)
+        check_real("armijo_c1", self.armijo_c1, 0.0, 1.0)
+        check_real("armijo_beta", self.armijo_beta, 0.0, 1.0)
+        check_int("max_backtracks", self.max_backtracks, 1)
+        object.__setattr__(self, "armijo_passes", check_passes(self.armijo_passes))
+        check_real("step0", self.step0, 0.0)
+        check_real("armijo_growth", self.armijo_growth, 1.0, lo_closed=True)
+        check_choice("linearize_method", self.linearize_method, ("auto", "vjp", "jacrev", "jacfwd"))
+
+
+@dataclass(frozen=True)
+class PRONTOOptions(GoPRONTOOptions):
+    """Options of :class:`torchslq.PRONTO` (GoPRONTO's, without momentum variants)."""
+
+    recompute: str = "always"
+    order: str = "first"
+    weights: str = "hessian"
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        check_choice("order", self.order, ("first",))
+        check_choice("weights", self.weights, ("hessian", "identity"))
+
+
+@dataclass(frozen=True)
+class CurveState(ElementState):
+    """Per-solve state of GoPRONTO/PRONTO (batch-first, besides the shared ``umax``).
+
+    Attributes (besides the trajectory ``x, u`` and the objective ``J`` = cost +
+    barrier): ``Jc`` the cost; the curve ``alpha (B,T,n)``, ``mu (B,T,m)``; the barrier
+    weight ``eps``; the projection gains ``K``; the variants' memory (``restart``,
+    ``prev_*``, ``k_nest``, ``cg_restarts``); the gain rule's flags (``pending``,
+    ``fresh``, ``computed``), its ``recomputations`` and growth threshold ``thresh``; the
+    last accepted step ``gamma_prev``.
+    """
+
+    Jc: Tensor = None
+    alpha: Tensor = None
+    mu: Tensor = None
+    eps: Tensor = None
+    K: Tensor = None
+    restart: Tensor = None
+    prev_a: Tensor = None
+    prev_m: Tensor = None
+    prev_ga: Tensor = None
+    prev_gm: Tensor = None
+    prev_da: Tensor = None
+    prev_dm: Tensor = None
+    k_nest: Tensor = None
+    cg_restarts: Tensor = None
+    pending: Tensor = None
+    fresh: Tensor = None
+    computed: Tensor = None
+    recomputations: Tensor = None
+    thresh: Tensor = None
+    gamma_prev: Tensor = None
+    umax: Tensor | None = shared()
+
+
+_STATE_FIELDS = tuple(f.name for f in fields(CurveState))
+
+
+def _fields(state: CurveState) -> dict[str, Any]:
+    return {k: getattr(state, k) for k in _STATE_FIELDS}
 
 
 @dataclass
@@ -279,28 +387,19 @@ class GoPRONTOResult(SolverResult):
         )
 
 
-def _check_weight(name: str, w: Any) -> None:
-    if w is None or torch.is_tensor(w):
-        return
-    if isinstance(w, bool) or not isinstance(w, (int, float)):
-        raise TypeError(
-            f"{name} must be None, a positive number or a tensor, got {type(w).__name__}"
-        )
-    if not w > 0:
-        raise ValueError(f"{name} must be positive, got {w!r}")
-
-
-def _positive(name: str, v: Any, *, lo: float = 0.0, hi: float | None = None, closed_lo=False):
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise TypeError(f"{name} must be a number, got {type(v).__name__}")
-    ok = (v >= lo if closed_lo else v > lo) and (hi is None or v < hi)
-    if not ok:
-        rng = f"{'[' if closed_lo else '('}{lo}, {hi if hi is not None else 'inf'})"
-        raise ValueError(f"{name} must be in {rng}, got {v!r}")
+def _chunk_alias(kw: dict[str, Any]) -> dict[str, Any]:
+    """``armijo_chunk=c`` (the former name) as ``armijo_passes=(c, c)``."""
+    chunk = kw.pop("armijo_chunk", None)
+    if chunk is None:
+        return kw
+    check_int("armijo_chunk", chunk, 1)
+    if kw.get("armijo_passes") is not None:
+        raise ValueError("give armijo_passes or armijo_chunk, not both")
+    return kw | {"armijo_passes": (chunk, chunk)}
 
 
 # ---------------------------------------------------------------------------- the solver
-class GoPRONTO:
+class GoPRONTO(Solver):
     """GoPRONTO (Algorithms 2-4 of the paper), batched; see the module docstring.
 
     Args:
@@ -320,91 +419,64 @@ class GoPRONTO:
         recompute: ``"auto"``, ``"always"`` or ``"never"`` (see the module docstring);
             stability_tol: the growth threshold of the ``"auto"`` rule (> 1).
         u_max: None, or the bound of ``|u| <= u_max``: a positive number or a tensor
-            ``(m,)``. barrier_weight, barrier_decrease, barrier_min, barrier_margin: the
-            barrier continuation (initial weight 1, factor 0.2 down to 1e-4, start clipped
-            to 95% of the bound).
+            ``(m,)``, enforced by the log barrier of the paper's Section V.5 (an interior
+            method: iterates stay strictly inside; :class:`torchslq.ILQR` enforces bounds
+            as hard box constraints instead). barrier_weight, barrier_decrease,
+            barrier_min, barrier_margin: the barrier continuation (initial weight 1,
+            factor 0.2 down to 1e-4, start clipped to 95% of the bound).
         armijo_c1, armijo_beta, max_backtracks: Armijo constants (trials
-            ``s0 beta^j``, ``j < max_backtracks``); armijo_chunk: trials per batched
-            rollout (None: the 4 largest first, then the rest at once for small problems
-            or 4 at a time for large ones, see :meth:`_armijo_passes`); step0: the first trial step;
-            armijo_growth: later first trials are this times the last accepted step.
+            ``s0 beta^j``, ``j < max_backtracks``); armijo_passes: ``(first, then)``
+            trials per batched rollout as for :class:`torchslq.SLQ` (None: the 4 largest
+            first, then the rest at once for small problems or 4 at a time for large
+            ones, see :meth:`_armijo_passes`); armijo_chunk: ``c`` is ``armijo_passes=(c,
+            c)`` (an alias); step0: the first trial step; armijo_growth: later first
+            trials are this times the last accepted step.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: tqdm bar for long solves.
         stall_iters: stop an element with status ``stalled`` after this many consecutive
             accepted steps that changed its objective by no more than rounding noise
-            without halving its gradient norm (:func:`torchslq.solvers.stopping.stall_update`,
-            as for :class:`torchslq.SLQ`); 0 disables.
+            without halving its gradient norm (as for :class:`torchslq.SLQ`); 0 disables.
 
     ``solve(problem, x0, u_init=None, logger=None)`` returns a :class:`GoPRONTOResult`.
     """
 
-    name = "gopronto"
+    name: ClassVar[str] = "gopronto"
+    options_class: ClassVar[type] = GoPRONTOOptions
     _always_hessians = False  # PRONTO's direction needs them at every iteration
 
-    def __init__(self, variant: str = "gradient", step: Any = "armijo", **kwargs: Any):
-        bad = set(kwargs) - set(GoPRONTOOptions.__dataclass_fields__)
-        if bad:
-            raise TypeError(f"unknown option(s) for {type(self).__name__}: {sorted(bad)}")
-        self.options = GoPRONTOOptions(variant=variant, step=step, **kwargs)
-        self._validate()
-
-    def _validate(self) -> None:
-        o = self.options
-        if o.variant not in _VARIANTS:
-            raise ValueError(f"variant must be one of {_VARIANTS}, got {o.variant!r}")
-        if not isinstance(o.stall_iters, int) or o.stall_iters < 0:
-            raise ValueError(f"stall_iters must be a non-negative int, got {o.stall_iters!r}")
-        if isinstance(o.step, str):
-            if o.step != "armijo":
-                raise ValueError(f"step must be 'armijo' or a positive float, got {o.step!r}")
-        elif isinstance(o.step, bool) or not isinstance(o.step, (int, float)):
-            raise TypeError(
-                f"step must be 'armijo' or a positive float, got {type(o.step).__name__}"
-            )
-        elif not o.step > 0:
-            raise ValueError(f"step must be positive, got {o.step!r}")
-        if isinstance(o.max_iter, bool) or not isinstance(o.max_iter, int) or o.max_iter < 0:
-            raise ValueError(f"max_iter must be a non-negative int, got {o.max_iter!r}")
-        _positive("tol", o.tol)
-        _positive("gamma_hb", o.gamma_hb, lo=0.0, hi=1.0, closed_lo=True)
-        if o.cg_formula not in _CG_FORMULAS:
-            raise ValueError(f"cg_formula must be one of {_CG_FORMULAS}, got {o.cg_formula!r}")
-        _positive("cg_restart", o.cg_restart)
-        for name in ("Q_reg", "R_reg", "Qf_reg"):
-            _check_weight(name, getattr(o, name))
-        if o.recompute not in _RECOMPUTE:
-            raise ValueError(f"recompute must be one of {_RECOMPUTE}, got {o.recompute!r}")
-        _positive("stability_tol", o.stability_tol, lo=1.0)
-        if o.u_max is not None:
-            if torch.is_tensor(o.u_max):
-                if not o.u_max.is_floating_point() or not bool((o.u_max > 0).all()):
-                    raise ValueError("u_max must be positive (a float tensor of shape (m,))")
-            else:
-                _positive("u_max", o.u_max)
-        _positive("barrier_weight", o.barrier_weight)
-        _positive("barrier_decrease", o.barrier_decrease, hi=1.0)
-        _positive("barrier_min", o.barrier_min)
-        if o.barrier_min > o.barrier_weight:
-            raise ValueError(
-                f"barrier_min ({o.barrier_min}) must not exceed barrier_weight ({o.barrier_weight})"
-            )
-        _positive("barrier_margin", o.barrier_margin, hi=1.0)
-        _positive("armijo_c1", o.armijo_c1, hi=1.0)
-        _positive("armijo_beta", o.armijo_beta, hi=1.0)
-        if (
-            isinstance(o.max_backtracks, bool)
-            or not isinstance(o.max_backtracks, int)
-            or o.max_backtracks < 1
-        ):
-            raise ValueError(f"max_backtracks must be a positive int, got {o.max_backtracks!r}")
-        if o.armijo_chunk is not None and (
-            isinstance(o.armijo_chunk, bool)
-            or not isinstance(o.armijo_chunk, int)
-            or o.armijo_chunk < 1
-        ):
-            raise ValueError(f"armijo_chunk must be None or a positive int, got {o.armijo_chunk!r}")
-        _positive("step0", o.step0)
-        _positive("armijo_growth", o.armijo_growth, lo=1.0, closed_lo=True)
+    def __init__(
+        self,
+        variant: str = "gradient",
+        step: Any = "armijo",
+        *,
+        max_iter: int = 200,
+        tol: float = 1e-6,
+        gamma_hb: float = 0.5,
+        cg_formula: str = "per_step",
+        cg_restart: float = 0.7,
+        Q_reg: Any = None,
+        R_reg: Any = None,
+        Qf_reg: Any = None,
+        recompute: str = "auto",
+        stability_tol: float = 1e4,
+        u_max: Any = None,
+        barrier_weight: float = 1.0,
+        barrier_decrease: float = 0.2,
+        barrier_min: float = 1e-4,
+        barrier_margin: float = 0.05,
+        armijo_c1: float = 1e-4,
+        armijo_beta: float = 0.5,
+        max_backtracks: int = 30,
+        armijo_passes: tuple[int, int | None] | None = None,
+        armijo_chunk: int | None = None,
+        step0: float = 1.0,
+        armijo_growth: float = 4.0,
+        linearize_method: str = "auto",
+        progress: bool = True,
+        stall_iters: int = 10,
+    ):
+        kw = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
+        super().__init__(**_chunk_alias(kw))
 
     # ------------------------------------------------------------------ pieces
     def _u_max(self, like: Tensor, m: int) -> Tensor | None:
@@ -630,7 +702,6 @@ class GoPRONTO:
         """
         o = self.options
         x0, u, unbatched = problem.check_inputs(x0, u_init)
-        f, cost_fn = problem.transition, problem.cost
         Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
         dev = x0.device
         umax = self._u_max(x0, m)
@@ -644,263 +715,219 @@ class GoPRONTO:
                 lu=x0.new_zeros(1, T, m),
             )
             self._weights(dummy, T, n, m, x0)
-        t_start = time.perf_counter()
-        constant = not isinstance(o.step, str)
+        record = options_record(self.name, o)
 
         with torch.no_grad():
             eps = torch.full(
                 (Bsz,), o.barrier_weight if umax is not None else 0.0, dtype=x0.dtype, device=dev
             )
             alpha, mu, x, u, K0, ok0 = self._initial_curve(problem, x0, u, alpha_init, eps, umax)
-            J, Jc = self._objective(cost_fn, x, u, eps, umax)
-            status = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=dev)
-            finite0 = torch.isfinite(J) & torch.isfinite(x).flatten(1).all(1)
-            status = status.masked_fill(~finite0, int(Status.NON_FINITE))
-            s: dict[str, Any] = {
-                "alpha": alpha,
-                "mu": mu,
-                "J": J,
-                "eps": eps,
-                "umax": umax,
-                "K": K0,
-                "restart": torch.ones(Bsz, dtype=torch.bool, device=dev),
-                "prev_a": alpha,
-                "prev_m": mu,
-                "prev_ga": torch.zeros_like(alpha),
-                "prev_gm": torch.zeros_like(mu),
-                "prev_da": torch.zeros_like(alpha),
-                "prev_dm": torch.zeros_like(mu),
-                "k_nest": torch.zeros(Bsz, dtype=torch.int64, device=dev),
-                "cg_restarts": torch.zeros(Bsz, dtype=torch.int64, device=dev),
-            }
-            pending = ~ok0  # gains to (re)compute at the next iteration
-            fresh = torch.zeros(Bsz, dtype=torch.bool, device=dev)  # gains new, no step since
-            computed = ok0.clone()  # gains computed about the current curve/trajectory
-            recomputations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
-            thresh = torch.full((Bsz,), float(o.stability_tol), dtype=x0.dtype, device=dev)
-            iterations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
-            stall_count = torch.zeros_like(iterations)
-            stall_grad = torch.zeros(Bsz, dtype=x0.dtype, device=dev)
-            gamma_prev = torch.full((Bsz,), o.step0 / o.armijo_growth, dtype=x0.dtype, device=dev)
-            step = torch.zeros_like(J)
-            grad_norm = torch.full_like(J, float("nan"))
-            hist: dict[str, list] = {
-                k: []
-                for k in (
-                    "cost",
-                    "objective",
-                    "grad_norm",
-                    "step",
-                    "recompute",
-                    "barrier_weight",
-                    "time",
-                )
-            }
-            if logger is not None:
-                logger.log_options(
-                    self.name,
-                    {k: str(v) if torch.is_tensor(v) else v for k, v in asdict(o).items()},
-                )
-            bar = progress_bar(o.max_iter, enabled=o.progress, desc=type(self).__name__)
-            for it in range(o.max_iter + 1):
-                running = status == Status.RUNNING
-                s["running"] = running
-                A, Bm, e = self._expand(problem, x, u, s["eps"], umax, self._always_hessians)
-                # ---- projection gains: compute / recompute when they stop stabilising
-                flag = running & pending
-                if o.recompute == "always":
-                    flag = running & (pending | (it > 0))
-                elif o.recompute == "auto" and bool(computed.any()):
-                    growth = closed_loop_growth(A, Bm, s["K"])
-                    flag = flag | (running & computed & ~(growth <= thresh))
-                recomp = torch.zeros_like(flag)
-                if bool(flag.any()):
-                    if e.lxx is None and self._needs_hessians():
-                        e = self._cost_expansion(problem, x, u, s["eps"], umax, True)
-                    Knew, failed = self.projection_gains(A, Bm, e)
-                    upd = flag & ~failed
-                    s["K"] = _where(upd, Knew, s["K"])
-                    recomp = upd & computed
-                    recomputations = recomputations + recomp.to(torch.int64)
-                    computed = computed | upd
-                    if o.recompute == "auto":
-                        # fresh gains that themselves amplify more than stability_tol / 10
-                        # (short horizon, weak R_reg) raise the element's threshold, so
-                        # the test fires on a loss of stability, not every iteration
-                        g_new = closed_loop_growth(A, Bm, s["K"])
-                        thresh = torch.where(
-                            upd, torch.clamp(10.0 * g_new, min=o.stability_tol), thresh
-                        )
-                    s["alpha"] = _where(flag, x[:, :T], s["alpha"])
-                    s["mu"] = _where(flag, u, s["mu"])
-                    s["restart"] = s["restart"] | flag
-                    s["k_nest"] = torch.where(flag, 0, s["k_nest"])
-                    fresh = fresh | flag
-                    pending = pending & ~flag
-                g_a, g_m, _ = curve_gradient(A, Bm, e.lx, e.lu, s["K"])
-                g2 = _dot(g_a, g_a) + _dot(g_m, g_m)
-                # ---- barrier continuation
-                if umax is not None:
-                    inner = (
-                        running
-                        & (g2.sqrt() < torch.clamp(s["eps"], min=o.tol))
-                        & (s["eps"] > o.barrier_min * (1 + 1e-9))
-                    )
-                    if bool(inner.any()):
-                        s["eps"] = torch.where(
-                            inner,
-                            torch.clamp(s["eps"] * o.barrier_decrease, min=o.barrier_min),
-                            s["eps"],
-                        )
-                        J, Jc = self._objective(cost_fn, x, u, s["eps"], umax)
-                        s["J"] = J
-                        e = self._cost_expansion(
-                            problem, x, u, s["eps"], umax, self._always_hessians
-                        )
-                        g_a, g_m, _ = curve_gradient(A, Bm, e.lx, e.lu, s["K"])
-                        g2 = _dot(g_a, g_a) + _dot(g_m, g_m)
-                        s["restart"] = s["restart"] | inner
-                        s["k_nest"] = torch.where(inner, 0, s["k_nest"])
-                s.update(g_a=g_a, g_m=g_m, g2=g2, A=A, B=Bm, e=e, x=x, u=u)
-                gn = g2.sqrt()
-                grad_norm = torch.where(running, gn, grad_norm)
-                done = gn < o.tol
-                if umax is not None:
-                    done = done & (s["eps"] <= o.barrier_min * (1 + 1e-9))
-                status = status.masked_fill(running & done, int(Status.CONVERGED))
-                status = status.masked_fill(
-                    running & ~done & ~torch.isfinite(gn), int(Status.NON_FINITE)
-                )
-                running = status == Status.RUNNING
-                s["running"] = running
-                hist["cost"].append(Jc)
-                hist["objective"].append(J)
-                hist["grad_norm"].append(grad_norm)
-                hist["step"].append(step)
-                hist["recompute"].append(recomp)
-                hist["barrier_weight"].append(s["eps"])
-                hist["time"].append(time.perf_counter() - t_start)
-                if logger is not None:
-                    logger.log_iteration(
-                        it,
-                        cost=Jc,
-                        grad_norm=grad_norm,
-                        step=step,
-                        status=status,
-                        wall_time=hist["time"][-1],
-                    )
-                n_running = int(running.sum())  # the host sync that ends the solve
-                if n_running == 0 or it == o.max_iter:
-                    break
-                # ---- direction and step
-                d = self._direction(s, problem, x0)
-                gamma, Jnew, ok, xn, un = self._line_search(
-                    f, cost_fn, x0, d, s, gamma_prev, constant, umax
-                )
-                accept = running & ok
-                if not constant and o.variant in ("heavy_ball", "nesterov"):
-                    # function-value restart (O'Donoghue & Candes): a momentum step that
-                    # raised the cost is rejected and the next iteration restarts from a
-                    # plain gradient step (which Armijo makes a descent step)
-                    bump = accept & ~(Jnew <= J) & ~d["plain"]
-                    if bool(bump.any()):
-                        # retry those elements at once with a plain gradient step from
-                        # c_k (so an iteration is never wasted on a rejected momentum step)
-                        d2 = dict(
-                            base_a=s["alpha"],
-                            base_m=s["mu"],
-                            da=-s["g_a"],
-                            dm=-s["g_m"],
-                            ref=J,
-                            slope=-s["g2"],
-                            plain=torch.ones_like(bump),
-                        )
-                        g2_, J2, ok2, x2, u2 = self._line_search(
-                            f, cost_fn, x0, d2, s, gamma_prev, constant, umax
-                        )
-                        d = {
-                            k: _where(bump, d2[k], v) if torch.is_tensor(v) else v
-                            for k, v in d.items()
-                        }
-                        gamma = torch.where(bump, g2_, gamma)
-                        Jnew = torch.where(bump, J2, Jnew)
-                        ok = torch.where(bump, ok2, ok)
-                        xn, un = _where(bump, x2, xn), _where(bump, u2, un)
-                        accept = running & ok
-                else:
-                    bump = torch.zeros_like(accept)
-                na = d["base_a"] + gamma[:, None, None] * d["da"]
-                nm = d["base_m"] + gamma[:, None, None] * d["dm"]
-                self._after_step(s, accept, d)
-                s["prev_a"] = _where(accept, s["alpha"], s["prev_a"])
-                s["prev_m"] = _where(accept, s["mu"], s["prev_m"])
-                s["alpha"] = _where(accept, na, s["alpha"])
-                s["mu"] = _where(accept, nm, s["mu"])
-                if o.stall_iters > 0:
-                    stalled, stall_count, stall_grad = stall_update(
-                        stall_count, stall_grad, accept, J, Jnew, gn, o.stall_iters
-                    )
-                    status = status.masked_fill(
-                        stalled & (status == Status.RUNNING), int(Status.STALLED)
-                    )
-                x = _where(accept, xn, x)
-                u = _where(accept, un, u)
-                J = torch.where(accept, Jnew, J)
-                s["J"] = J
-                Jc_new = cost_fn(x, u) if umax is not None else J
-                Jc = torch.where(accept, Jc_new, Jc)
-                self._on_accept(s, accept, x, u)
-                s["k_nest"] = s["k_nest"] + accept.to(torch.int64)
-                s["restart"] = (s["restart"] & ~accept) | bump
-                s["k_nest"] = torch.where(bump, 0, s["k_nest"])
-                gamma_prev = torch.where(accept, gamma, gamma_prev)
-                step = torch.where(accept, gamma, torch.zeros_like(gamma))
-                iterations = iterations + accept.to(torch.int64)
-                # a failed momentum / conjugate step only restarts the method; a failed
-                # plain gradient step means the gains stopped stabilising: recompute
-                # them, and if they are fresh already, the element has failed
-                failed = running & ~ok & d["plain"]
-                end = failed & fresh
-                status = status.masked_fill(
-                    end, int(Status.DIVERGED if constant else Status.LINE_SEARCH_FAILED)
-                )
-                if o.recompute != "never":
-                    pending = pending | (failed & ~fresh)
-                else:
-                    status = status.masked_fill(
-                        failed, int(Status.DIVERGED if constant else Status.LINE_SEARCH_FAILED)
-                    )
-                s["restart"] = s["restart"] | (running & ~ok)
-                s["k_nest"] = torch.where(running & ~ok, 0, s["k_nest"])
-                fresh = fresh & ~accept
-                bar.update(1)
-                bar.set_postfix(running=n_running, refresh=False)
-            bar.close()
-            status = status.masked_fill(status == Status.RUNNING, int(Status.MAX_ITER))
-
-        history = {k: torch.stack(v, dim=1) for k, v in hist.items() if k != "time"}
-        history["time"] = torch.tensor(hist["time"], dtype=torch.float64)
+            J, Jc = self._objective(problem.cost, x, u, eps, umax)
+            flags = torch.zeros(Bsz, dtype=torch.bool, device=dev)
+            counts = torch.zeros(Bsz, dtype=torch.int64, device=dev)
+            state = CurveState(
+                x=x,
+                u=u,
+                J=J,
+                Jc=Jc,
+                alpha=alpha,
+                mu=mu,
+                eps=eps,
+                K=K0,
+                restart=torch.ones_like(flags),
+                prev_a=alpha,
+                prev_m=mu,
+                prev_ga=torch.zeros_like(alpha),
+                prev_gm=torch.zeros_like(mu),
+                prev_da=torch.zeros_like(alpha),
+                prev_dm=torch.zeros_like(mu),
+                k_nest=counts,
+                cg_restarts=counts,
+                pending=~ok0,  # gains to (re)compute at the next iteration
+                fresh=flags,  # gains new, no step taken since
+                computed=ok0.clone(),  # gains computed about the current curve/trajectory
+                recomputations=counts,
+                thresh=torch.full((Bsz,), float(o.stability_tol), dtype=x0.dtype, device=dev),
+                gamma_prev=torch.full(
+                    (Bsz,), o.step0 / o.armijo_growth, dtype=x0.dtype, device=dev
+                ),
+                umax=umax,
+            )
+            out = iterate(
+                self, problem, state, self.settings(), logger=logger, options=loggable(record)
+            )
+        s = out.state
         result = GoPRONTOResult(
-            x=x,
-            u=u,
-            cost=Jc,
-            grad_norm=grad_norm,
-            iterations=iterations,
-            status=status,
-            converged=status == Status.CONVERGED,
-            K=s["K"],
-            k=torch.zeros_like(u),
-            history=history,
-            options={"solver": self.name, **asdict(o)},
-            alpha=s["alpha"],
-            mu=s["mu"],
-            recomputations=recomputations,
-            barrier_weight=s["eps"],
-            extra={"cg_restarts": s["cg_restarts"]},
+            x=s.x,
+            u=s.u,
+            cost=s.Jc,
+            grad_norm=out.grad_norm,
+            iterations=out.iterations,
+            status=out.status,
+            converged=out.status == Status.CONVERGED,
+            K=s.K,
+            k=torch.zeros_like(s.u),
+            history=out.history,
+            options=record,
+            alpha=s.alpha,
+            mu=s.mu,
+            recomputations=s.recomputations,
+            barrier_weight=s.eps,
+            extra={"cg_restarts": s.cg_restarts},
         )
         if logger is not None:
             logger.log_result(result, problem)
         return result.squeeze_batch() if unbatched else result
+
+    # ------------------------------------------------------------------ the iteration
+    def measure(self, problem: Problem, state: CurveState, running: Tensor, it: int):
+        """Gains (recomputed where they stopped stabilising), the curve gradient (eq. 16)
+        and the barrier continuation at the current curve."""
+        o = self.options
+        s = _fields(state)
+        x, u, umax = state.x, state.u, state.umax
+        T = problem.horizon
+        A, Bm, e = self._expand(problem, x, u, s["eps"], umax, self._always_hessians)
+        # ---- projection gains: compute / recompute when they stop stabilising
+        flag = running & s["pending"]
+        if o.recompute == "always":
+            flag = running & (s["pending"] | (it > 0))
+        elif o.recompute == "auto" and bool(s["computed"].any()):
+            growth = closed_loop_growth(A, Bm, s["K"])
+            flag = flag | (running & s["computed"] & ~(growth <= s["thresh"]))
+        recomp = torch.zeros_like(flag)
+        if bool(flag.any()):
+            if e.lxx is None and self._needs_hessians():
+                e = self._cost_expansion(problem, x, u, s["eps"], umax, True)
+            Knew, failed = self.projection_gains(A, Bm, e)
+            upd = flag & ~failed
+            s["K"] = _where(upd, Knew, s["K"])
+            recomp = upd & s["computed"]
+            s["recomputations"] = s["recomputations"] + recomp.to(torch.int64)
+            s["computed"] = s["computed"] | upd
+            if o.recompute == "auto":
+                # fresh gains that themselves amplify more than stability_tol / 10
+                # (short horizon, weak R_reg) raise the element's threshold, so the
+                # test fires on a loss of stability, not every iteration
+                g_new = closed_loop_growth(A, Bm, s["K"])
+                s["thresh"] = torch.where(
+                    upd, torch.clamp(10.0 * g_new, min=o.stability_tol), s["thresh"]
+                )
+            s["alpha"] = _where(flag, x[:, :T], s["alpha"])
+            s["mu"] = _where(flag, u, s["mu"])
+            s["restart"] = s["restart"] | flag
+            s["k_nest"] = torch.where(flag, 0, s["k_nest"])
+            s["fresh"] = s["fresh"] | flag
+            s["pending"] = s["pending"] & ~flag
+        g_a, g_m, _ = curve_gradient(A, Bm, e.lx, e.lu, s["K"])
+        g2 = _dot(g_a, g_a) + _dot(g_m, g_m)
+        # ---- barrier continuation
+        if umax is not None:
+            inner = (
+                running
+                & (g2.sqrt() < torch.clamp(s["eps"], min=o.tol))
+                & (s["eps"] > o.barrier_min * (1 + 1e-9))
+            )
+            if bool(inner.any()):
+                s["eps"] = torch.where(
+                    inner, torch.clamp(s["eps"] * o.barrier_decrease, min=o.barrier_min), s["eps"]
+                )
+                s["J"], s["Jc"] = self._objective(problem.cost, x, u, s["eps"], umax)
+                e = self._cost_expansion(problem, x, u, s["eps"], umax, self._always_hessians)
+                g_a, g_m, _ = curve_gradient(A, Bm, e.lx, e.lu, s["K"])
+                g2 = _dot(g_a, g_a) + _dot(g_m, g_m)
+                s["restart"] = s["restart"] | inner
+                s["k_nest"] = torch.where(inner, 0, s["k_nest"])
+        gn = g2.sqrt()
+        done = gn < o.tol
+        if umax is not None:
+            done = done & (s["eps"] <= o.barrier_min * (1 + 1e-9))
+        fail = torch.full_like(s["k_nest"], int(Status.RUNNING))
+        fail = fail.masked_fill(~torch.isfinite(gn), int(Status.NON_FINITE))
+        state = replace(state, **s)
+        scratch = dict(g_a=g_a, g_m=g_m, g2=g2, A=A, B=Bm, e=e, x=x, u=u)
+        return state, Measure(
+            grad_norm=gn,
+            done=done,
+            fail=fail,
+            cost=state.Jc,
+            history={"objective": state.J, "recompute": recomp, "barrier_weight": state.eps},
+            direction=scratch,
+        )
+
+    def advance(self, problem: Problem, state: CurveState, m: Measure, running: Tensor):
+        """Direction of the variant, step (Armijo or constant), momentum restarts and the
+        bookkeeping of the gain-recomputation rule."""
+        o = self.options
+        s = _fields(state) | m.direction
+        s["running"] = running
+        x0 = state.x[:, 0]
+        umax = state.umax
+        constant = not isinstance(o.step, str)
+        f, cost_fn = problem.transition, problem.cost
+        gamma_prev, J = s["gamma_prev"], s["J"]
+        d = self._direction(s, problem, x0)
+        gamma, Jnew, ok, xn, un = self._line_search(
+            f, cost_fn, x0, d, s, gamma_prev, constant, umax
+        )
+        accept = running & ok
+        if not constant and o.variant in ("heavy_ball", "nesterov"):
+            # function-value restart (O'Donoghue & Candes): a momentum step that raised
+            # the cost is rejected and retried at once with a plain gradient step from c_k
+            bump = accept & ~(Jnew <= J) & ~d["plain"]
+            if bool(bump.any()):
+                d2 = dict(
+                    base_a=s["alpha"],
+                    base_m=s["mu"],
+                    da=-s["g_a"],
+                    dm=-s["g_m"],
+                    ref=J,
+                    slope=-s["g2"],
+                    plain=torch.ones_like(bump),
+                )
+                g2_, J2, ok2, x2, u2 = self._line_search(
+                    f, cost_fn, x0, d2, s, gamma_prev, constant, umax
+                )
+                d = {k: _where(bump, d2[k], v) if torch.is_tensor(v) else v for k, v in d.items()}
+                gamma = torch.where(bump, g2_, gamma)
+                Jnew = torch.where(bump, J2, Jnew)
+                ok = torch.where(bump, ok2, ok)
+                xn, un = _where(bump, x2, xn), _where(bump, u2, un)
+                accept = running & ok
+        else:
+            bump = torch.zeros_like(accept)
+        na = d["base_a"] + gamma[:, None, None] * d["da"]
+        nm = d["base_m"] + gamma[:, None, None] * d["dm"]
+        self._after_step(s, accept, d)
+        s["prev_a"] = _where(accept, s["alpha"], s["prev_a"])
+        s["prev_m"] = _where(accept, s["mu"], s["prev_m"])
+        s["alpha"] = _where(accept, na, s["alpha"])
+        s["mu"] = _where(accept, nm, s["mu"])
+        x = _where(accept, xn, s["x"])
+        u = _where(accept, un, s["u"])
+        s["J"] = torch.where(accept, Jnew, J)
+        Jc_new = cost_fn(x, u) if umax is not None else s["J"]
+        s["Jc"] = torch.where(accept, Jc_new, s["Jc"])
+        s["x"], s["u"] = x, u
+        self._on_accept(s, accept, x, u)
+        s["k_nest"] = s["k_nest"] + accept.to(torch.int64)
+        s["restart"] = (s["restart"] & ~accept) | bump
+        s["k_nest"] = torch.where(bump, 0, s["k_nest"])
+        s["gamma_prev"] = torch.where(accept, gamma, gamma_prev)
+        # a failed momentum / conjugate step only restarts the method; a failed plain
+        # gradient step means the gains stopped stabilising: recompute them, and if they
+        # are fresh already, the element has failed
+        failed = running & ~ok & d["plain"]
+        ended = failed & s["fresh"] if o.recompute != "never" else failed
+        if o.recompute != "never":
+            s["pending"] = s["pending"] | (failed & ~s["fresh"])
+        end_code = int(Status.DIVERGED if constant else Status.LINE_SEARCH_FAILED)
+        end = torch.where(ended, end_code, int(Status.RUNNING))
+        s["restart"] = s["restart"] | (running & ~ok)
+        s["k_nest"] = torch.where(running & ~ok, 0, s["k_nest"])
+        s["fresh"] = s["fresh"] & ~accept
+        state = replace(state, **{k: s[k] for k in _STATE_FIELDS})
+        return Advance(state=state, accept=accept, step=gamma, end=end)
 
     def _initial_curve(self, problem, x0, u, alpha_init, eps, umax):
         """Initial curve, trajectory and gains.
@@ -955,14 +982,14 @@ class GoPRONTO:
         return alpha, u.clone(), x, uu, K, ~(failed | bad)
 
     def _armijo_passes(self, d: dict) -> tuple[int, int | None]:
-        """``(first_trials, pass_size)`` of :func:`armijo_search`: ``armijo_chunk`` at a
-        time when set; by default the 4 largest trials first (the first trial grows
-        from the last accepted step, so one of them is usually accepted), then the rest
-        at once for small problems and 4 at a time once a trial rollout is large
-        (``B T n`` above 2e5 entries), where the rollouts dominate."""
+        """``(first_trials, pass_size)`` of :func:`armijo_search`: ``armijo_passes`` when
+        set; by default the 4 largest trials first (the first trial grows from the last
+        accepted step, so one of them is usually accepted), then the rest at once for
+        small problems and 4 at a time once a trial rollout is large (``B T n`` above
+        2e5 entries), where the rollouts dominate."""
         o = self.options
-        if o.armijo_chunk is not None:
-            return o.armijo_chunk, o.armijo_chunk
+        if o.armijo_passes is not None:
+            return o.armijo_passes
         return 4, (None if d["base_a"].numel() <= 200_000 else 4)
 
     def _first_trial(self, gamma_prev: Tensor) -> Tensor:

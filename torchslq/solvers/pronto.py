@@ -23,18 +23,16 @@ every iteration the element then ends as ``LINE_SEARCH_FAILED``.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
 
 from ..lq.riccati import riccati_backward, rollout_linear
-from .gopronto import GoPRONTO, _dot
+from .base import Solver
+from .gopronto import GoPRONTO, PRONTOOptions, _chunk_alias, _dot
 
 __all__ = ["PRONTO"]
-
-_ORDERS = ("first",)
-_WEIGHTS = ("hessian", "identity")
 
 
 class PRONTO(GoPRONTO):
@@ -52,11 +50,12 @@ class PRONTO(GoPRONTO):
             ``variant`` is not accepted.
     """
 
-    name = "pronto"
+    name: ClassVar[str] = "pronto"
+    options_class: ClassVar[type] = PRONTOOptions
 
     @property
     def _always_hessians(self) -> bool:
-        return self.weights == "hessian"
+        return self.options.weights == "hessian"
 
     def __init__(
         self,
@@ -64,23 +63,37 @@ class PRONTO(GoPRONTO):
         weights: str = "hessian",
         step: Any = "armijo",
         recompute: str = "always",
-        **kwargs: Any,
+        *,
+        max_iter: int = 200,
+        tol: float = 1e-6,
+        Q_reg: Any = None,
+        R_reg: Any = None,
+        Qf_reg: Any = None,
+        stability_tol: float = 1e4,
+        u_max: Any = None,
+        barrier_weight: float = 1.0,
+        barrier_decrease: float = 0.2,
+        barrier_min: float = 1e-4,
+        barrier_margin: float = 0.05,
+        armijo_c1: float = 1e-4,
+        armijo_beta: float = 0.5,
+        max_backtracks: int = 30,
+        armijo_passes: tuple[int, int | None] | None = None,
+        armijo_chunk: int | None = None,
+        step0: float = 1.0,
+        armijo_growth: float = 4.0,
+        linearize_method: str = "auto",
+        progress: bool = True,
+        stall_iters: int = 10,
     ):
-        if "variant" in kwargs:
-            raise TypeError("PRONTO takes no 'variant' (it has one direction: the LQ problem (14))")
-        if order not in _ORDERS:
-            raise ValueError(f"order must be one of {_ORDERS}, got {order!r}")
-        if weights not in _WEIGHTS:
-            raise ValueError(f"weights must be one of {_WEIGHTS}, got {weights!r}")
-        super().__init__(variant="gradient", step=step, recompute=recompute, **kwargs)
-        self.order = order
-        self.weights = weights
+        kw = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
+        Solver.__init__(self, **_chunk_alias(kw))
 
     def _direction(self, ctx: dict, problem, x0: Tensor) -> dict[str, Tensor]:
         s = ctx
         A, B, e, x, u = s["A"], s["B"], s["e"], s["x"], s["u"]
         T, n, m = A.shape[-3], A.shape[-1], B.shape[-1]
-        if self.weights == "hessian":
+        if self.options.weights == "hessian":
             Q, R, S = e.lxx, e.luu, e.lux
         else:
             Q = torch.eye(n, dtype=x.dtype, device=x.device)
