@@ -21,9 +21,11 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest tests
 
+LINT_PATHS := torchslq tests examples benchmarks reproductions
+
 lint: $(STAMP)
-	$(VENV)/bin/ruff check torchslq tests examples benchmarks
-	$(VENV)/bin/ruff format --check torchslq tests examples benchmarks
+	$(VENV)/bin/ruff check $(LINT_PATHS)
+	$(VENV)/bin/ruff format --check $(LINT_PATHS)
 
 bench: $(STAMP)
 	# mpc declares numpy<2 but runs on numpy 2: install it without its pins, the rest normally

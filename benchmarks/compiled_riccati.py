@@ -5,7 +5,7 @@ Not part of the test suite. Run from the repo root::
     .venv/bin/python benchmarks/compiled_riccati.py            # kernel grid + solves
     .venv/bin/python benchmarks/compiled_riccati.py --quick    # smaller, a sanity check
 
-Both paths run in the same process, alternating (``torchslq.lq.compiled.set_compiled``),
+Both paths run in the same process, alternating (``torchslq.lq.set_compiled``),
 float64, ``torch.set_num_threads(1)``; the reported time is the minimum over the
 repeats (and the median beside it), the ratio is torch / compiled (> 1: compiled
 faster).
@@ -37,7 +37,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import torchslq as ts  # noqa: E402
-from torchslq.lq.compiled import set_compiled  # noqa: E402
+from torchslq.lq import set_compiled  # noqa: E402
 from torchslq.lq.riccati import riccati_homogeneous  # noqa: E402
 
 F64 = torch.float64
