@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
@@ -205,45 +207,47 @@ def test_second_order_failure_falls_back_to_the_ilqr_step():
 
 
 def test_mu_retries_repeat_the_pass_for_the_failing_elements_only(monkeypatch):
-    """Far from the optimum DDP's second-order terms make some ``Quu`` indefinite; the
-    pass is then repeated with a larger ``mu`` for those elements only (fewer rows per
-    retry, measured by wrapping the kernel), and the batch still equals one-by-one
-    solves (so the rows put back are the right ones). Trying the next values of mu side
-    by side in one pass (the default) gives the same solution bit for bit, in fewer
-    passes. (These are the restarts of the torch path: on the compiled CPU path the
-    kernel restarts the element itself, tested below, so it is switched off here.)"""
-    import torchslq.solvers.newton as ilqr_mod  # iLQR/DDP's direction
+    """Far from the optimum DDP's second-order terms make some ``Quu`` indefinite; on the
+    torch path the pass is then repeated with a larger ``mu`` for those elements only
+    (fewer rows per retry, measured by wrapping the pass), and the batch still equals
+    one-by-one solves (so the rows put back are the right ones). Trying the next values
+    of mu side by side in one pass (the default) gives the same solution bit for bit, in
+    fewer passes."""
+    import torchslq.lq.riccati as riccati_mod
+    from torchslq.lq import set_compiled
     from torchslq.tasks import cartpole_swingup
 
-    monkeypatch.setattr(ilqr_mod.LevenbergMarquardt, "restarts", lambda self, *a: None)
     problem, x0 = cartpole_swingup(4, seed=3)
     rows_per_pass: list[int] = []
-    kernel = ilqr_mod.riccati_backward
+    kernel = riccati_mod._torch_backward
 
     def counting(A, *args, **kwargs):
         rows_per_pass.append(A.shape[0])
         return kernel(A, *args, **kwargs)
 
-    monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
-    monkeypatch.setattr(ilqr_mod, "RETRY_ROWS", 1)  # one candidate mu per restart pass
-    solver = ts.DDP(progress=False, max_iter=15, tol=1e-8)
-    batch = solver.solve(problem, x0)
-    assert any(0 < r < x0.shape[0] for r in rows_per_pass), rows_per_pass
-    monkeypatch.undo()
-    # side by side (the default): the same solution to the last bit, in fewer passes
-    monkeypatch.setattr(ilqr_mod.LevenbergMarquardt, "restarts", lambda self, *a: None)
-    passes_one_by_one = len(rows_per_pass)
-    rows_per_pass.clear()
-    monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
-    side_by_side = solver.solve(problem, x0)
-    monkeypatch.undo()
-    assert torch.equal(side_by_side.u, batch.u) and torch.equal(side_by_side.K, batch.K)
-    assert torch.equal(side_by_side.iterations, batch.iterations)
-    assert len(rows_per_pass) < passes_one_by_one, (len(rows_per_pass), passes_one_by_one)
-    for b in range(x0.shape[0]):
-        single = solver.solve(problem, x0[b])
-        torch.testing.assert_close(single.u, batch.u[b], rtol=1e-9, atol=1e-11)
-        assert int(single.iterations) == int(batch.iterations[b])
+    set_compiled(False)
+    try:
+        monkeypatch.setattr(riccati_mod, "_torch_backward", counting)
+        monkeypatch.setattr(riccati_mod, "RETRY_ROWS", 1)  # one candidate mu per pass
+        solver = ts.DDP(progress=False, max_iter=15, tol=1e-8)
+        batch = solver.solve(problem, x0)
+        assert any(0 < r < x0.shape[0] for r in rows_per_pass), rows_per_pass
+        monkeypatch.undo()
+        # side by side (the default): the same solution to the last bit, in fewer passes
+        passes_one_by_one = len(rows_per_pass)
+        rows_per_pass.clear()
+        monkeypatch.setattr(riccati_mod, "_torch_backward", counting)
+        side_by_side = solver.solve(problem, x0)
+        monkeypatch.undo()
+        assert torch.equal(side_by_side.u, batch.u) and torch.equal(side_by_side.K, batch.K)
+        assert torch.equal(side_by_side.iterations, batch.iterations)
+        assert len(rows_per_pass) < passes_one_by_one, (len(rows_per_pass), passes_one_by_one)
+        for b in range(x0.shape[0]):
+            single = solver.solve(problem, x0[b])
+            torch.testing.assert_close(single.u, batch.u[b], rtol=1e-9, atol=1e-11)
+            assert int(single.iterations) == int(batch.iterations[b])
+    finally:
+        set_compiled(True)
 
 
 @pytest.mark.parametrize("solver_name", ["DDP", "DDP-bounded"])
@@ -269,11 +273,28 @@ def test_restarts_inside_the_compiled_kernel_equal_the_repeated_passes(monkeypat
         passes.append(out.reg is not None)
         return out
 
+    def repeated_passes(*args, reg, restarts=None, **kwargs):
+        """The restarts made from Python: the whole pass repeated, one mu at a time."""
+        fac = kernel(*args, reg=reg, **kwargs)
+        passes.append(False)
+        sched = restarts.schedule
+        bad = fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
+        mu, delta = reg.clone(), restarts.delta.clone()
+        for _ in range(sched.max_restarts):
+            retry = bad & restarts.allowed & (mu <= sched.reg_max)
+            if not bool(retry.any()):
+                break
+            mu, delta = sched.increase(mu, delta, retry)
+            fac = kernel(*args, reg=mu, **kwargs)
+            passes.append(False)
+            bad = fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
+        return dataclasses.replace(fac, failed=bad, reg=mu, reg_delta=delta)
+
     monkeypatch.setattr(ilqr_mod, "riccati_backward", counting)
     inside = solver.solve(problem, x0)
     n_inside, restarted_inside = len(passes), all(passes)
     passes.clear()
-    monkeypatch.setattr(ilqr_mod.LevenbergMarquardt, "restarts", lambda self, *a: None)
+    monkeypatch.setattr(ilqr_mod, "riccati_backward", repeated_passes)
     repeated = solver.solve(problem, x0)
     assert restarted_inside  # every pass ran on the kernel with restarts
     for name in ("u", "x", "K", "cost", "iterations", "status"):

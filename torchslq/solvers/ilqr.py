@@ -12,9 +12,10 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
+from ..lq.regularization import RegularizationSchedule
 from .base import DescentSolver
 from .descent import descent_rule
-from .newton import LevenbergMarquardt, RegularizedNewton, active_bounds, resolve_bounds
+from .newton import RegularizedNewton, active_bounds, resolve_bounds
 from .options import ILQROptions
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -81,9 +82,10 @@ class ILQR(DescentSolver):
 
     def _newton(self, **second_order: Any) -> RegularizedNewton:
         o = self.options
-        schedule = LevenbergMarquardt(o.mu_init, o.mu_min, o.mu_max, o.mu_factor)
+        schedule = RegularizationSchedule(o.mu_factor, o.mu_min, o.mu_max)
         return RegularizedNewton(
             schedule=schedule,
+            mu_init=o.mu_init,
             hessian_floor=o.hessian_floor,
             skip_tol=o.tol if o.stop in ("grad", "either") else None,
             linearize_method=o.linearize_method,

@@ -38,7 +38,8 @@ from ..dynamics.linearize import (
     linearize_with_hessians,
     linearize_with_vhp,
 )
-from ..lq.riccati import Restarts, RiccatiFactors, StageHook, riccati_backward
+from ..lq.regularization import RegularizationSchedule
+from ..lq.riccati import RiccatiFactors, StageHook, riccati_backward
 from .descent import DescentState
 from .rollout import costate_gradient
 
@@ -46,12 +47,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
 
 __all__ = ["RegularizedNewton", "active_bounds", "resolve_bounds"]
-
-# restarts of a failed Riccati pass per iteration (Tassa et al.'s regularisation), and the
-# most rows one pass of side-by-side restarts may have (failing elements x candidates;
-# a constant, so that the passes an element needs do not depend on the batch around it)
-MAX_RETRIES = 8
-RETRY_ROWS = 2048
 
 
 def active_bounds(u: Tensor, lo: Tensor, hi: Tensor, rtol: float | None = None) -> Tensor:
@@ -115,27 +110,6 @@ def _merge_factors(mask: Tensor, a: RiccatiFactors, b: RiccatiFactors) -> Riccat
     )
 
 
-def _take_factors(fac: RiccatiFactors, rows: Tensor) -> RiccatiFactors:
-    def take(t: Tensor | None) -> Tensor | None:
-        return None if t is None else t.index_select(0, rows)
-
-    return RiccatiFactors(**{f.name: take(getattr(fac, f.name)) for f in fields(RiccatiFactors)})
-
-
-def _scatter_factors(full: RiccatiFactors, idx: Tensor, part: RiccatiFactors) -> RiccatiFactors:
-    def put(ta: Tensor | None, tb: Tensor | None) -> Tensor | None:
-        if ta is None or tb is None:
-            return ta
-        return ta.index_copy(0, idx, tb.expand(idx.shape[0], *ta.shape[1:]))
-
-    return RiccatiFactors(
-        **{
-            f.name: put(getattr(full, f.name), getattr(part, f.name))
-            for f in fields(RiccatiFactors)
-        }
-    )
-
-
 # ---------------------------------------------------------------------------- DDP terms
 class HessianHook:
     """Stage hook ``v_{t+1} · f_zz(t)`` from precomputed output Hessians.
@@ -187,45 +161,15 @@ def hessian_block(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor:
     return out
 
 
-# ---------------------------------------------------------------------------- the schedule
-@dataclass(frozen=True)
-class LevenbergMarquardt:
-    """Tassa et al.'s (2012) per-element schedule of the regularisation ``mu``:
-    increase ``delta := max(f, delta f)``, ``mu := max(mu_floor, mu delta)``; decrease
-    ``delta := min(1/f, delta/f)``, ``mu := mu delta`` (0 below ``mu_min``)."""
-
-    mu_init: float = 0.0
-    mu_min: float = 1e-6
-    mu_max: float = 1e10
-    factor: float = 2.0
-
-    @property
-    def floor(self) -> float:
-        """The smallest ``mu`` an increase gives (``mu_min``, or 1e-6 when that is zero)."""
-        return self.mu_min if self.mu_min > 0 else 1e-6
-
-    def increased(self, mu: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
-        delta = torch.maximum(torch.full_like(delta, self.factor), delta * self.factor)
-        return torch.maximum(torch.full_like(mu, self.floor), mu * delta), delta
-
-    def decreased(self, mu: Tensor, delta: Tensor) -> tuple[Tensor, Tensor]:
-        delta = torch.minimum(torch.full_like(delta, 1.0 / self.factor), delta / self.factor)
-        mu = mu * delta
-        return torch.where(mu < self.mu_min, torch.zeros_like(mu), mu), delta
-
-    def restarts(self, delta: Tensor, allowed: Tensor) -> Restarts:
-        return Restarts(
-            delta, allowed, float(self.factor), self.floor, float(self.mu_max), MAX_RETRIES
-        )
-
-
 # ---------------------------------------------------------------------------- direction
 @dataclass(frozen=True)
 class RegularizedNewton:
     """iLQR (``second_order=None``) and DDP (``"value"``/``"costate"``) directions.
 
     Args:
-        schedule: the Levenberg-Marquardt schedule of ``mu``.
+        schedule: the Levenberg-Marquardt schedule of ``mu`` (Tassa et al. 2012), whose
+            restarts of a failed factorisation :func:`riccati_backward` makes.
+        mu_init: the regularisation at the start of a solve.
         hessian_floor: clip the cost Hessians' eigenvalues to at least this (None: off).
         second_order: None (iLQR), ``"value"`` or ``"costate"`` (DDP).
         vhp_memory_limit: ``"value"``: take all output Hessians at once when they fit in
@@ -235,7 +179,8 @@ class RegularizedNewton:
             the second iteration on, the pass is skipped (its step would be discarded).
     """
 
-    schedule: LevenbergMarquardt = LevenbergMarquardt()
+    schedule: RegularizationSchedule = RegularizationSchedule()
+    mu_init: float = 0.0
     hessian_floor: float | None = None
     second_order: str | None = None
     vhp_memory_limit: int | None = 256 * 2**20
@@ -331,7 +276,7 @@ class RegularizedNewton:
                 torch.where(bad & running, bad_gn, bad),
             )
         # an element that needed mu > mu_max to factorise stops (not_positive_definite)
-        failed = bad | (mu > self.schedule.mu_max)
+        failed = bad | (mu > self.schedule.reg_max)
         k = fac.k
         if fac.dV is None:
             Lk = (fac.chol.mT @ k.unsqueeze(-1))[..., 0]  # k'Quu k = |L'k|^2
@@ -356,88 +301,28 @@ class RegularizedNewton:
         return d, replace(state, mu=mu, delta=delta)
 
     def _regularized_pass(self, A, B, e, hook, u_bounds, state, running):
-        """The Riccati pass with per-element restarts of failed elements (Tassa et al.):
+        """The Riccati pass with Tassa et al.'s restarts of the running elements whose
+        factorisation fails (inside :func:`riccati_backward`, the same on every backend):
         ``(factors, failed, mu, delta)``."""
-        sched = self.schedule
-        mu, delta = state.mu, state.delta
-        fac, bad = _pass(A, B, e, hook, u_bounds, mu, restarts=sched.restarts(delta, running))
-        if fac.reg is not None:  # the compiled kernel made the restarts itself
-            return fac, bad, fac.reg, fac.reg_delta
-        if hook is not None and not hasattr(hook, "subset"):
-            for _ in range(MAX_RETRIES):  # a hook that cannot be restricted: whole batch
-                retry = bad & running & (mu <= sched.mu_max)
-                if not bool(retry.any()):
-                    break
-                mu_up, delta_up = sched.increased(mu, delta)
-                mu, delta = torch.where(retry, mu_up, mu), torch.where(retry, delta_up, delta)
-                fac, bad = _pass(A, B, e, hook, u_bounds, mu)
-            return fac, bad, mu, delta
-        # side by side: the failing rows repeated once per candidate mu in one pass
-        tries = 0
-        while tries < MAX_RETRIES:
-            retry = bad & running & (mu <= sched.mu_max)
-            if not bool(retry.any()):
-                break
-            idx = retry.nonzero().squeeze(1)
-            r = idx.shape[0]
-            n_cand = max(1, min(MAX_RETRIES - tries, RETRY_ROWS // r))
-            mu_r, delta_r = mu[idx], delta[idx]
-            mus, deltas = [], []
-            for _ in range(n_cand):
-                mu_r, delta_r = sched.increased(mu_r, delta_r)
-                mus.append(mu_r)
-                deltas.append(delta_r)
-            M, D = torch.stack(mus), torch.stack(deltas)  # (n_cand, r)
-            rows = idx.repeat(n_cand)
-            fac_r, bad_r = _pass(A, B, e, hook, u_bounds, M.reshape(-1), rows=rows)
-            bad_r = bad_r.view(n_cand, r)
-            stop = ~bad_r | (M > sched.mu_max)  # where one-at-a-time restarts stop
-            first = torch.argmax(stop.to(torch.int8), dim=0)
-            c = torch.where(stop.any(0), first, torch.full_like(first, n_cand - 1))
-            ar = torch.arange(r, device=idx.device)
-            fac = _scatter_factors(fac, idx, _take_factors(fac_r, c * r + ar))
-            bad = bad.index_copy(0, idx, bad_r[c, ar])
-            mu = mu.index_copy(0, idx, M[c, ar])
-            delta = delta.index_copy(0, idx, D[c, ar])
-            tries += n_cand
-        return fac, bad, mu, delta
+        restarts = self.schedule.restarts(state.delta, running)
+        fac, bad = _pass(A, B, e, hook, u_bounds, state.mu, restarts=restarts)
+        return fac, bad, fac.reg, fac.reg_delta
 
     def after_search(self, state: DescentState, running: Tensor, ok: Tensor):
         """Adapt ``mu`` (decrease after an accepted step, increase after a failed search);
         an element whose ``mu`` would exceed ``mu_max`` ends (``line_search_failed``)."""
         sched = self.schedule
-        mu_dn, delta_dn = sched.decreased(state.mu, state.delta)
-        mu_up, delta_up = sched.increased(state.mu, state.delta)
-        good, bad = running & ok, running & ~ok
-        mu = torch.where(good, mu_dn, torch.where(bad, mu_up, state.mu))
-        delta = torch.where(good, delta_dn, torch.where(bad, delta_up, state.delta))
-        return replace(state, mu=mu, delta=delta), bad & (mu > sched.mu_max)
+        mu, delta = sched.decrease(state.mu, state.delta, running & ok)
+        mu, delta = sched.increase(mu, delta, running & ~ok)
+        return replace(state, mu=mu, delta=delta), running & ~ok & (mu > sched.reg_max)
 
 
-def _pass(A, B, e, hook, u_bounds, reg, rows: Tensor | None = None, restarts=None):
-    """One Riccati pass for the whole batch, or for the rows ``rows`` only (a retry: rows
-    may repeat, each with its own ``reg``): ``(factors, failed)``, non-finite gains
-    counting as a failure (DDP's second-order terms can make the value overflow)."""
-
-    def sel(t: Tensor | None, tail: int) -> Tensor | None:
-        if rows is None or t is None or t.ndim <= tail or t.shape[0] == 1:
-            return t  # no batch dim, or one shared by every element
-        return t.index_select(0, rows)
-
-    bounds = None if u_bounds is None else tuple(sel(b, 2) for b in u_bounds)
+def _pass(A, B, e, hook, u_bounds, reg, restarts=None):
+    """One Riccati pass: ``(factors, failed)`` (non-finite gains count as a failure)."""
     fac = riccati_backward(
-        sel(A, 3),
-        sel(B, 3),
-        sel(e.lxx, 3),
-        sel(e.luu, 3),
-        sel(e.lx, 2),
-        sel(e.lu, 2),
-        sel(e.lux, 3),
-        reg=reg,
-        stage_hook=hook if rows is None or hook is None else hook.subset(rows),
-        u_bounds=bounds,
-        restarts=restarts,
-    )
+        A, B, e.lxx, e.luu, e.lx, e.lu, e.lux,
+        reg=reg, stage_hook=hook, u_bounds=u_bounds, restarts=restarts,
+    )  # fmt: skip
     return fac, fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
 
 
