@@ -30,6 +30,12 @@ __all__ = ["MAX_RESTARTS", "RegularizationSchedule", "Restarts"]
 MAX_RESTARTS = 8
 
 
+def _floor(reg_min: float) -> float:
+    """The smallest ``mu`` an increase gives: ``reg_min``, or 1e-6 when that is zero (a
+    zero ``mu`` cannot grow by scaling)."""
+    return float(reg_min) if reg_min > 0 else 1e-6
+
+
 @dataclass(frozen=True)
 class RegularizationSchedule:
     """Tassa et al.'s (2012) per-element schedule of the regularisation ``mu`` on ``Quu``.
@@ -59,7 +65,7 @@ class RegularizationSchedule:
     def floor(self) -> float:
         """The smallest ``mu`` an increase gives: ``reg_min``, or 1e-6 when that is zero
         (a zero ``mu`` cannot grow by scaling)."""
-        return self.reg_min if self.reg_min > 0 else 1e-6
+        return _floor(self.reg_min)
 
     def increase(
         self, reg: Tensor, delta: Tensor, mask: Tensor | None = None
@@ -120,6 +126,12 @@ class Restarts:
     floor: float = 1e-6
     reg_max: float = 1e10
     max_restarts: int = MAX_RESTARTS
+
+    @property
+    def options(self) -> tuple[float, float, float, int]:
+        """``(factor, floor, reg_max, max_restarts)`` as plain numbers (the compiled
+        kernel's restart options)."""
+        return float(self.factor), _floor(self.floor), float(self.reg_max), int(self.max_restarts)
 
     @property
     def schedule(self) -> RegularizationSchedule:

@@ -433,12 +433,12 @@ def _compiled_pieces_pass(
         return None
     if restarts is not None:
         _check_restart_batch(batch)
-        sched = restarts.schedule
+        delta, allowed = restarts.delta, restarts.allowed
         restarts = (
             reg,
-            _ones(restarts.delta, batch, A.dtype),
-            _ones(restarts.allowed, batch, torch.bool),
-            (float(sched.factor), sched.floor, float(sched.reg_max), int(sched.max_restarts)),
+            torch.ones(batch, dtype=A.dtype) if delta is None else delta,
+            torch.ones(batch, dtype=torch.bool) if allowed is None else allowed,
+            restarts.options,
         )
     out = riccati_compiled(
         None,
@@ -676,7 +676,7 @@ def riccati_backward(
     them against each other and against a per-element reference. Without ``restarts``
     ``reg``, ``reg_delta`` are None and ``failed`` flags failed factorisations only.
     """
-    if restarts is not None:
+    if restarts is not None and not (isinstance(reg, Tensor) and reg.dtype == A.dtype):
         reg = torch.as_tensor(0.0 if reg is None else reg, dtype=A.dtype, device=A.device)
     fac = _compiled_pieces_pass(A, B, Q, R, q, r, S, c, reg, stage_hook, u_bounds, restarts)
     if fac is not None:
