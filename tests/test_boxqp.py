@@ -17,9 +17,9 @@ import torch
 
 import torchslq as ts
 from torchslq.dynamics import Dynamics
+from torchslq.dynamics.rollout import rollout, rollout_closed_loop
 from torchslq.lq import box_qp, riccati_backward
 from torchslq.problem import Problem
-from torchslq.solvers.rollout import rollout, rollout_closed_loop
 from torchslq.tasks import pendulum_swingup
 
 F64 = torch.float64

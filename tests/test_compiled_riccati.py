@@ -493,7 +493,7 @@ def test_compiled_closed_loop_rollout_equals_torch_path(torch_path, case):
     """rollout_closed_loop with the feedback on the CPU kernel == the torch path (the same
     order of operations, so the same bits), for candidate steps, bounds, a nominal
     trajectory of T states (GoPRONTO's projection) and float32."""
-    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.dynamics.rollout import rollout_closed_loop
     from torchslq.systems import Unicycle
 
     dtype = torch.float32 if case == "float32" else F64
@@ -512,7 +512,7 @@ def test_compiled_closed_loop_rollout_equals_torch_path(torch_path, case):
 
     import sys
 
-    mod = sys.modules["torchslq.solvers.rollout"]
+    mod = sys.modules["torchslq.dynamics.rollout"]
     old = mod.closed_loop_feedback_compiled
     mod.closed_loop_feedback_compiled = counting
     try:
@@ -532,7 +532,7 @@ def test_compiled_closed_loop_rollout_equals_torch_path(torch_path, case):
 def test_closed_loop_rollout_keeps_the_graph_of_a_model_that_needs_it(torch_path):
     """A model whose parameters require grad: the rollout falls back to torch ops and
     its output is differentiable, with the torch path's gradient."""
-    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.dynamics.rollout import rollout_closed_loop
     from torchslq.systems import CartPole
 
     d = _feedback_data(2, 3, 6, 4, 1)
@@ -555,7 +555,7 @@ def test_compiled_costate_gradient_equals_torch_path(torch_path, case):
     """costate_gradient on the CPU kernel == the torch recursion (same order of
     operations: the same bits), with GoPRONTO's feedback term, dynamics shared by the
     batch and float32; and the gradient is dJ/dU (checked against autograd)."""
-    from torchslq.solvers.rollout import costate_gradient
+    from torchslq.dynamics.rollout import costate_gradient
 
     dtype = torch.float32 if case == "float32" else F64
     g = torch.Generator().manual_seed(11)
@@ -594,7 +594,7 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
     feedback law applied to those states."""
     import sys
 
-    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.dynamics.rollout import rollout_closed_loop
     from torchslq.systems import CartPole, Unicycle
 
     dtype = torch.float32 if case == "float32" else F64
@@ -609,7 +609,7 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
     mod = sys.modules["torchslq._backend.dispatch"]
     calls = []
     real = mod.closed_loop_rollout_compiled
-    rmod = sys.modules["torchslq.solvers.rollout"]
+    rmod = sys.modules["torchslq.dynamics.rollout"]
     rmod.closed_loop_rollout_compiled = lambda *a: calls.append(1) or real(*a)
     try:
         xf, uf = rollout_closed_loop(f, **d, **kw)
@@ -650,7 +650,7 @@ def test_whole_rollout_kernel_skips_rows_with_a_nan_step(torch_path, model):
     """A NaN step (a line-search trial no element needs, armijo_search's skip_settled)
     is not rolled out by the kernel: NaN states after x0 as on the torch path, the other rows the
     same as without NaN steps."""
-    from torchslq.solvers.rollout import rollout_closed_loop
+    from torchslq.dynamics.rollout import rollout_closed_loop
     from torchslq.systems import CartPole, Unicycle
 
     B, T, m = 5, 7, 2 if model == "unicycle" else 1
@@ -681,7 +681,7 @@ def test_open_loop_rollout_with_the_models_compiled_step(torch_path, model, dtyp
     the graph is kept."""
     import sys
 
-    from torchslq.solvers.rollout import rollout
+    from torchslq.dynamics.rollout import rollout
     from torchslq.systems import CartPole, Unicycle
 
     if model == "unicycle":
@@ -692,7 +692,7 @@ def test_open_loop_rollout_with_the_models_compiled_step(torch_path, model, dtyp
     x0 = torch.randn(n, generator=g, dtype=dtype)
     u = torch.randn(2, 5, 9, m, generator=g, dtype=dtype)
     u_before = u.clone()
-    rmod = sys.modules["torchslq.solvers.rollout"]
+    rmod = sys.modules["torchslq.dynamics.rollout"]
     real, calls = rmod.closed_loop_rollout_compiled, []
     rmod.closed_loop_rollout_compiled = lambda *a: calls.append(1) or real(*a)
     try:

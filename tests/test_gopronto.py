@@ -10,8 +10,8 @@ import torch
 import torchslq
 from torchslq import Dynamics, GoPRONTO, GradientMethod, Problem, QuadraticCost
 from torchslq.costs.barrier import box_log_barrier
+from torchslq.dynamics.rollout import rollout
 from torchslq.solvers.gopronto import closed_loop_growth, curve_gradient, project
-from torchslq.solvers.rollout import rollout
 from torchslq.tasks import pendulum_swingup
 
 DT = torch.float64

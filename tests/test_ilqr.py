@@ -652,7 +652,7 @@ def test_x_init_skips_the_initial_rollout_and_gives_the_same_solve(bounded, monk
     a wrong shape or first state is an error."""
     import torchslq.solvers.base as slq_mod  # the descent solvers' initial rollout
     from torchslq import discretize
-    from torchslq.solvers.rollout import rollout
+    from torchslq.dynamics.rollout import rollout
 
     dyn = discretize(CartPole(), 0.05)
     cost = QuadraticCost(torch.eye(4, dtype=F64), 0.1 * torch.eye(1, dtype=F64))

@@ -359,7 +359,7 @@ def test_shifted_warm_start_applies_the_previous_gains():
     guess, guess_x = mpc._initial_guess(x_off, None)
     # the states handed to the solver (which then skips its initial rollout) are the
     # rollout of the guess from the new state, bit for bit
-    from torchslq.solvers.rollout import rollout
+    from torchslq.dynamics.rollout import rollout
 
     assert torch.equal(guess_x, rollout(mpc.problem.transition, x_off, guess))
     K1 = res.K[:, 1]

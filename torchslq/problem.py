@@ -9,7 +9,7 @@ from torch import Tensor, nn
 
 from .dynamics.base import state_control_dims
 from .dynamics.linearize import as_transition
-from .solvers.rollout import rollout
+from .dynamics.rollout import rollout
 
 __all__ = ["Problem"]
 

@@ -4,7 +4,7 @@ Every dispatch-bound loop of the library (the Riccati pass with its box QPs and
 restarts, the LQ rollout and adjoint solve, the closed-loop rollout and its feedback
 step, the costate recursion, a quadratic cost's value, an RK4 stage's congruence) has a
 torch form, written with batched torch ops where the algorithm lives (``torchslq.lq``,
-``torchslq.solvers.rollout``, ...), and a compiled CPU form here: numba kernels over
+``torchslq.dynamics.rollout``, ...), and a compiled CPU form here: numba kernels over
 batch and time (:mod:`._numba_kernels`, :mod:`._numba_cost`; the RK4 derivative
 kernels of a model sit beside it in :mod:`torchslq.dynamics._numba_rk4`), run through
 the wrappers of :mod:`.dispatch`.

@@ -814,7 +814,7 @@ def feedback_kernel(t, x, xn, K, lo, hi, u):
 
 @numba.njit(cache=True, nogil=True)
 def costate_kernel(b0, b1, A, B, lx, lu, K, grad, lam):
-    """The costate recursion of ``solvers.rollout.costate_gradient`` per element:
+    """The costate recursion of ``dynamics.rollout.costate_gradient`` per element:
     ``lam_T = lx_T``, ``g_t = lu_t + B_t' lam_{t+1}``, ``lam_t = lx_t + A_t' lam_{t+1}
     (+ K_t' g_t)``. A ``(., T, n, n)``, B ``(., T, n, m)``, lx ``(., T+1, n)``, lu ``(., T,
     m)``, K ``(., T, m, n)`` or empty (each batch 1 or B); outputs grad ``(B, T, m)``,

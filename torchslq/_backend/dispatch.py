@@ -383,7 +383,7 @@ def _bound_arrays(u_min, u_max, shape: tuple[int, int, int], dtype: torch.dtype)
 def closed_loop_feedback_compiled(
     x_nom: Tensor, K: Tensor, u: Tensor, u_min: Tensor | None, u_max: Tensor | None
 ):
-    """The feedback step of :func:`torchslq.solvers.rollout_closed_loop` on the CPU
+    """The feedback step of :func:`torchslq.dynamics.rollout_closed_loop` on the CPU
     kernel: returns ``step(t, x_t)`` which adds ``K_t (x_t - x_nom_t)`` to ``u[..., t, :]``
     in place and clamps it into the bounds.
 

@@ -65,7 +65,7 @@ class Dynamics(nn.Module):
         ``(8, n)`` scratch array it may use) and ``params`` a 1-d float64 array; or None
         (the default, and whenever the current parameters cannot be passed that way,
         e.g. per-element tensors). Closed-loop rollouts without autograd then run as one
-        compiled loop (:func:`torchslq.solvers.rollout_closed_loop`). It must compute
+        compiled loop (:func:`torchslq.dynamics.rollout_closed_loop`). It must compute
         what :meth:`forward` computes (up to the last bits of library functions such as
         ``cos``)."""
         return None

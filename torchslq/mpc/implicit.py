@@ -41,9 +41,9 @@ from torch import Tensor
 from torch.autograd.function import once_differentiable
 
 from ..dynamics.linearize import dynamics_vhp, linearize_with_vhp
+from ..dynamics.rollout import costate_gradient
 from ..lq.riccati import homogeneous_cost, homogeneous_dynamics, riccati_homogeneous
 from ..lq.solve import lq_adjoint_solve, lq_status
-from ..solvers.rollout import costate_gradient
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem

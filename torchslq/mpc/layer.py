@@ -27,11 +27,11 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from ..dynamics.rollout import rollout_closed_loop
 from ..problem import Problem
 from ..solvers.ilqr import ILQR
 from ..solvers.newton import resolve_bounds
 from ..solvers.result import SolverResult
-from ..solvers.rollout import rollout_closed_loop
 from ..status import Status, status_names
 from .implicit import implicit_solution
 from .unroll import unrolled_solve

@@ -18,8 +18,8 @@ import torch
 from torch import Tensor
 
 from ..dynamics.linearize import linearize
+from ..dynamics.rollout import costate_gradient, rollout
 from ..lq.solve import lqr_solve
-from ..solvers.rollout import costate_gradient, rollout
 from .implicit import cost_gradients, lagrangian_hessian
 
 if TYPE_CHECKING:  # pragma: no cover

@@ -1,5 +1,6 @@
 """Solvers and their shared pieces (rollout, costate gradient, line search, result)."""
 
+from ..dynamics.rollout import costate_gradient, rollout, rollout_closed_loop
 from .ddp import DDP
 from .gopronto import GoPRONTO, GoPRONTOResult
 from .gradient import GradientMethod
@@ -7,7 +8,6 @@ from .ilqr import ILQR
 from .line_search import armijo_search, exact_search
 from .pronto import PRONTO
 from .result import SolverResult
-from .rollout import costate_gradient, rollout, rollout_closed_loop
 from .slq import SLQ, SLQOptions
 
 __all__ = [

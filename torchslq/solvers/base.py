@@ -16,12 +16,12 @@ import torch
 from torch import Tensor
 
 from ..costs.quadratic import compiled_cost_evaluation
+from ..dynamics.rollout import rollout
 from ..status import Status
 from .core import LoopSettings, iterate
 from .descent import DescentState
 from .options import loggable
 from .result import SolverResult
-from .rollout import rollout
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem

@@ -28,13 +28,13 @@ import torch
 from torch import Tensor
 
 from ..dynamics.linearize import linearize
+from ..dynamics.rollout import costate_gradient, rollout, rollout_closed_loop
 from ..lq.riccati import riccati_backward, rollout_linear
 from ..status import Status
 from .core import Advance as _Advance
 from .core import ElementState, Measure
 from .line_search import TrialRecorder, armijo_search, exact_search
 from .options import DescentOptions
-from .rollout import costate_gradient, rollout, rollout_closed_loop
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem

@@ -26,7 +26,7 @@ trajectory. ``alpha_0`` is a free variable like every ``alpha_t, t < T`` (Algori
 updates all of them; it enters only through ``u_0``, since ``x_0 = x_init``). Fixing it
 instead (one reading of eq. 19b) leaves ``u_0`` with an unpreconditioned gradient and makes
 the first step a slow mode (measured: ~100x more iterations on an unstable LQ problem).
-The shared :func:`~torchslq.solvers.rollout.costate_gradient` does
+The shared :func:`~torchslq.dynamics.rollout.costate_gradient` does
 the pass with the gains (``lam_t = a_t + A_t' lam_{t+1} + K_t' grad_mu_t``, the same
 recursion without forming ``A + B K``).
 
@@ -114,6 +114,7 @@ from .._shapes import broadcast_shapes
 from ..costs.barrier import box_log_barrier, box_log_barrier_derivatives
 from ..costs.quadratic import CostExpansion
 from ..dynamics.linearize import linearize
+from ..dynamics.rollout import costate_gradient, rollout, rollout_closed_loop
 from ..lq.riccati import riccati_backward
 from ..status import Status
 from .base import Solver
@@ -121,7 +122,6 @@ from .core import Advance, ElementState, Measure, iterate, shared
 from .line_search import TrialRecorder, armijo_search
 from .options import check_choice, check_int, check_passes, check_real, loggable, options_record
 from .result import SolverResult
-from .rollout import costate_gradient, rollout, rollout_closed_loop
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem

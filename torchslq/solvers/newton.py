@@ -38,10 +38,10 @@ from ..dynamics.linearize import (
     linearize_with_hessians,
     linearize_with_vhp,
 )
+from ..dynamics.rollout import costate_gradient
 from ..lq.regularization import RegularizationSchedule
 from ..lq.riccati import RiccatiFactors, StageHook, riccati_backward
 from .descent import DescentState
-from .rollout import costate_gradient
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem

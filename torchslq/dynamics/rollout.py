@@ -1,4 +1,5 @@
-"""Nonlinear rollouts and the costate (adjoint) gradient, shared by all solvers."""
+"""Nonlinear rollouts of a model (open loop and with feedback) and the costate (adjoint)
+gradient of the reduced cost: what every solver and the problem need of the dynamics."""
 
 from __future__ import annotations
 
