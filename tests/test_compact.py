@@ -183,3 +183,17 @@ def test_armijo_passes_default_by_device_and_validation():
     for bad in [(0, 3), (1, 0), (1.0, 3), 3, (1, 2, 3), (True, 3)]:
         with pytest.raises(ValueError, match="armijo_passes"):
             ts.SLQ(armijo_passes=bad)
+
+
+@pytest.mark.parametrize("make", [ts.SLQ, ts.ILQR])
+def test_compact_with_every_element_failing_from_the_start(make):
+    """A batch whose every element is non-finite from the start (a B=1 MPC loop whose
+    state entered a region where the model returns NaN) ends with status non_finite and
+    a one-column history, as without compaction (it used to raise on an empty history)."""
+    problem, x0 = pendulum_swingup(batch=3, horizon=10, seed=0)
+    x0 = x0.clone()
+    x0[:, 0] = 1e200
+    comp = make(compact=True, progress=False).solve(problem, x0)
+    full = make(progress=False).solve(problem, x0)
+    assert comp.status_names() == ["non_finite"] * 3 == full.status_names()
+    assert comp.history["cost"].shape == (3, 1) and torch.equal(comp.iterations, full.iterations)

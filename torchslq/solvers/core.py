@@ -239,6 +239,10 @@ def iterate(
         if idx is not None and idx.numel() == Bsz:
             idx = None
         if idx is not None and idx.numel() == 0:
+            # no element runs from the start (all non-finite): record the start and stop
+            for key, value in (("cost", cost), ("grad_norm", grad_norm), ("step", step)):
+                _history_row(hist, key, value)
+            times.append(time.perf_counter() - t_start)
             break
         sub, run = state.take(idx), _take(running, idx)
         sub, m = rule.measure(problem, sub, run, it)
