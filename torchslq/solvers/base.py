@@ -142,11 +142,9 @@ class DescentSolver(Solver):
         """The direction at ``(x (B,T+1,n), u (B,T,m))`` as the first iteration of a solve
         computes it: a dict with ``du``, ``dx``, ``K``, ``k``, ``grad``, ``slope``,
         ``failed`` (and ``curvature`` where the direction has one)."""
-        x0 = x[:, 0]
-        with torch.no_grad():
-            state = self.initial_state(problem, x0, u, x)
-            running = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
-            d, _ = self.rule().direction(problem, state, running, 0)
+        state = self.initial_state(problem, x[:, 0], u, x)
+        running = torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
+        d, _ = self.rule().direction(problem, state, running, 0)
         return d
 
     def prepare(
