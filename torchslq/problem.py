@@ -7,7 +7,7 @@ from collections.abc import Callable
 import torch
 from torch import Tensor, nn
 
-from .dynamics.base import state_control_dims
+from .dynamics.base import ContinuousDynamics, state_control_dims
 from .dynamics.linearize import as_transition
 from .dynamics.rollout import rollout
 
@@ -32,6 +32,12 @@ class Problem(nn.Module):
 
     def __init__(self, dynamics: nn.Module, cost: nn.Module, horizon: int):
         super().__init__()
+        if isinstance(dynamics, ContinuousDynamics):
+            raise TypeError(
+                f"dynamics is a ContinuousDynamics ({type(dynamics).__name__}: xdot = f(x, u)),"
+                " but Problem needs x_next = f(x, u): pass discretize(model, dt) "
+                "(rk4 by default)"
+            )
         n, m = state_control_dims(dynamics)
         if not isinstance(horizon, int) or isinstance(horizon, bool) or horizon < 1:
             raise ValueError(f"horizon must be a positive int, got {horizon!r}")

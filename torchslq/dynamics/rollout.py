@@ -17,7 +17,24 @@ from .._backend import (
 )
 from .._shapes import broadcast_shapes
 
-__all__ = ["rollout", "rollout_closed_loop", "costate_gradient"]
+__all__ = ["checked_step", "costate_gradient", "rollout", "rollout_closed_loop"]
+
+
+def checked_step(x_next: Tensor, x: Tensor) -> Tensor:
+    """``x_next``, the model's output for the states ``x``, after checking it has their
+    shape, dtype and device (metadata only: no host sync). A model that returns another
+    shape for some inputs (e.g. the line search's extra trial dimension) would otherwise
+    feed the compiled kernels arrays of the wrong size, and a float32 output in a float64
+    solve would silently lose precision."""
+    if not torch.is_tensor(x_next):
+        raise TypeError(f"the dynamics must return a tensor, got {type(x_next).__name__}")
+    if x_next.shape != x.shape or x_next.dtype != x.dtype or x_next.device != x.device:
+        raise ValueError(
+            f"the dynamics returned shape {tuple(x_next.shape)}, {x_next.dtype} on "
+            f"{x_next.device} for states of shape {tuple(x.shape)}, {x.dtype} on {x.device}: "
+            "the next state must have the shape, dtype and device of the state"
+        )
+    return x_next
 
 
 def rollout(f: Callable[[Tensor, Tensor], Tensor], x0: Tensor, u: Tensor) -> Tensor:
@@ -39,7 +56,7 @@ def rollout(f: Callable[[Tensor, Tensor], Tensor], x0: Tensor, u: Tensor) -> Ten
     xt = x0.expand(*lead, x0.shape[-1]).unsqueeze(-2)
     xs = [xt]
     for t in range(u.shape[-2]):
-        xt = f(xt, u[..., t : t + 1, :])
+        xt = checked_step(f(xt, u[..., t : t + 1, :]), xt)
         xs.append(xt)
     return torch.cat(xs, dim=-2)
 
@@ -91,7 +108,7 @@ def rollout_closed_loop(
             ut = torch.maximum(ut, lo[t])
         if hi is not None:
             ut = torch.minimum(ut, hi[t])
-        xt = f(xt, ut)
+        xt = checked_step(f(xt, ut), xt)
         xs.append(xt)
         us.append(ut)
     return torch.cat(xs, dim=-2), torch.cat(us, dim=-2)
@@ -127,7 +144,7 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
         if grad and xt.requires_grad:
             return None
         feedback(t, xt)
-        xt = f(xt, u[..., t : t + 1, :])
+        xt = checked_step(f(xt, u[..., t : t + 1, :]), xt)
         xs.append(xt)
     return torch.cat(xs, dim=-2), u
 

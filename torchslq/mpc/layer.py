@@ -314,8 +314,25 @@ class MPC(nn.Module):
 
     def step(self, x: Tensor) -> Tensor:
         """Receding-horizon control: solve from the current state(s) ``x`` and return the
-        first action ``(B, m)`` (or ``(m,)``); the next call is warm started."""
-        return self.forward(x).action
+        first action ``(B, m)`` (or ``(m,)``); the next call is warm started.
+
+        An element whose solve failed (``non_finite``, ``not_positive_definite``,
+        ``line_search_failed``, ``diverged``) still gets the action of its last iterate,
+        which is no optimal control: a ``RuntimeWarning`` names how many and why
+        (``last_result.status`` has them per element)."""
+        out = self.forward(x)
+        status = out.status.reshape(-1)
+        ok = (status == Status.CONVERGED) | (status == Status.MAX_ITER)
+        ok = ok | (status == Status.STALLED)
+        if not bool(ok.all()):
+            names = ", ".join(sorted(set(status_names(status[~ok]))))
+            warnings.warn(
+                f"MPC.step: {int((~ok).sum())} of {status.numel()} solves failed ({names}); "
+                "their actions are not optimal controls",
+                RuntimeWarning,
+                stacklevel=2,
+            )
+        return out.action
 
     # ------------------------------------------------------------------ gradients
     def _attach_gradients(self, x0: Tensor, result: SolverResult, guess: Tensor | None):

@@ -63,6 +63,8 @@ class SolverResult:
         counts = {s.label: names.count(s.label) for s in Status if names.count(s.label)}
         cost = self.cost.reshape(-1).double()
         it = self.iterations.reshape(-1).double()
+        if cost.numel() == 0:
+            return "problems: 0"
         lines = [
             f"problems: {cost.numel()}  status: "
             + ", ".join(f"{k} {v}" for k, v in counts.items()),

@@ -1,0 +1,137 @@
+"""Bad inputs and faults at the public entry points: a clear error naming the problem, or
+a per-element status, never a crash or a silent wrong answer."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tempfile
+import textwrap
+import warnings
+
+import pytest
+import torch
+
+import torchslq as ts
+from torchslq.systems import CartPole, Pendulum
+from torchslq.tasks import pendulum_swingup
+
+F64 = torch.float64
+
+
+def _cost(n=2, m=1):
+    return ts.QuadraticCost(torch.eye(n, dtype=F64), 0.1 * torch.eye(m, dtype=F64))
+
+
+def test_problem_refuses_a_continuous_model_that_was_not_discretized():
+    """xdot used as x_next would 'converge' to a wrong answer: refused with the fix."""
+    with pytest.raises(TypeError, match="discretize"):
+        ts.Problem(Pendulum(), _cost(), 10)
+    ts.Problem(ts.discretize(Pendulum(), 0.05), _cost(), 10)  # the fix works
+
+
+class _Float32Step(ts.Dynamics):
+    """A float64 pendulum step whose output is cast to float32 (a model that keeps its
+    own dtype)."""
+
+    state_dim, control_dim = 2, 1
+
+    def __init__(self):
+        super().__init__()
+        self.inner = ts.discretize(Pendulum(), 0.05)
+
+    def forward(self, x, u):
+        return self.inner(x, u).float()
+
+
+class _WrongShapeForTrials(ts.Dynamics):
+    """Right for (B, 1, n) states, wrong for the line search's (Na, B, 1, n) trials."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.inner = ts.discretize(CartPole(), 0.05)
+
+    def forward(self, x, u):
+        out = self.inner(x, u)
+        return out[0] if out.ndim == 4 else out
+
+
+@pytest.mark.parametrize("solver", ["slq", "ilqr", "ddp", "gopronto"])
+def test_a_float32_model_in_a_float64_solve_is_an_error(solver):
+    make = {
+        "slq": ts.SLQ,
+        "ilqr": ts.ILQR,
+        "ddp": ts.DDP,
+        "gopronto": ts.GoPRONTO,
+    }[solver]
+    problem = ts.Problem(_Float32Step(), _cost(), 10)
+    with pytest.raises(ValueError, match="float32"):
+        make(max_iter=3, progress=False).solve(problem, torch.zeros(3, 2, dtype=F64))
+
+
+@pytest.mark.parametrize("solver", ["SLQ-closed", "ILQR", "DDP"])
+def test_a_model_with_a_wrong_output_shape_is_an_error_not_a_crash(solver):
+    """The wrong shape only for the line search's trial batches used to kill the process
+    (SIGSEGV / double free) on the compiled CPU path. Run in a subprocess so that a crash
+    fails the test instead of the suite."""
+    code = textwrap.dedent(
+        f"""
+        import sys, torch, torchslq as ts
+        sys.path.insert(0, {str(__file__.rsplit("/", 1)[0])!r})
+        from test_reliability import _WrongShapeForTrials
+        F64 = torch.float64
+        cost = ts.QuadraticCost(torch.eye(4, dtype=F64), 0.1 * torch.eye(1, dtype=F64))
+        problem = ts.Problem(_WrongShapeForTrials(), cost, 20)
+        make = {{
+            "SLQ-closed": lambda: ts.SLQ(rollout="closed_loop", line_search="armijo"),
+            "ILQR": lambda: ts.ILQR(),
+            "DDP": lambda: ts.DDP(),
+        }}[{solver!r}]
+        try:
+            make().with_options(progress=False, max_iter=5).solve(
+                problem, 0.1 * torch.ones(3, 4, dtype=F64)
+            )
+        except ValueError as exc:
+            assert "shape" in str(exc), exc
+            print("VALUE_ERROR")
+        """
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert "VALUE_ERROR" in out.stdout
+
+
+@pytest.mark.parametrize("make", [ts.SLQ, ts.ILQR, ts.GoPRONTO])
+def test_an_empty_batch_solves_and_summarises_and_logs(make):
+    problem, x0 = pendulum_swingup(batch=2, horizon=10, seed=0)
+    with tempfile.TemporaryDirectory() as d, ts.TensorBoardLogger(d) as logger:
+        res = make(progress=False).solve(problem, x0[:0], logger=logger)
+    assert res.x.shape == (0, 11, 2) and res.status.shape == (0,)
+    assert res.summary() == "problems: 0"
+
+
+def test_mpc_step_warns_when_a_solve_failed():
+    """A failed element's action is not an optimal control: MPC.step says so."""
+
+    class NanAbove(ts.Dynamics):
+        state_dim, control_dim = 2, 1
+
+        def __init__(self):
+            super().__init__()
+            self.inner = ts.discretize(Pendulum(), 0.05)
+
+        def forward(self, x, u):
+            out = self.inner(x, u)
+            return torch.where(x[..., :1] > 2.0, float("nan"), out)
+
+    mpc = ts.MPC(NanAbove(), _cost(), 10, solver=ts.ILQR(max_iter=20, progress=False))
+    x = torch.tensor([[0.1, 0.0], [2.5, 0.0]], dtype=F64)
+    with pytest.warns(RuntimeWarning, match="1 of 2"):
+        action = mpc.step(x)
+    assert action.shape == (2, 1)
+    assert mpc.last_result.status_names()[1] == "non_finite"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        mpc.step(x[:1])  # no failure, no warning
