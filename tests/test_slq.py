@@ -742,8 +742,8 @@ def paper_batch():
 
 
 def test_paper_drag_vehicle_table1(paper_batch):
-    """Section 4.1 / Table 1 with the PAPER-NOTES readings (m = 0.0259 kg, eq. 65 without
-    the 1/2), all four betas as one batch, Armijo, ||grad|| < 1e-6."""
+    """Section 4.1 / Table 1 with the readings checked by independent solves (m = 0.0259 kg,
+    eq. 65 without the 1/2), all four betas as one batch, Armijo, ||grad|| < 1e-6."""
     _, res = paper_batch
     assert bool(res.converged.all()), res.status_names()
     assert bool((res.grad_norm < 1e-6).all())
