@@ -56,6 +56,7 @@ average at start and end is recorded and every ratio is taken within one run.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime
 import json
 import os
@@ -116,28 +117,40 @@ def make_solver(system: str, **extra) -> SLQ:
     return SLQ(progress=False, **{**SETTINGS[system]["solver"], **extra})
 
 
+class _Timed:
+    """Wraps a callable piece of a solver's rule (its direction or its line search) and
+    adds up the wall / CPU time of its calls into ``acc[key]``."""
+
+    def __init__(self, piece, acc: list):
+        self.piece, self.acc = piece, acc
+
+    def __call__(self, *a):
+        t, c = time.perf_counter(), time.process_time()
+        out = self.piece(*a)
+        self.acc[0] += time.perf_counter() - t
+        self.acc[1] += time.process_time() - c
+        self.acc[2] += 1
+        return out
+
+    def __getattr__(self, name):  # the direction's other methods (after_search)
+        return getattr(self.piece, name)
+
+
 class TimedSLQ(SLQ):
-    """SLQ that adds up the wall / CPU time spent in ``direction`` and ``_line_search``
+    """SLQ that adds up the wall / CPU time spent in its direction and its line search
     during a real solve (two clock reads per call; nothing else changes)."""
 
     def __init__(self, **kw):
         super().__init__(**kw)
-        self.acc = {"direction": [0.0, 0.0, 0], "line search": [0.0, 0.0, 0]}
+        object.__setattr__(self, "acc", {"direction": [0.0, 0.0, 0], "line search": [0.0, 0.0, 0]})
 
-    def _timed(self, key, fn, *a):
-        t, c = time.perf_counter(), time.process_time()
-        out = fn(*a)
-        acc = self.acc[key]
-        acc[0] += time.perf_counter() - t
-        acc[1] += time.process_time() - c
-        acc[2] += 1
-        return out
-
-    def direction(self, *a):
-        return self._timed("direction", super().direction, *a)
-
-    def _line_search(self, *a):
-        return self._timed("line search", super()._line_search, *a)
+    def rule(self):
+        rule = super().rule()
+        return dataclasses.replace(
+            rule,
+            direction=_Timed(rule.direction, self.acc["direction"]),
+            search=_Timed(rule.search, self.acc["line search"]),
+        )
 
 
 # ---------------------------------------------------------------------------- timing
@@ -173,7 +186,6 @@ def measure_split(system: str, problem, x0, args) -> dict:
         A, Bm = linearize(f, x[:, :T], u, method=method)
         e = cost_fn.quadratize(x, u)
         d = solver.direction(problem, x, u)
-        J = cost_fn(x, u)
 
         def lin():
             linearize(f, x[:, :T], u, method=method)
@@ -186,8 +198,12 @@ def measure_split(system: str, problem, x0, args) -> dict:
             fc = riccati_backward(A, Bm, e.lxx, e.luu, e.lx, e.lu, e.lux)
             rollout_linear(A, Bm, fc.K, fc.k, torch.zeros_like(x[:, 0]))
 
+        rule = solver.rule()
+        state = solver.initial_state(problem, x[:, 0], u, x)
+        running = torch.ones(x.shape[0], dtype=torch.bool)
+
         def line_search():
-            solver._line_search(f, cost_fn, x0, x, u, J, d)
+            rule.search(problem, state, d, running)
 
         def direction():
             solver.direction(problem, x, u)

@@ -33,7 +33,7 @@ from pathlib import Path
 
 import torch
 
-import torchslq.solvers.ilqr as ilqr_module
+import torchslq.solvers.descent as ilqr_module  # the line search of every descent solver
 from torchslq import ILQR, QuadraticCost
 from torchslq._shapes import broadcast_shapes
 from torchslq.solvers.line_search import armijo_search
