@@ -122,6 +122,7 @@ from .core import Advance, ElementState, Measure, iterate, shared
 from .line_search import TrialRecorder, armijo_search
 from .options import check_choice, check_int, check_passes, check_real, loggable, options_record
 from .result import SolverResult
+from .stopping import CURVE_ROUNDOFF_NOISE, roundoff_tolerance
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -1043,7 +1044,7 @@ class GoPRONTO(Solver):
                 c1=o.armijo_c1,
                 beta=o.armijo_beta,
                 max_backtracks=o.max_backtracks,
-                roundoff=8.0,
+                roundoff=CURVE_ROUNDOFF_NOISE,
                 first_trials=first_trials,
                 pass_size=pass_size,
                 active=s["running"],
@@ -1054,7 +1055,7 @@ class GoPRONTO(Solver):
             # (collapsing or inflating the step); there the element keeps its last
             # accepted step if that is no worse than J up to the noise (the gradient test
             # still decides convergence)
-            noise = 8.0 * torch.finfo(x0.dtype).eps * d["ref"].abs().clamp_min(1.0)
+            noise = roundoff_tolerance(d["ref"], CURVE_ROUNDOFF_NOISE)
             flat = (scale * d["slope"]).abs() <= noise
             if bool((flat & s["running"]).any()):
                 keep = torch.where(gamma_prev > 0, gamma_prev, scale)

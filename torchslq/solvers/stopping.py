@@ -5,10 +5,13 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-__all__ = ["ROUNDOFF_NOISE", "roundoff_tolerance", "stall_update"]
+__all__ = ["CURVE_ROUNDOFF_NOISE", "ROUNDOFF_NOISE", "roundoff_tolerance", "stall_update"]
 
 # a cost change below ROUNDOFF_NOISE * eps * max(|J|, 1) cannot be told from rounding
 ROUNDOFF_NOISE = 64.0
+# the bound of GoPRONTO/PRONTO's line search on the curve (a tighter one: the
+# reproductions of the GoPRONTO paper's Figures 5-7 and Table II are measured with it)
+CURVE_ROUNDOFF_NOISE = 8.0
 
 
 def roundoff_tolerance(J: Tensor, noise: float = ROUNDOFF_NOISE) -> Tensor:
