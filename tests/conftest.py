@@ -14,3 +14,26 @@ def single_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+BACKENDS = ("compiled", "torch")
+
+
+@pytest.fixture(params=BACKENDS)
+def backend(request):
+    """Run the test once on each CPU backend: ``"compiled"`` (the numba kernels, where
+    :func:`torchslq._backend.can_use_compiled` holds) and ``"torch"`` (batched torch ops
+    everywhere, as on a GPU), switched process-wide with :func:`torchslq.lq.set_compiled`
+    and restored after the test. The two must give the same results (up to rounding);
+    a test that compares against an independent computation (a dense KKT solve, finite
+    differences, per-element solves, a paper's numbers) takes this fixture to check
+    both."""
+    from torchslq.lq import compiled_available, set_compiled
+
+    if request.param == "compiled" and not compiled_available():
+        pytest.skip("numba kernels not available")
+    old = set_compiled(request.param == "compiled")
+    try:
+        yield request.param
+    finally:
+        set_compiled(old)

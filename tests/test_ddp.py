@@ -111,7 +111,7 @@ def test_dynamics_vhp_matches_autograd_hessian():
             torch.testing.assert_close(Hux[b, t], H[2:, :2], rtol=1e-10, atol=1e-12)
 
 
-def test_costate_ddp_step_is_the_newton_step(near_optimum):
+def test_costate_ddp_step_is_the_newton_step(near_optimum, backend):
     """With lam-weighted terms and no regularisation the LQ step is -H^-1 g of J(U)."""
     problem, x0, _, u = near_optimum
     x = problem.rollout(x0, u)
@@ -150,7 +150,7 @@ def test_ddp_differs_from_ilqr_away_from_optimum(near_optimum):
 
 
 @pytest.mark.parametrize("mode", ["value", "costate"])
-def test_ddp_converges_quadratically(near_optimum, mode):
+def test_ddp_converges_quadratically(near_optimum, mode, backend):
     """Near the optimum the gradient-norm ratios g_{k+1}/g_k^2 stay bounded while
     g_k -> 0 (quadratic convergence); iLQR's ratios g_{k+1}/g_k do not go to 0."""
     problem, x0, ref, u = near_optimum
@@ -177,7 +177,7 @@ def test_ddp_converges_quadratically(near_optimum, mode):
     assert any(g[i] > 50.0 * g[i - 1] ** 2 for i in range(1, g.numel()) if g[i - 1] < 1e-4)
 
 
-def test_ddp_batch_equals_singles(near_optimum):
+def test_ddp_batch_equals_singles(near_optimum, backend):
     problem, x0, _, u = near_optimum
     solver = ts.DDP(progress=False, max_iter=30)
     batch = solver.solve(problem, x0, u)

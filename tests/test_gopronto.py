@@ -89,7 +89,7 @@ def autograd_curve_gradient(prob, x0, alpha, mu, K):
 
 
 # ---------------------------------------------------------------------------- the gradient
-def test_costate_gradient_equals_autograd():
+def test_costate_gradient_equals_autograd(backend):
     T = 12
     prob, x0, alpha, mu, K = random_curve(0, T, 3, 0.3)
     f = prob.transition
@@ -253,7 +253,7 @@ def test_gain_recomputation_rule_and_counting():
         assert bool((hist[:, -1] < 0.6 * hist[:, 0]).all())
 
 
-def test_batch_equals_singles():
+def test_batch_equals_singles(backend):
     prob, x0 = pendulum_swingup(batch=3, horizon=30)
     solver = GoPRONTO(variant="conjugate", max_iter=15, progress=False)
     rb = solver.solve(prob, x0)
@@ -310,7 +310,7 @@ def test_constant_step_momentum(twolink):
         assert bool((mom.cost <= grad.cost).all())
 
 
-def test_pronto_matches_ilqr_and_identity_weights_descend():
+def test_pronto_matches_ilqr_and_identity_weights_descend(backend):
     prob, x0 = pendulum_swingup(batch=2, horizon=40)
     ref = torchslq.ILQR(max_iter=100, progress=False).solve(prob, x0)
     assert ref.converged.all()

@@ -200,7 +200,7 @@ def swing_up_quadratic(T=30, dt=0.05, general=False) -> Problem:
 SWING_X0 = torch.tensor([[0.0, 0.0], [-0.5, 1.0], [1.0, -1.0]], dtype=F64)
 
 
-def test_quadratic_cost_matches_closed_loop_armijo_slq():
+def test_quadratic_cost_matches_closed_loop_armijo_slq(backend):
     """With a quadratic cost (and no dynamics Hessian) iLQR's subproblem is SLQ's
     Gauss-Newton subproblem: both find the same local optimum."""
     problem = swing_up_quadratic()
@@ -350,7 +350,7 @@ def test_batch_equals_single_solves():
         assert bool((rb.history["step"][i, k + 1 :] == 0).all())
 
 
-def test_nan_element_is_isolated():
+def test_nan_element_is_isolated(backend):
     """Element 1's dynamics return NaN: it is NON_FINITE from the start, and the others
     are exactly their rows of the clean batch (a batch solves every row as if alone)."""
     base = discretize(Pendulum(damping=0.1), PEND_DT, "rk4")
@@ -460,7 +460,7 @@ def _J_of_U(a: float, x0: torch.Tensor):
     return J
 
 
-def test_mu_adapts_for_indefinite_control_hessian():
+def test_mu_adapts_for_indefinite_control_hessian(backend):
     problem = mu_problem(MU_A)
     T = MU_T
     u0 = torch.zeros(4, T, 1, dtype=F64)

@@ -73,7 +73,7 @@ def autograd_grads(backward: str):
     return theta.grad, x0.grad
 
 
-def test_implicit_gradients_match_finite_differences(fd_reference):
+def test_implicit_gradients_match_finite_differences(fd_reference, backend):
     """Dynamics parameters (mass, damping), cost parameters (reference, Q) and x0."""
     g_theta, g_x0 = autograd_grads("implicit")
     fd_theta, fd_x0 = fd_reference
@@ -120,7 +120,7 @@ def test_values_are_the_solvers_solution():
     assert x.requires_grad and u.requires_grad
 
 
-def test_batch_equals_singles():
+def test_batch_equals_singles(backend):
     theta = THETA.clone().requires_grad_(True)
     x0 = X0.clone().requires_grad_(True)
     loss_of(theta, x0).backward()
@@ -206,7 +206,7 @@ def test_general_cost_and_learned_dynamics_gradients_match_finite_differences():
             assert abs(g - fd) <= 1e-6 * (1 + abs(fd)), (p.shape, float(g), float(fd))
 
 
-def test_bounded_controls_gradients():
+def test_bounded_controls_gradients(backend):
     """With |u| <= 0.6 some controls saturate: they are held fixed (zero sensitivity),
     and the gradient still matches finite differences (the active set is locally
     constant)."""

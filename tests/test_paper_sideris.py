@@ -104,7 +104,7 @@ def _small_drag(betas=(0.01, 0.1), N=50):
     return drag_vehicle_problem(list(betas), N=N)
 
 
-def test_gradient_direction_is_minus_autograd_gradient():
+def test_gradient_direction_is_minus_autograd_gradient(backend):
     torch.manual_seed(3)
     problem, x0 = _small_drag()
     u = torch.randn(2, problem.horizon, 1, dtype=DT)
@@ -132,7 +132,7 @@ def test_gradient_method_decreases_cost(line_search):
     assert all(s in (Status.MAX_ITER, Status.CONVERGED) for s in res.status.tolist())
 
 
-def test_gradient_method_batch_matches_one_by_one():
+def test_gradient_method_batch_matches_one_by_one(backend):
     problem, x0 = _small_drag()
     gm = GradientMethod(max_iter=6, line_search="exact", progress=False)
     res = gm.solve(problem, x0)

@@ -242,7 +242,7 @@ DIRECTION_CASES = [
 
 
 @pytest.mark.parametrize("kind,method", DIRECTION_CASES)
-def test_direction_is_dense_gauss_newton(kind, method):
+def test_direction_is_dense_gauss_newton(kind, method, backend):
     """Theorem 3 / eq. (60): Ubar = -(G'G)^{-1} G'F with F the residuals of eq. (49) and
     G = dF/dU (eq. 50) of the full nonlinear rollout, here by ``jacrev``."""
     problem, step, (Qfull, R, xr, ur), x0, U = random_tracking_problem(kind)
@@ -282,7 +282,7 @@ def test_direction_is_dense_gauss_newton(kind, method):
 
 
 @pytest.mark.parametrize("kind", ["pendulum-analytic", "mlp"])
-def test_slope_and_costate_gradient(kind):
+def test_slope_and_costate_gradient(kind, backend):
     """Eq. (34): grad J . Ubar = -sum_t (xbar'Q xbar + ubar'R ubar), terminal included;
     the costate gradient (eqs. 8-11) equals autograd's dJ/dU through the rollout."""
     problem, step, (Qfull, R, xr, ur), x0, U = random_tracking_problem(kind, seed=3)
@@ -473,7 +473,7 @@ def drag_problem(beta, N: int, Ts: float, q=1.0, r=10.0, qfin=1e6, target=10.0) 
     return Problem(DragVehicle(beta=beta, Ts=Ts), cost, N)
 
 
-def test_batch_equals_single_solves_per_element_parameter():
+def test_batch_equals_single_solves_per_element_parameter(backend):
     """DragVehicle with a per-element drag coefficient ``beta (B, 1)``."""
     betas = [0.01, 0.03, 0.1]
     N, Ts = 100, 0.01
@@ -867,7 +867,7 @@ def test_problem_validation():
 # ----------------------------------------------------------------------------- 10. float32
 
 
-def test_float32_matches_float64():
+def test_float32_matches_float64(backend):
     r64 = swing_solve()
     r32 = SLQ(tol=1e-3, progress=False).solve(swing_up(torch.float32), SWING_X0.float())
     assert r32.u.dtype == r32.x.dtype == r32.cost.dtype == r32.K.dtype == torch.float32
