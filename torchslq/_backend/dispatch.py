@@ -29,7 +29,8 @@ the same conditions and each checked against its torch form in the tests: the fe
 step of closed-loop rollouts (:func:`closed_loop_feedback_compiled`), the costate
 recursion (:func:`costate_compiled`), one RK4 stage's congruence of the chained second
 derivatives (:func:`stage_congruence_compiled`), and the Riccati kernel's own restarts
-of failed elements with a larger regularisation (``restarts``).
+of failed elements with a larger regularisation (``restarts``; the torch path of
+:func:`torchslq.lq.riccati_backward` makes the same restarts, with the same result).
 
 The kernels live in :mod:`torchslq._backend._numba_kernels`, imported on the first CPU pass
 (never by GPU-only use). numba compiles each on first use per dtype and argument layout
