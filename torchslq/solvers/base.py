@@ -78,7 +78,13 @@ class Solver:
 
     options: Any
 
-    def __init__(self, **options: Any) -> None:
+    def __init__(self, unknown: dict[str, Any] | None = None, **options: Any) -> None:
+        if unknown:
+            valid = ", ".join(f.name for f in fields(self.options_class))
+            raise TypeError(
+                f"unknown option(s) for {type(self).__name__}: {sorted(unknown)}; "
+                f"its options are: {valid}"
+            )
         object.__setattr__(self, "options", self.options_class(**options))
 
     def __setattr__(self, name: str, value: Any) -> None:

@@ -20,7 +20,7 @@ The direction is :class:`~torchslq.solvers.newton.RegularizedNewton` with
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from torch import Tensor
 
@@ -76,6 +76,7 @@ class DDP(ILQR):
         compact: bool = False,
         line_search: str = "armijo",
         rollout: str = "closed_loop",
+        **unknown: Any,
     ):
         Solver.__init__(
             self, **{k: v for k, v in locals().items() if k not in ("self", "__class__")}

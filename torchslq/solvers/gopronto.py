@@ -475,6 +475,7 @@ class GoPRONTO(Solver):
         linearize_method: str = "auto",
         progress: bool = True,
         stall_iters: int = 10,
+        **unknown: Any,
     ):
         kw = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         super().__init__(**_chunk_alias(kw))

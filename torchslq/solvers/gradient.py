@@ -10,7 +10,7 @@ the shared loop.
 from __future__ import annotations
 
 from dataclasses import replace
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from .base import DescentSolver
 from .descent import CostateGradient, descent_rule
@@ -61,6 +61,7 @@ class GradientMethod(DescentSolver):
         linearize_method: str = "auto",
         progress: bool = True,
         compact: bool = False,
+        **unknown: Any,
     ):
         super().__init__(**{k: v for k, v in locals().items() if k not in ("self", "__class__")})
 

@@ -77,6 +77,7 @@ class ILQR(DescentSolver):
         compact: bool = False,
         line_search: str = "armijo",
         rollout: str = "closed_loop",
+        **unknown: Any,
     ):
         super().__init__(**{k: v for k, v in locals().items() if k not in ("self", "__class__")})
 

@@ -85,6 +85,7 @@ class PRONTO(GoPRONTO):
         linearize_method: str = "auto",
         progress: bool = True,
         stall_iters: int = 10,
+        **unknown: Any,
     ):
         kw = {k: v for k, v in locals().items() if k not in ("self", "__class__")}
         Solver.__init__(self, **_chunk_alias(kw))

@@ -19,7 +19,7 @@ It is the direction :class:`~torchslq.solvers.descent.GaussNewtonLQ` with a
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 from .base import DescentSolver
 from .descent import GaussNewtonLQ, descent_rule
@@ -86,6 +86,7 @@ class SLQ(DescentSolver):
         linearize_method: str = "auto",
         progress: bool = True,
         compact: bool = False,
+        **unknown: Any,
     ):
         super().__init__(**{k: v for k, v in locals().items() if k not in ("self", "__class__")})
 
