@@ -12,7 +12,7 @@ from torch.func import hessian, jacrev
 from vhp_cases import VHP_LAYOUTS
 
 import torchslq as ts
-from torchslq.lq import compiled
+from torchslq._backend import dispatch as compiled
 from torchslq.systems import CartPole, MassChain
 
 F64 = torch.float64
@@ -39,7 +39,7 @@ def _step(dtype=F64, dt=0.07, model: str = "cartpole") -> ts.DiscretizedDynamics
 def _full_cartpole_derivatives():
     import numba
 
-    from torchslq.systems._numba_steps import cartpole_derivatives
+    cartpole_derivatives = CartPole().compiled_derivatives().derivatives
 
     @numba.njit
     def full(x, u, p, fz, H):

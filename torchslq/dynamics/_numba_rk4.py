@@ -1,4 +1,6 @@
-"""numba kernels for the derivatives of an RK4 step of a model with compiled derivatives
+"""numba kernels for an RK4 step of a model with a compiled right-hand side
+(:meth:`torchslq.ContinuousDynamics.compiled_rhs`): the step itself (:func:`rk4_step`)
+and its derivatives for a model with compiled derivatives
 (:meth:`torchslq.ContinuousDynamics.compiled_derivatives`), imported on first use.
 
 They take the model's functions as arguments, so they are compiled once per process and
@@ -30,6 +32,44 @@ def _rk4_a(i):
 @numba.njit(inline="always")
 def _rk4_w(i):
     return 2.0 if (i == 1 or i == 2) else 1.0
+
+
+_RK4_STEPS: dict = {}
+
+
+def rk4_step(rhs):
+    """A numba RK4 step ``step(x, u, p, out, work)`` (:meth:`torchslq.Dynamics.compiled_step`)
+    around a model's ``rhs(x, u, p[1:], out)``
+    (:meth:`torchslq.ContinuousDynamics.compiled_rhs`) with ``p[0] = dt``: one compiled
+    function per ``rhs``, built once per process (not cached on disk, being a closure)."""
+    if rhs in _RK4_STEPS:
+        return _RK4_STEPS[rhs]
+
+    @numba.njit(nogil=True)
+    def step(x, u, p, out, work):
+        # the same sums in the same order as DiscretizedDynamics.forward; work rows:
+        # k, the stage argument, k1 + 2 k2, k3
+        n = x.shape[0]
+        dt = p[0]
+        q = p[1:]
+        k, xi, a, k3 = work[0], work[1], work[2], work[3]
+        rhs(x, u, q, k)
+        for i in range(n):
+            a[i] = k[i]
+            xi[i] = x[i] + (0.5 * dt) * k[i]
+        rhs(xi, u, q, k)
+        for i in range(n):
+            a[i] = a[i] + 2.0 * k[i]
+            xi[i] = x[i] + (0.5 * dt) * k[i]
+        rhs(xi, u, q, k3)
+        for i in range(n):
+            xi[i] = x[i] + dt * k3[i]
+        rhs(xi, u, q, k)
+        for i in range(n):
+            out[i] = x[i] + (dt / 6.0) * (a[i] + (k[i] + 2.0 * k3[i]))
+
+    _RK4_STEPS[rhs] = step
+    return step
 
 
 @numba.njit(nogil=True)

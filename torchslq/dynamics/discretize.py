@@ -5,8 +5,8 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._backend import can_use_compiled, module_needs_grad, stage_congruence_compiled
 from .._shapes import broadcast_shapes
-from ..lq.compiled import can_use_compiled, module_needs_grad, stage_congruence_compiled
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
 
@@ -64,7 +64,7 @@ class DiscretizedDynamics(Dynamics):
             return None
         import numpy as np
 
-        from ..systems._numba_steps import rk4_step
+        from ._numba_rk4 import rk4_step
 
         fn, params = rhs
         return rk4_step(fn), np.concatenate([[self.dt], params]).astype(np.float64)

@@ -5,18 +5,123 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._shapes import broadcast_shapes
 from ..dynamics import ContinuousDynamics
 from ._common import (
+    components,
+    cos,
+    curvature_pattern,
     get_param,
     lead_shape,
+    row_source,
     scalar_params_array,
     set_param,
-    stack_matrix,
+    sin,
+    split_jacobian,
     stack_vector,
+    weighted_hessians,
 )
 
 __all__ = ["CartPole"]
+
+_PARAMS = ("mc", "mp", "l", "g")
+
+# The equations, written once (see torchslq.systems._common.row_source): x, u, p
+# indexable (p = (mc, mp, l, g)); forward/jacobians/vhp call them with tensors, the
+# compiled hooks are them compiled by numba.
+
+
+@row_source
+def _terms(x, u, p):
+    """The accelerations as quotients ``s_ddot = N1 / D``, ``theta_ddot = N2 / (l D)``."""
+    mc, mp, l, g = p[0], p[1], p[2], p[3]
+    thd, F = x[3], u[0]
+    sn, c = sin(x[1]), cos(x[1])
+    D = mc + mp * sn * sn
+    N1 = F + mp * sn * (l * thd * thd + g * c)
+    N2 = -F * c - mp * l * thd * thd * c * sn - (mc + mp) * g * sn
+    return mc, mp, l, g, thd, F, sn, c, D, N1, N2
+
+
+@row_source
+def cartpole_xdot(x, u, p):
+    """``xdot = f(x, u)``."""
+    _, _, l, _, thd, _, _, _, D, N1, N2 = _terms(x, u, p)
+    return x[2], thd, N1 / D, N2 / (l * D)
+
+
+@row_source
+def _first(x, u, p):
+    """With ``q = N1 / D`` and ``r = N2 / D`` (``= l theta_ddot``): their derivatives in
+    ``(a, b, F) = (theta, theta_dot, F)`` (``D`` depends on ``theta`` only), and the terms
+    the second derivatives need."""
+    mc, mp, l, g, thd, F, sn, c, D, N1, N2 = _terms(x, u, p)
+    q, r = N1 / D, N2 / D
+    dD = 2.0 * mp * sn * c  # dD / dtheta
+    c2 = c * c - sn * sn  # cos(2 theta)
+    N1a = mp * (l * thd * thd * c + g * c2)
+    N1b = 2.0 * mp * l * sn * thd
+    N2a = F * sn - mp * l * thd * thd * c2 - (mc + mp) * g * c
+    N2b = -2.0 * mp * l * thd * c * sn
+    qa, qb, qF = (N1a - q * dD) / D, N1b / D, 1.0 / D
+    ra, rb, rF = (N2a - r * dD) / D, N2b / D, -c / D
+    return mc, mp, l, g, thd, F, sn, c, D, c2, dD, q, r, qa, qb, qF, ra, rb, rF
+
+
+@row_source
+def cartpole_jacobian(x, u, p):
+    """The rows of ``[f_x | f_u]``."""
+    _, _, l, _, _, _, _, _, _, _, _, _, _, qa, qb, qF, ra, rb, rF = _first(x, u, p)
+    z = 0.0
+    return (
+        (z, z, 1.0, z, z),
+        (z, z, z, 1.0, z),
+        (z, qa, z, qb, qF),
+        (z, ra / l, z, rb / l, rF / l),
+    )
+
+
+@row_source
+def cartpole_hessians(x, u, p):
+    """Each output's Hessian in ``z = (x, u)``: only the accelerations are curved, in
+    ``(theta, theta_dot, F)``. For a quotient ``q = N / D``, ``q_ab = (N_ab - q_a D_b -
+    q_b D_a - q D_ab) / D`` from the numerators' second derivatives."""
+    mc, mp, l, g, thd, F, sn, c, D, c2, dD, q, r, qa, qb, qF, ra, rb, rF = _first(x, u, p)
+    ddD = 2.0 * mp * c2
+    N1aa = -mp * (l * thd * thd * sn + 4.0 * g * sn * c)
+    N1ab = 2.0 * mp * l * c * thd
+    N1bb = 2.0 * mp * l * sn
+    N2aa = F * c + 4.0 * mp * l * thd * thd * sn * c + (mc + mp) * g * sn
+    N2ab = -2.0 * mp * l * thd * c2
+    N2bb = -2.0 * mp * l * c * sn
+    qaa = (N1aa - 2.0 * qa * dD - q * ddD) / D
+    qab = (N1ab - qb * dD) / D
+    qaF = -qF * dD / D
+    qbb = N1bb / D
+    raa = (N2aa - 2.0 * ra * dD - r * ddD) / D / l
+    rab = (N2ab - rb * dD) / D / l
+    raF = (sn - rF * dD) / D / l
+    rbb = N2bb / D / l
+    z = 0.0
+    zr = (z, z, z, z, z)
+    flat = (zr, zr, zr, zr, zr)
+    return (
+        flat,
+        flat,
+        (
+            zr,
+            (z, qaa, z, qab, qaF),
+            zr,
+            (z, qab, z, qbb, z),
+            (z, qaF, z, z, z),
+        ),
+        (
+            zr,
+            (z, raa, z, rab, raF),
+            zr,
+            (z, rab, z, rbb, z),
+            (z, raF, z, z, z),
+        ),
+    )
 
 
 class CartPole(ContinuousDynamics):
@@ -56,113 +161,50 @@ class CartPole(ContinuousDynamics):
         set_param(self, "g", g)
 
     def compiled_rhs(self):
-        """``xdot`` as a numba function (see :meth:`torchslq.ContinuousDynamics.compiled_rhs`);
-        None when a parameter is a tensor with batch dims."""
-        params = scalar_params_array(self, ("mc", "mp", "l", "g"))
+        """``xdot`` as a numba function (see :meth:`torchslq.ContinuousDynamics.compiled_rhs`):
+        :func:`cartpole_xdot` compiled; None when a parameter is a tensor with batch dims."""
+        params = scalar_params_array(self, _PARAMS)
         if params is None:
             return None
-        from ._numba_steps import cartpole_rhs
+        from ._jit import compiled_rhs
 
-        return cartpole_rhs, params
+        return compiled_rhs(cartpole_xdot), params
 
     def compiled_derivatives(self):
         """:meth:`jacobians` and the per-output Hessians of :meth:`vhp` as a numba
-        function (see :meth:`torchslq.ContinuousDynamics.compiled_derivatives`)."""
+        function (see :meth:`torchslq.ContinuousDynamics.compiled_derivatives`): the same
+        sources compiled, with the curvature pattern found from the torch form; None
+        when a parameter is a tensor with batch dims."""
+        if scalar_params_array(self, _PARAMS) is None:
+            return None
         from ..dynamics import CompiledDerivatives
-        from ._numba_steps import CARTPOLE_CURVATURE, cartpole_derivatives
+        from ._jit import compiled_derivatives
 
-        return CompiledDerivatives(cartpole_derivatives, *CARTPOLE_CURVATURE)
+        outs, ents = curvature_pattern((CartPole,), lambda p: CartPole(*p), len(_PARAMS))
+        fn = compiled_derivatives(cartpole_jacobian, cartpole_hessians, (4, 1, 4), outs, ents)
+        return CompiledDerivatives(fn, outs, ents)
 
     def _params(self, x: Tensor):
-        return tuple(get_param(self, k, x) for k in ("mc", "mp", "l", "g"))
-
-    def _accel(self, x: Tensor, u: Tensor):
-        mc, mp, l, g = self._params(x)
-        th, thd, F = x[..., 1], x[..., 3], u[..., 0]
-        s, c = torch.sin(th), torch.cos(th)
-        D = mc + mp * s * s
-        sdd = (F + mp * s * (l * thd * thd + g * c)) / D
-        thdd = (-F * c - mp * l * thd * thd * c * s - (mc + mp) * g * s) / (l * D)
-        return sdd, thdd, (mc, mp, l, g, th, thd, F, s, c, D)
+        return tuple(get_param(self, k, x) for k in _PARAMS)
 
     def forward(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> Tensor:
-        sdd, thdd, (mc, mp, l, g, *_) = self._accel(x, u)
-        return stack_vector([x[..., 2], x[..., 3], sdd, thdd], lead_shape(x, u, mc, mp, l, g), x)
+        p = self._params(x)
+        xdot = cartpole_xdot(components(x), components(u), p)
+        return stack_vector(list(xdot), lead_shape(x, u, *p), x)
 
     def jacobians(self, x: Tensor, u: Tensor, t: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        sdd, thdd, (mc, mp, l, g, th, thd, F, s, c, D) = self._accel(x, u)
-        lead = lead_shape(x, u, mc, mp, l, g)
-        dD = 2.0 * mp * s * c  # dD/dth
-        c2 = c * c - s * s  # cos(2 th)
-        # sdd = N1 / D
-        dN1_dth = mp * (l * thd * thd * c + g * c2)
-        dsdd_dth = (dN1_dth - sdd * dD) / D
-        dsdd_dthd = 2.0 * mp * l * s * thd / D
-        # thdd = N2 / (l D)
-        dN2_dth = F * s - mp * l * thd * thd * c2 - (mc + mp) * g * c
-        dthdd_dth = (dN2_dth / l - thdd * dD) / D
-        dthdd_dthd = -2.0 * mp * thd * c * s / D
-        A = stack_matrix(
-            [
-                [0.0, 0.0, 1.0, 0.0],
-                [0.0, 0.0, 0.0, 1.0],
-                [0.0, dsdd_dth, 0.0, dsdd_dthd],
-                [0.0, dthdd_dth, 0.0, dthdd_dthd],
-            ],
-            lead,
-            x,
-        )
-        B = stack_matrix([[0.0], [0.0], [1.0 / D], [-c / (l * D)]], lead, x)
-        return A, B
+        p = self._params(x)
+        J = cartpole_jacobian(components(x), components(u), p)
+        return split_jacobian(J, 4, lead_shape(x, u, *p), x)
 
     def vhp(
         self, x: Tensor, u: Tensor, s: Tensor, t: Tensor | None = None
     ) -> tuple[Tensor, Tensor, Tensor]:
-        """Hessian blocks of ``s · f``: only the accelerations are curved, in ``(th, thd,
-        F)``. Each is a quotient ``q = N / D`` (``D`` depends on ``th`` only), so
-        ``q_ab = (N_ab - q_a D_b - q_b D_a - q D_ab) / D`` from the numerators' second
-        derivatives (``theta_ddot = N2 / (l D)``)."""
-        sdd, thdd, (mc, mp, l, g, th, thd, F, sn, c, D) = self._accel(x, u)
-        w1, w2 = s[..., 2], s[..., 3]
-        dD = 2.0 * mp * sn * c
-        ddD = 2.0 * mp * (c * c - sn * sn)
-        c2, w2l = c * c - sn * sn, w2 / l
-        r = thdd * l  # N2 / D
-        # numerator derivatives (a = th, b = thd, F)
-        N1a = mp * (l * thd * thd * c + g * c2)
-        N1b = 2.0 * mp * l * sn * thd
-        N1aa = -mp * (l * thd * thd * sn + 4.0 * g * sn * c)
-        N1ab = 2.0 * mp * l * c * thd
-        N1bb = 2.0 * mp * l * sn
-        N2a = F * sn - mp * l * thd * thd * c2 - (mc + mp) * g * c
-        N2b = -2.0 * mp * l * thd * c * sn
-        N2aa = F * c + 4.0 * mp * l * thd * thd * sn * c + (mc + mp) * g * sn
-        N2ab = -2.0 * mp * l * thd * c2
-        N2bb = -2.0 * mp * l * c * sn
-        # first derivatives of the quotients (q = sdd, r = N2 / D)
-        qa, qb, qF = (N1a - sdd * dD) / D, N1b / D, 1.0 / D
-        ra, rb, rF = (N2a - r * dD) / D, N2b / D, -c / D
-        # second derivatives (D_b = D_F = 0)
-        qaa = (N1aa - 2.0 * qa * dD - sdd * ddD) / D
-        qab = (N1ab - qb * dD) / D
-        qaF = -qF * dD / D
-        qbb = N1bb / D
-        raa = (N2aa - 2.0 * ra * dD - r * ddD) / D
-        rab = (N2ab - rb * dD) / D
-        raF = (sn - rF * dD) / D
-        rbb = N2bb / D
-        h_aa = w1 * qaa + w2l * raa
-        h_ab = w1 * qab + w2l * rab
-        h_bb = w1 * qbb + w2l * rbb
-        h_aF = w1 * qaF + w2l * raF
-        lead = broadcast_shapes(lead_shape(x, u, mc, mp, l, g), s.shape[:-1])
-        z = 0.0
-        Hxx = stack_matrix(
-            [[z, z, z, z], [z, h_aa, z, h_ab], [z, z, z, z], [z, h_ab, z, h_bb]], lead, x
-        )
-        Huu = x.new_zeros(*lead, 1, 1)
-        Hux = stack_matrix([[z, h_aF, z, z]], lead, x)
-        return Hxx, Huu, Hux
+        """Hessian blocks of ``s · f`` (:func:`cartpole_hessians`): only the
+        accelerations are curved, in ``(theta, theta_dot, F)``."""
+        p = self._params(x)
+        H = cartpole_hessians(components(x), components(u), p)
+        return weighted_hessians(H, s, 4, lead_shape(x, u, *p), x)
 
     def momentum(self, x: Tensor) -> Tensor:
         """Horizontal momentum ``(mc + mp) s_dot + mp l cos(th) th_dot`` (kg m/s)."""

@@ -7,8 +7,19 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from ..dynamics import Dynamics
+from ._common import components, cos, row_source, sin
 
 __all__ = ["Unicycle"]
+
+
+@row_source
+def unicycle_next(x, u, p):
+    """The next state (written once: :meth:`Unicycle.forward` calls it with tensors, its
+    compiled step is it compiled by numba); ``p = (dt,)``."""
+    dt = p[0]
+    vdt = u[0] * dt
+    th = x[2]
+    return x[0] + cos(th) * vdt, x[1] + sin(th) * vdt, th + u[1] * dt
 
 
 class Unicycle(Dynamics):
@@ -36,20 +47,16 @@ class Unicycle(Dynamics):
         self.dt = float(dt)
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
-        th, v, w = x[..., 2], u[..., 0], u[..., 1]
-        vdt = v * self.dt
-        return torch.stack(
-            [x[..., 0] + torch.cos(th) * vdt, x[..., 1] + torch.sin(th) * vdt, th + w * self.dt],
-            -1,
-        )
+        return torch.stack(unicycle_next(components(x), components(u), (self.dt,)), -1)
 
     def compiled_step(self):
-        """The step as a numba function (see :meth:`torchslq.Dynamics.compiled_step`)."""
+        """The step as a numba function (see :meth:`torchslq.Dynamics.compiled_step`):
+        :func:`unicycle_next` compiled."""
         import numpy as np
 
-        from ._numba_steps import unicycle_step
+        from ._jit import compiled_step
 
-        return unicycle_step, np.array([self.dt], dtype=np.float64)
+        return compiled_step(unicycle_next), np.array([self.dt], dtype=np.float64)
 
     def jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         th, v = x[..., 2], u[..., 0]
