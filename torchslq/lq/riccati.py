@@ -673,8 +673,11 @@ def riccati_backward(
     its loop; the torch path repeats the failing rows, several candidate ``mu`` side by
     side in one pass, or the whole batch with a ``stage_hook`` that has no
     ``subset(idx)`` to restrict it to some elements); ``tests/test_restarts.py`` checks
-    them against each other and against a per-element reference. Without ``restarts``
-    ``reg``, ``reg_delta`` are None and ``failed`` flags failed factorisations only.
+    them against each other and against a per-element reference. A hook's
+    ``subset(idx)`` returns the hook of the batch rows ``idx`` (an index tensor, rows
+    may repeat); its ``hessians`` (see :func:`riccati_homogeneous`) let the compiled
+    kernel run the pass. Without ``restarts`` ``reg``, ``reg_delta`` are None and
+    ``failed`` flags failed factorisations only.
     """
     if restarts is not None and not (isinstance(reg, Tensor) and reg.dtype == A.dtype):
         reg = torch.as_tensor(0.0 if reg is None else reg, dtype=A.dtype, device=A.device)
