@@ -150,7 +150,7 @@ class MPC(nn.Module):
             solver, "supports_bounds", False
         ):
             raise ValueError(
-                "control bounds need a solver with supports_bounds (ILQR or DDP), "
+                "control bounds need an ILQR or DDP solver (one with supports_bounds), "
                 f"got {type(solver).__name__}"
             )
         if compact not in (True, False, "auto"):
