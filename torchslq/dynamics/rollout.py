@@ -116,7 +116,7 @@ def rollout_closed_loop(
 
 def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max):
     """:func:`rollout_closed_loop` with the feedback of each step on the CPU kernel
-    (:func:`~torchslq.lq.compiled.closed_loop_feedback_compiled`): the controls are
+    (:func:`~torchslq._backend.closed_loop_feedback_compiled`): the controls are
     written into one buffer holding the feedforward, so a step is the kernel call and
     the model. None when the model's states need autograd (the kernel would cut the
     graph): the caller then takes the torch path."""
