@@ -6,7 +6,8 @@ functions; this module makes them callable from compiled code (``sin`` / ``cos``
 ``math.sin`` / ``math.cos``) and wraps them into the row functions the kernels call:
 :func:`compiled_rhs` (``rhs(x, u, p, out)``), :func:`compiled_step` (``step(x, u, p, out,
 work)``) and :func:`compiled_derivatives` (``derivatives(x, u, p, fz, H)``). Each wrapper
-is built once per process and source.
+is built once per process and source, and cached on disk (numba's cache, keyed on
+the model's file, whose equations it inlines: compiling them takes seconds).
 """
 
 from __future__ import annotations
@@ -47,7 +48,17 @@ for _fn in _common._SOURCES:
 _WRAPPERS: dict = {}
 
 
-@numba.njit(nogil=True)
+def _build(source: Callable, lines: list[str], scope: dict) -> Callable:
+    """Compile the function that ``lines`` define (its name is the first line's) with
+    numba, cached on disk as if it stood in ``source``'s module: numba drops a cached
+    function when its file changes, and the equations it inlines are in that file."""
+    name = lines[0].split()[1].split("(")[0]
+    scope = {**scope, "__name__": source.__module__}
+    exec(compile("\n".join(lines), source.__code__.co_filename, "exec"), scope)
+    return numba.njit(nogil=True, cache=True)(scope[name])
+
+
+@numba.njit(nogil=True, cache=True)
 def _write(values, out):
     """``out[i] = values[i]`` for a tuple ``values`` (its entries may differ in type: an
     entry taken from a float32 state beside a float64 one computed with the parameters)."""
@@ -58,10 +69,11 @@ def _write(values, out):
 
 
 def jit(fn: Callable) -> Callable:
-    """``fn`` (a row function over 1-d arrays that calls sources) compiled by numba."""
+    """``fn`` (a row function over 1-d arrays that calls sources in its own module)
+    compiled by numba (cached on disk)."""
     key = ("jit", fn)
     if key not in _WRAPPERS:
-        _WRAPPERS[key] = numba.njit(nogil=True)(fn)
+        _WRAPPERS[key] = numba.njit(nogil=True, cache=True)(fn)
     return _WRAPPERS[key]
 
 
@@ -69,11 +81,8 @@ def compiled_rhs(xdot: Callable) -> Callable:
     """``rhs(x, u, p, out)`` writing the tuple ``xdot(x, u, p)`` into ``out``."""
     key = ("rhs", xdot)
     if key not in _WRAPPERS:
-
-        def rhs(x, u, p, out):
-            _write(xdot(x, u, p), out)
-
-        _WRAPPERS[key] = numba.njit(nogil=True)(rhs)
+        lines = ["def rhs(x, u, p, out):", "    _write(xdot(x, u, p), out)"]
+        _WRAPPERS[key] = _build(xdot, lines, {"xdot": xdot, "_write": _write})
     return _WRAPPERS[key]
 
 
@@ -82,11 +91,8 @@ def compiled_step(next_state: Callable) -> Callable:
     (:meth:`torchslq.Dynamics.compiled_step`; ``work`` unused)."""
     key = ("step", next_state)
     if key not in _WRAPPERS:
-
-        def step(x, u, p, out, work):
-            _write(next_state(x, u, p), out)
-
-        _WRAPPERS[key] = numba.njit(nogil=True)(step)
+        lines = ["def step(x, u, p, out, work):", "    _write(next_state(x, u, p), out)"]
+        _WRAPPERS[key] = _build(next_state, lines, {"next_state": next_state, "_write": _write})
     return _WRAPPERS[key]
 
 
@@ -126,6 +132,5 @@ def compiled_derivatives(
             f"    H[{j}, {a}, {b}] = Hs[{j}][{a}][{b}]" for j in outs for a in ents for b in ents
         ]
         scope = {"jacobian": jacobian, "hessians": hessians}
-        exec(compile("\n".join(lines), f"<{jacobian.__qualname__} derivatives>", "exec"), scope)
-        _WRAPPERS[key] = numba.njit(nogil=True)(scope["derivatives"])
+        _WRAPPERS[key] = _build(jacobian, lines, scope)
     return _WRAPPERS[key]
