@@ -320,7 +320,7 @@ def test_lanes_kernel_equals_the_row_by_row_kernel(model, R):
 
 def test_hessian_blocks_are_views_of_one_joint_block_read_whole_by_riccati(monkeypatch):
     """The kernels' output Hessians are views of one [u; x] tensor (lower-left block
-    filled too); lq.compiled.joint_hessians finds it (not for separate tensors), the
+    filled too); _backend.joint_hessians finds it (not for separate tensors), the
     Riccati kernel then reads each step's block whole: a DDP solve is the same to the
     last bit as with the three blocks read separately."""
     from torchslq.dynamics import linearize_with_hessians

@@ -397,7 +397,7 @@ def _count_riccati_passes(monkeypatch) -> dict[str, int]:
 
 
 def test_nan_element_does_not_slow_the_others(monkeypatch):
-    """DESIGN.md: a failed element never stops, slows or poisons the others."""
+    """A failed element never stops, slows or poisons the others."""
     calls = _count_riccati_passes(monkeypatch)
     base = discretize(Pendulum(damping=0.1), PEND_DT, "rk4")
     x0 = PEND_X0[1:3]

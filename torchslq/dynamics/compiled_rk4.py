@@ -8,7 +8,7 @@ When the model gives its right-hand side and its derivatives as numba functions
 :meth:`~torchslq.ContinuousDynamics.compiled_derivatives`) the same chain runs in one kernel
 call (:mod:`torchslq.dynamics._numba_rk4`: the model row by row, the chain's sums across
 blocks of rows). Call only where
-:func:`torchslq.lq.compiled.can_use_compiled` holds for ``x``, ``u`` (and ``s``).
+:func:`torchslq._backend.can_use_compiled` holds for ``x``, ``u`` (and ``s``).
 """
 
 from __future__ import annotations
@@ -121,7 +121,7 @@ def rk4_vhp_compiled(
     W = math.prod(Wdims)
     S = s.detach().expand(*full, n).reshape(W, R, n).contiguous()
     # one [u; x] block per row and weight: the returned blocks are views of it, and a
-    # Riccati pass reads it whole (lq.compiled.joint_hessians)
+    # Riccati pass reads it whole (_backend.joint_hessians)
     Hz = torch.empty(W, R, m + n, m + n, dtype=x.dtype)
     Hxx, Huu, Hux = Hz[:, :, m:, m:], Hz[:, :, :m, :m], Hz[:, :, :m, m:]
     A = torch.empty(R if with_jacobians else 0, n, n, dtype=x.dtype)

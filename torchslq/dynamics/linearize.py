@@ -1,6 +1,6 @@
 """``linearize``: Jacobians of any dynamics over batch and time at once.
 
-This is the single linearisation used by every solver (see DESIGN.md).
+This is the single linearisation used by every solver.
 """
 
 from __future__ import annotations

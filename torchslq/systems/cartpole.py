@@ -134,7 +134,9 @@ class CartPole(ContinuousDynamics):
         s_ddot     = [F + mp sin(th) (l thd^2 + g cos(th))] / D
         theta_ddot = [-F cos(th) - mp l thd^2 cos(th) sin(th) - (mc + mp) g sin(th)] / (l D)
 
-    (the model of the continuous-time iLQR paper; see ``shared/PAPER-NOTES.md``).
+    (the model of Lieskovský, Bušek & Vyhlídal, "Continuous-time iterative
+    linear-quadratic regulator", 2025, Section V: ``mc`` the cart, ``mp`` the point mass
+    at the tip, the reading that matches the authors' public code).
 
     Args:
         mc: cart mass (kg), default 1.0.

@@ -26,8 +26,9 @@ class DragVehicle(Dynamics):
     Args:
         beta: drag coefficient (kg/m; drag force ``beta v|v|`` in N). Default 0.1, the
             paper's representative case (Table 1 uses 0.01 ... 1).
-        m: mass (kg). Default 0.0259: the paper's "m = 25.9 gr" read as grams (see
-            ``shared/PAPER-NOTES.md``).
+        m: mass (kg). Default 0.0259: the paper's "m = 25.9 gr" read as grams (with m = 25.9 kg the target
+            is never reached and the problem does not get harder with beta,
+            contradicting the paper's Table 1).
         Ts: sampling period (s), default 1/500 (``T = 1`` s, ``N = 500``).
 
     Parameters are numbers or tensors broadcasting against ``x[..., 0]``. Note that the

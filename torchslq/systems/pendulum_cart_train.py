@@ -20,7 +20,7 @@ class PendulumCartTrain(ContinuousDynamics):
     State ``x = col(x_1, ..., x_N)`` of size ``4N`` with ``x_i = (theta_i, theta_dot_i,
     w_i, w_dot_i)`` (rad, rad/s, m, m/s), ``theta = 0`` upright; control ``u =
     (u_1, ..., u_N)``, the horizontal force on each cart (N). For every cart ``i``
-    (Section V.1, with the erratum of ``shared/PAPER-NOTES.md``: ``cos``, not ``sin``,
+    (Section V.1, with an erratum found by independent solves: ``cos``, not ``sin``,
     in front of ``w_ddot`` in the first equation)::
 
         Mp l^2 thdd_i + fp thd_i - Mp l cos(th_i) wdd_i - Mp l g sin(th_i) = 0
