@@ -161,8 +161,7 @@ class CostateGradient:
             scale = torch.maximum(scale, self.growth * prev_step)
         return torch.where(torch.isfinite(scale) & (scale > 0), scale, torch.ones_like(scale))
 
-    def after_search(self, state, running, ok):
-        return state, running & ~ok
+    after_search = staticmethod(_every_failure_ends)
 
 
 @dataclass(frozen=True)
