@@ -110,6 +110,8 @@ def test_cli_solve_writes_logs_and_plots(tmp_path, capsys):
         (["solve", "pendulum", "--solver", "nope"], "--solver"),
         (["demo", "--line-search", "bogus"], "--line-search"),
         (["reproduce", "nothing"], "unknown reproduction"),
+        (["solve", "pendulum", "--threads", "-1"], "--threads"),
+        (["solve", "pendulum", "--logdir", "/dev/null/runs"], "--logdir"),
     ],
 )
 def test_cli_errors_are_one_line_exit_2(args, needle):

@@ -135,3 +135,26 @@ def test_mpc_step_warns_when_a_solve_failed():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         mpc.step(x[:1])  # no failure, no warning
+
+
+@pytest.mark.parametrize("make", [lambda: ts.ILQR(u_max=2.0), lambda: ts.GoPRONTO(max_iter=5)])
+def test_a_result_saves_and_loads_with_every_field(make, tmp_path):
+    problem, x0 = pendulum_swingup(batch=3, horizon=10, seed=0)
+    res = make().with_options(progress=False).solve(problem, x0)
+    res.save(tmp_path / "result.pt")
+    back = ts.SolverResult.load(tmp_path / "result.pt")
+    assert type(back) is type(res)
+    for name, value in res.to_dict().items():
+        got = getattr(back, name)
+        if torch.is_tensor(value):
+            assert torch.equal(got, value), name
+        elif isinstance(value, dict):
+            assert set(got) == set(value), name
+            for k, v in value.items():
+                assert torch.equal(got[k], v) if torch.is_tensor(v) else got[k] == v, (name, k)
+        else:
+            assert got == value, name
+    assert back.status_names() == res.status_names()
+    with pytest.raises(ValueError, match="SolverResult.save"):
+        torch.save({"x": torch.zeros(1)}, tmp_path / "other.pt")
+        ts.SolverResult.load(tmp_path / "other.pt")

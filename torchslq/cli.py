@@ -70,11 +70,17 @@ def _run(system: str, args: argparse.Namespace, title: str) -> int:
         return _fail(str(err))
     if args.batch < 1:
         return _fail(f"--batch must be >= 1, got {args.batch}")
+    if args.threads is not None and args.threads < 0:
+        return _fail(f"--threads must be >= 0 (0: torch's default), got {args.threads}")
     torch.set_num_threads(args.threads) if args.threads else None
     problem, x0 = make_task(
         system, batch=args.batch, seed=args.seed, device=device, dtype=DTYPES[args.dtype]
     )
     logdir = Path(args.logdir) / time.strftime("%Y%m%d-%H%M%S")
+    try:
+        logdir.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return _fail(f"cannot write --logdir {str(args.logdir)!r}: {err.strerror or err}")
     dt = getattr(problem.dynamics, "dt", None)
     t0 = time.perf_counter()
     with TensorBoardLogger(logdir, dt=dt) as logger:

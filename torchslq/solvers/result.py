@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
+from pathlib import Path
 
 import torch
 from torch import Tensor
@@ -54,6 +55,28 @@ class SolverResult:
     options: dict = field(default_factory=dict)
     active_bounds: Tensor | None = None
 
+    def to_dict(self) -> dict:
+        """Every field by name (tensors as they are): what :meth:`save` writes."""
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+    def save(self, path: str | Path) -> None:
+        """Write the result to ``path`` (``torch.save`` of :meth:`to_dict` and the result's
+        class); :meth:`load` reads it back with every field and status."""
+        torch.save({"class": type(self).__name__, "fields": self.to_dict()}, path)
+
+    @staticmethod
+    def load(path: str | Path, map_location: str | torch.device | None = None) -> SolverResult:
+        """The result saved at ``path`` by :meth:`save` (of its class: a
+        :class:`SolverResult` or a subclass such as :class:`torchslq.GoPRONTOResult`),
+        loaded with ``weights_only=True`` (tensors and plain containers only)."""
+        data = torch.load(path, map_location=map_location, weights_only=True)
+        if not isinstance(data, dict) or "class" not in data or "fields" not in data:
+            raise ValueError(f"{path!s} is not a file written by SolverResult.save")
+        kinds = {k.__name__: k for k in _result_classes()}
+        if data["class"] not in kinds:
+            raise ValueError(f"{path!s} holds an unknown result class {data['class']!r}")
+        return kinds[data["class"]](**data["fields"])
+
     def status_names(self) -> list[str]:
         return status_names(self.status)
 
@@ -96,3 +119,13 @@ class SolverResult:
             options=self.options,
             active_bounds=None if self.active_bounds is None else sq(self.active_bounds),
         )
+
+
+def _result_classes() -> list[type]:
+    """SolverResult and its subclasses (e.g. GoPRONTOResult), for :meth:`SolverResult.load`."""
+    out, todo = [], [SolverResult]
+    while todo:
+        k = todo.pop()
+        out.append(k)
+        todo.extend(k.__subclasses__())
+    return out
