@@ -158,3 +158,34 @@ def test_a_result_saves_and_loads_with_every_field(make, tmp_path):
     with pytest.raises(ValueError, match="SolverResult.save"):
         torch.save({"x": torch.zeros(1)}, tmp_path / "other.pt")
         ts.SolverResult.load(tmp_path / "other.pt")
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_lqr_backward_with_a_failed_element_leaves_the_others_exact(compiled):
+    """An element whose Quu is not positive definite (a strongly negative Q) gets a zero
+    gradient; the shared A's gradient equals the one of the good elements solved alone
+    (it was NaN on the torch path and a ZeroDivisionError on the compiled one)."""
+    from torchslq.lq import set_compiled
+
+    g = torch.Generator().manual_seed(3)
+    Bsz, T, n, m = 4, 6, 3, 2
+    A0 = torch.eye(n, dtype=F64) + 0.1 * torch.randn(n, n, generator=g, dtype=F64)
+    Bm = 0.5 * torch.randn(T, n, m, generator=g, dtype=F64)
+    Q = torch.eye(n, dtype=F64).expand(Bsz, T + 1, n, n).clone()
+    Q[1] = -50.0 * torch.eye(n, dtype=F64)  # element 1: Quu indefinite
+    R = torch.eye(m, dtype=F64)
+    x0 = torch.randn(Bsz, n, generator=g, dtype=F64)
+    good = torch.tensor([0, 2, 3])
+    set_compiled(compiled)
+    try:
+        A = A0.clone().requires_grad_(True)
+        sol = ts.lqr_solve(A.expand(Bsz, T, n, n), Bm, Q, R, x0)
+        assert sol.status.tolist()[1] == int(ts.Status.NOT_POSITIVE_DEFINITE)
+        (sol.x[good].square().sum() + sol.u[good].square().sum()).backward()
+        A_ref = A0.clone().requires_grad_(True)
+        ref = ts.lqr_solve(A_ref.expand(3, T, n, n), Bm, Q[good], R, x0[good])
+        (ref.x.square().sum() + ref.u.square().sum()).backward()
+    finally:
+        set_compiled(True)
+    assert torch.isfinite(A.grad).all()
+    torch.testing.assert_close(A.grad, A_ref.grad, rtol=1e-10, atol=1e-12)

@@ -86,7 +86,10 @@ class _LQRFunction(torch.autograd.Function):
         chol = fac.chol.expand(nb, *fac.chol.shape[1:])
         failed = fac.failed.expand(nb)
         x, u = rollout_homogeneous(F, Kk, x0)
-        ctx.save_for_backward(F, Kk, Vh, chol, x, u)
+        # an element whose solve failed (a Quu not positive definite, or non-finite
+        # numbers) gets a zero gradient and must not poison the shared inputs' gradients
+        bad = failed | ~torch.isfinite(x).flatten(1).all(1) | ~torch.isfinite(u).flatten(1).all(1)
+        ctx.save_for_backward(F, Kk, Vh, chol, x, u, bad)
         ctx.H_like = torch.empty(H.shape[0], 0)  # only the batch size is needed
         ctx.VhT_like = torch.empty(VhT.shape[0], 0)
         ctx.mark_non_differentiable(Kk, Vh, chol, failed)
@@ -95,13 +98,15 @@ class _LQRFunction(torch.autograd.Function):
     @staticmethod
     @once_differentiable
     def backward(ctx, gx, gu, _gKk, _gVh, _gchol, _gfailed):
-        F, Kk, Vh, chol, x, u = ctx.saved_tensors
+        F, Kk, Vh, chol, x, u, bad = ctx.saved_tensors
         T, m = u.shape[-2], u.shape[-1]
         n = x.shape[-1]
         if gx is None:
             gx = torch.zeros_like(x)
         if gu is None:
             gu = torch.zeros_like(u)
+        if bool(bad.any()):
+            F, Kk, Vh, chol, x, u, gx, gu = _neutral(bad, F, Kk, Vh, chol, x, u, gx, gu)
         dx, du, dlam = lq_adjoint_solve(F, Kk, Vh, chol, gx, gu)
         lam = (Vh[..., :n, :] @ _homog(x).unsqueeze(-1))[..., 0]  # (B, T+1, n)
         one = x.new_ones(*x.shape[:-1], 1)
@@ -120,6 +125,22 @@ class _LQRFunction(torch.autograd.Function):
         gx0 = dlam[..., 0, :]
         del m
         return _sum_to(gF, F), _sum_to(gH, ctx.H_like), _sum_to(gVhT, ctx.VhT_like), gx0
+
+
+def _neutral(bad: Tensor, F, Kk, Vh, chol, x, u, gx, gu):
+    """The backward pass's inputs with the failed elements ``bad (B,)`` replaced by a
+    neutral problem (zero data and trajectory, identity Cholesky factors, zero incoming
+    gradient): their adjoint solve is then zero, so they get a zero gradient and add
+    nothing to the gradient of inputs shared by the batch."""
+
+    def zero(t: Tensor) -> Tensor:
+        if t.shape[0] != bad.shape[0]:  # shared by the batch: left as it is
+            return t
+        return torch.where(bad.view(-1, *([1] * (t.ndim - 1))), torch.zeros_like(t), t)
+
+    eye = torch.eye(chol.shape[-1], dtype=chol.dtype, device=chol.device).expand_as(chol)
+    chol = torch.where(bad.view(-1, 1, 1, 1), eye, chol)
+    return (zero(F), zero(Kk), zero(Vh), chol, zero(x), zero(u), zero(gx), zero(gu))
 
 
 def _flat_batch(t: Tensor, batch: torch.Size, nb: int, tail: int) -> Tensor:
