@@ -249,7 +249,36 @@ _RK4 = ((0.0, 1.0), (0.5, 2.0), (0.5, 2.0), (1.0, 1.0))
 
 
 def discretize(dynamics: ContinuousDynamics, dt: float, method: str = "rk4") -> DiscretizedDynamics:
-    """Discrete-time :class:`Dynamics` taking one ``method`` step ("rk4" | "euler") of ``dt``."""
+    """The discrete-time model ``x_{t+1} = F(x_t, u_t)`` of a continuous one, ``xdot =
+    f(x, u)``: one integration step of length ``dt`` per time step, ``u`` held constant
+    over the step (zero-order hold). What :class:`torchslq.Problem` needs of a
+    :class:`~torchslq.ContinuousDynamics` (passing the continuous model itself is a
+    TypeError: its ``xdot`` is no next state).
+
+    Args:
+        dynamics: a :class:`~torchslq.ContinuousDynamics` (``state_dim``,
+            ``control_dim``, ``forward(x (..., n), u (..., m)) -> xdot (..., n)``,
+            batched over any leading dims; optional analytic ``jacobians``/``vhp`` and
+            compiled hooks, which the step chains through the scheme exactly).
+        dt: the step length (> 0), in the model's time unit.
+        method: ``"rk4"`` (default; the classical fourth-order Runge-Kutta step, four
+            calls of ``f``) or ``"euler"`` (``x + dt f(x, u)``).
+
+    Returns:
+        A :class:`DiscretizedDynamics` (an ``nn.Module``: the continuous model's
+        parameters are its parameters, so gradients reach them).
+
+    Example::
+
+        class Pendulum(ts.ContinuousDynamics):
+            state_dim, control_dim = 2, 1
+
+            def forward(self, x, u, t=None):
+                theta, omega = x[..., :1], x[..., 1:]
+                return torch.cat([omega, -9.81 * torch.sin(theta) + u], dim=-1)
+
+        step = ts.discretize(Pendulum(), dt=0.05)      # x_next = step(x, u)
+    """
     if not isinstance(dynamics, ContinuousDynamics):
         raise TypeError(
             f"dynamics must be a torchslq.ContinuousDynamics, got {type(dynamics).__name__}"
