@@ -189,3 +189,30 @@ def test_lqr_backward_with_a_failed_element_leaves_the_others_exact(compiled):
         set_compiled(True)
     assert torch.isfinite(A.grad).all()
     torch.testing.assert_close(A.grad, A_ref.grad, rtol=1e-10, atol=1e-12)
+
+
+class _NanJacobian(ts.Dynamics):
+    """A linear model whose analytic Jacobian is NaN where x_0 > 2 (the rollout is finite)."""
+
+    state_dim, control_dim = 2, 1
+
+    def forward(self, x, u):
+        return torch.cat([x[..., :1] + 0.1 * x[..., 1:], x[..., 1:] + 0.1 * u], -1)
+
+    def jacobians(self, x, u):
+        A = torch.tensor([[1.0, 0.1], [0.0, 1.0]], dtype=x.dtype).expand(*x.shape[:-1], 2, 2)
+        B = torch.tensor([[0.0], [0.1]], dtype=x.dtype).expand(*x.shape[:-1], 2, 1)
+        bad = (x[..., 0] > 2.0)[..., None, None]
+        return torch.where(bad, float("nan"), A), B.clone()
+
+
+@pytest.mark.parametrize(
+    "make",
+    [ts.SLQ, ts.ILQR, ts.DDP, lambda **kw: ts.DDP(second_order="costate", **kw), ts.GradientMethod],
+)
+def test_a_nan_jacobian_is_non_finite_under_every_solver(make):
+    """One meaning per status: a NaN Jacobian is non_finite (ILQR/DDP called it
+    not_positive_definite); the other element converges."""
+    problem = ts.Problem(_NanJacobian(), _cost(), 10)
+    x0 = torch.tensor([[0.5, 0.0], [2.5, 0.0]], dtype=F64)
+    assert make(progress=False).solve(problem, x0).status_names() == ["converged", "non_finite"]

@@ -17,8 +17,19 @@ __all__ = ["Status", "status_names"]
 class Status(IntEnum):
     """Outcome of one batch element.
 
-    ``RUNNING`` is only seen inside a solver loop. For :func:`torchslq.lqr_solve`,
-    ``CONVERGED`` means "solved" (the LQ problem is solved exactly in one pass).
+    * ``CONVERGED``: the stopping test passed (for :func:`torchslq.lqr_solve`: solved,
+      the LQ problem is solved exactly in one pass);
+    * ``MAX_ITER``: the iteration limit came first;
+    * ``LINE_SEARCH_FAILED``: no step decreased the cost (for ILQR/DDP: not even with
+      the regularisation at ``mu_max``);
+    * ``NON_FINITE``: a NaN or infinity in the element's trajectory, cost, derivatives
+      (e.g. a NaN Jacobian) or direction;
+    * ``DIVERGED``: a constant-step method's iterate left the finite range;
+    * ``NOT_POSITIVE_DEFINITE``: with finite data, the LQ subproblem has no minimum (a
+      ``Quu`` not positive definite, for ILQR/DDP even with ``mu_max``);
+    * ``STALLED``: accepted steps stopped changing the cost beyond rounding noise while
+      the stopping test was unmet (the precision of the dtype is reached);
+    * ``RUNNING`` is only seen inside a solver loop.
     """
 
     RUNNING = -1

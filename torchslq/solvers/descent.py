@@ -15,7 +15,8 @@ A direction returns a dict ``d`` with ``du (b,T,m)``, ``dx (b,T+1,n)``, ``K``, `
 ``grad (b,T,m)`` (``∇_U J``, or the projected gradient with bounds), ``slope (b,)``
 (``∇J·Ū``), ``failed (b,)`` and optionally ``curvature (b,)`` (``k'Quu k``), ``scale
 (b,)`` (the line search runs over ``(0, scale]``), ``keep_gains (b,)`` (False where the
-gains of this iteration were not computed). Its per-element memory (e.g. the
+gains of this iteration were not computed), ``nonfinite (b,)`` (its data were not
+finite: status ``non_finite`` rather than ``not_positive_definite``). Its per-element memory (e.g. the
 Levenberg-Marquardt ``mu``) lives in the :class:`DescentState`.
 """
 
@@ -83,6 +84,16 @@ class Direction(Protocol):
         """The state after a line search (``ok``: a step was accepted) and the elements
         whose failed search ends their solve."""
         ...
+
+
+def nonfinite_rows(*tensors: Tensor) -> Tensor:
+    """``(b,)`` True where any of the batch-first tensors ``(b, ...)`` has a non-finite
+    entry (a NaN Jacobian is ``non_finite``, not a factorisation failure)."""
+    out = torch.zeros(tensors[0].shape[0], dtype=torch.bool, device=tensors[0].device)
+    for t in tensors:
+        if t is not None and t.ndim > 0 and t.shape[0] == out.shape[0]:
+            out = out | ~torch.isfinite(t).flatten(1).all(1)
+    return out
 
 
 def _every_failure_ends(
@@ -274,6 +285,8 @@ class DescentRule:
         fail = torch.full_like(gn, int(Status.RUNNING), dtype=torch.int64)
         fail = fail.masked_fill(d["failed"], int(Status.NOT_POSITIVE_DEFINITE))
         fail = fail.masked_fill(~torch.isfinite(d["slope"]), int(Status.NON_FINITE))
+        if "nonfinite" in d:
+            fail = fail.masked_fill(d["nonfinite"], int(Status.NON_FINITE))
         state = replace(state, K=K, k=k)
         return state, Measure(grad_norm=gn, done=done, fail=fail, cost=state.J, direction=d)
 

@@ -41,7 +41,7 @@ from ..dynamics.linearize import (
 from ..dynamics.rollout import costate_gradient
 from ..lq.regularization import RegularizationSchedule
 from ..lq.riccati import RiccatiFactors, StageHook, riccati_backward
-from .descent import DescentState
+from .descent import DescentState, nonfinite_rows
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -275,8 +275,12 @@ class RegularizedNewton:
                 _merge_factors(bad & running, fac_gn, fac),
                 torch.where(bad & running, bad_gn, bad),
             )
-        # an element that needed mu > mu_max to factorise stops (not_positive_definite)
+        # an element that needed mu > mu_max to factorise stops (not_positive_definite),
+        # unless its linearisation or cost expansion is not finite (non_finite)
         failed = bad | (mu > self.schedule.reg_max)
+        nonfinite = None
+        if bool(failed.any()):
+            nonfinite = failed & nonfinite_rows(A, B, e.lx, e.lu)
         k = fac.k
         if fac.dV is None:
             Lk = (fac.chol.mT @ k.unsqueeze(-1))[..., 0]  # k'Quu k = |L'k|^2
@@ -296,6 +300,8 @@ class RegularizedNewton:
         }
         if fac.clamped is not None:
             d["clamped"] = fac.clamped
+        if nonfinite is not None:
+            d["nonfinite"] = nonfinite
         if done is not None:
             d["keep_gains"] = ~done
         return d, replace(state, mu=mu, delta=delta)
