@@ -246,8 +246,7 @@ def iterate(
             break
         sub, run = state.take(idx), _take(running, idx)
         sub, m = rule.measure(problem, sub, run, it)
-        gn = _put(grad_norm, idx, torch.where(run, m.grad_norm, _take(grad_norm, idx)))
-        grad_norm = gn
+        grad_norm = _put(grad_norm, idx, torch.where(run, m.grad_norm, _take(grad_norm, idx)))
         # the rule reports its cost and extra quantities for its whole working set
         cost = _put(cost, idx, m.cost)
         for k, v in m.history.items():
