@@ -1,6 +1,7 @@
 """The batched LQ (Riccati) kernel shared by every solver.
 
-The Riccati pass, its rollout and adjoint solve, the box QP and the DARE, with the
+The Riccati pass, its rollout and adjoint solve (sequential, or parallel in time by
+associative scans: :mod:`.scan`), the box QP and the DARE, with the
 Levenberg-Marquardt regularisation schedule and its restarts (:mod:`.regularization`).
 Each runs on the CPU as a compiled kernel or as batched torch ops
 (:mod:`torchslq._backend`), with the same meaning; :func:`set_compiled` switches the
@@ -20,7 +21,15 @@ from .riccati import (
     rollout_homogeneous,
     rollout_linear,
 )
-from .solve import LQRSolution, lq_adjoint_solve, lq_objective, lqr_solve
+from .scan import (
+    associative_scan,
+    lq_adjoint_scan,
+    riccati_scan,
+    riccati_scan_homogeneous,
+    rollout_scan,
+    rollout_scan_homogeneous,
+)
+from .solve import LQRSolution, choose_method, lq_adjoint_solve, lq_objective, lqr_solve
 
 __all__ = [
     "BoxQPResult",
@@ -28,19 +37,26 @@ __all__ = [
     "RegularizationSchedule",
     "Restarts",
     "RiccatiFactors",
+    "associative_scan",
     "box_qp",
+    "choose_method",
     "compiled_available",
     "dare",
     "dare_gain",
     "dare_residual",
     "homogeneous_cost",
     "homogeneous_dynamics",
+    "lq_adjoint_scan",
     "lq_adjoint_solve",
     "lq_objective",
     "lqr_solve",
     "riccati_backward",
     "riccati_homogeneous",
+    "riccati_scan",
+    "riccati_scan_homogeneous",
     "rollout_homogeneous",
     "rollout_linear",
+    "rollout_scan",
+    "rollout_scan_homogeneous",
     "set_compiled",
 ]

@@ -11,6 +11,11 @@ of the KKT conditions (Amos et al. 2018, "Differentiable MPC", Section 4.2): the
 backward pass is one more LQ solve with the same quadratic terms, so it reuses the
 forward Cholesky factors and gains and only recomputes the linear terms. Memory is
 ``O(B T (n^2 + n m))``; nothing is unrolled.
+
+Two backends solve the same problem with the same meaning (``method=``): the sequential
+Riccati recursion (:mod:`.riccati`, compiled on the CPU) and the parallel-in-time
+associative scan of Särkkä & García-Fernández (2023) (:mod:`.scan`), whose span is
+``O(log T)`` instead of ``O(T)``; the backward pass runs on the backend of the forward.
 """
 
 from __future__ import annotations
@@ -32,8 +37,11 @@ from .riccati import (
     rollout_homogeneous,
     with_time,
 )
+from .scan import lq_adjoint_scan, riccati_scan_homogeneous, rollout_scan_homogeneous
 
-__all__ = ["LQRSolution", "lqr_solve"]
+__all__ = ["LQRSolution", "choose_method", "lqr_solve"]
+
+METHODS = ("sequential", "scan", "auto")
 
 
 @dataclass
@@ -78,14 +86,16 @@ class _LQRFunction(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, F, H, VhT, x0):  # noqa: D401
-        fac = riccati_homogeneous(F, H, VhT)
+    def forward(ctx, F, H, VhT, x0, method="sequential"):  # noqa: D401
+        scan = method == "scan"
+        fac = (riccati_scan_homogeneous if scan else riccati_homogeneous)(F, H, VhT)
         nb = x0.shape[0]  # the data may all be shared (batch 1) while x0 is not
         Kk = fac.Kk.expand(nb, *fac.Kk.shape[1:])
         Vh = fac.Vh.expand(nb, *fac.Vh.shape[1:])
         chol = fac.chol.expand(nb, *fac.chol.shape[1:])
         failed = fac.failed.expand(nb)
-        x, u = rollout_homogeneous(F, Kk, x0)
+        x, u = (rollout_scan_homogeneous if scan else rollout_homogeneous)(F, Kk, x0)
+        ctx.method = method
         # an element whose solve failed (a Quu not positive definite, or non-finite
         # numbers) gets a zero gradient and must not poison the shared inputs' gradients
         bad = failed | ~torch.isfinite(x).flatten(1).all(1) | ~torch.isfinite(u).flatten(1).all(1)
@@ -107,7 +117,8 @@ class _LQRFunction(torch.autograd.Function):
             gu = torch.zeros_like(u)
         if bool(bad.any()):
             F, Kk, Vh, chol, x, u, gx, gu = _neutral(bad, F, Kk, Vh, chol, x, u, gx, gu)
-        dx, du, dlam = lq_adjoint_solve(F, Kk, Vh, chol, gx, gu)
+        adjoint = lq_adjoint_scan if ctx.method == "scan" else lq_adjoint_solve
+        dx, du, dlam = adjoint(F, Kk, Vh, chol, gx, gu)
         lam = (Vh[..., :n, :] @ _homog(x).unsqueeze(-1))[..., 0]  # (B, T+1, n)
         one = x.new_ones(*x.shape[:-1], 1)
         z = torch.cat([u, x[..., :T, :], one[..., :T, :]], dim=-1)  # (B, T, m+n+1)
@@ -124,7 +135,8 @@ class _LQRFunction(torch.autograd.Function):
         gF = dlam_next.unsqueeze(-1) * z.unsqueeze(-2) + lam_next.unsqueeze(-1) * dz.unsqueeze(-2)
         gx0 = dlam[..., 0, :]
         del m
-        return _sum_to(gF, F), _sum_to(gH, ctx.H_like), _sum_to(gVhT, ctx.VhT_like), gx0
+        gF, gH = _sum_to(gF, F), _sum_to(gH, ctx.H_like)
+        return gF, gH, _sum_to(gVhT, ctx.VhT_like), gx0, None
 
 
 def _neutral(bad: Tensor, F, Kk, Vh, chol, x, u, gx, gu):
@@ -273,6 +285,18 @@ def _check_tensor(
         raise ValueError(f"{name} contains non-finite values (nan or inf)")
 
 
+def choose_method(T: int, batch: int, device: torch.device, dtype: torch.dtype) -> str:
+    """The backend ``lqr_solve(method="auto")`` runs: ``"scan"`` only where the benchmark
+    (``benchmarks/parallel_lq.py``, results in ``benchmarks/results/parallel_lq.md``)
+    measured it faster than the sequential kernel, else ``"sequential"``.
+
+    Args:
+        T: horizon. batch: number of problems. device, dtype: those of the data.
+    """
+    del T, batch, device, dtype
+    return "sequential"
+
+
 def lqr_solve(
     A: Tensor,
     B: Tensor,
@@ -285,6 +309,7 @@ def lqr_solve(
     c: Tensor | None = None,
     *,
     validate: bool = True,
+    method: str = "sequential",
 ) -> LQRSolution:
     """Solve a batch of finite-horizon LQ problems (module docstring gives the problem).
 
@@ -299,6 +324,14 @@ def lqr_solve(
         S: ``(B, T, m, n)`` cross terms (cost ``u'S x``). c: ``(B, T, n)`` affine dynamics.
         validate: check shapes, finiteness and ``R > 0`` (one host sync each); solvers
             calling this in an inner loop pass ``False``.
+        method: the backend, the same results either way (up to rounding):
+            ``"sequential"`` (default) the Riccati recursion, ``T`` dependent steps (on
+            the CPU one compiled loop); ``"scan"`` the parallel-in-time associative scan
+            (:mod:`torchslq.lq.scan`; Särkkä & García-Fernández 2023), ``O(log T)``
+            levels of batched ops, its backward pass by scans too (an element whose
+            scan fails is redone by the recursion, so the statuses are the same);
+            ``"auto"`` picks ``"scan"`` only where it measured faster
+            (:func:`choose_method`, ``docs/scale.md``).
 
     All leading (batch) dims broadcast together, and a time dim of 1 broadcasts over
     time; a fully unbatched problem (``A (T,n,n)``, ``x0 (n,)``) returns unbatched
@@ -330,6 +363,8 @@ def lqr_solve(
         Rsym = 0.5 * (R + R.mT)
         if bool((torch.linalg.cholesky_ex(Rsym).info != 0).any()):
             raise ValueError("R must be symmetric positive definite (Cholesky failed)")
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     m = B.shape[-1]
     Q = with_time(Q, 2, T + 1)
     R = with_time(R, 2, T)
@@ -360,7 +395,9 @@ def lqr_solve(
     Hf = _flat_batch(H, batch, nb, 3)
     VhTf = _flat_batch(VhT, batch, nb, 2)
     x0f = x0.expand(*batch, n).reshape(nb, n)
-    x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f)
+    if method == "auto":
+        method = choose_method(T, nb, x0.device, x0.dtype)
+    x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f, method)
 
     finite = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
     status = lq_status(failed, finite)
