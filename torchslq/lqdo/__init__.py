@@ -1,0 +1,23 @@
+"""Linear-quadratic dynamic optimisation (Herber & Sundarrajan 2020).
+
+Direct transcription of nonlinear dynamic optimisation problems (trapezoidal and
+Legendre-Gauss-Lobatto pseudospectral) to quadratic programs, ordinary-LQ elements built
+once, QP backends (a sparse CPU solver and a batched, differentiable dense solver in
+torch), quasilinearization (Algorithm 1) with an optional safeguard, and the two-level
+fixed-parameter method (nested co-design) with exact upper-level gradients.
+See ``docs/lqdo.md``.
+"""
+
+from .problem import LQDOProblem, detect_olq
+from .qp import DenseQP, SparseQP
+from .transcription import Transcription, lgl, transcribe
+
+__all__ = [
+    "DenseQP",
+    "LQDOProblem",
+    "SparseQP",
+    "Transcription",
+    "detect_olq",
+    "lgl",
+    "transcribe",
+]

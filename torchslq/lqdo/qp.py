@@ -1,0 +1,213 @@
+"""The quadratic program of a transcribed LQDO problem, Prob. (18), batch-first.
+
+.. math::
+
+    \\min_z \\tfrac12 z^T H z + f^T z + c \\quad\\text{s.t.}\\quad A z = b,\\;
+    G z \\le h,\\; lb \\le z \\le ub.
+
+Matrices are stored as one sparsity pattern shared by the batch with per-element values
+(``idx (2, nnz)`` rows/columns, ``val (B, nnz)``, duplicates summed), which is how the
+transcription builds them without a loop over nodes; :meth:`SparseQP.dense` scatters them
+into dense ``(B, m, n)`` tensors (differentiably) for the batched torch solver, and
+:meth:`SparseQP.scipy` into one block-diagonal ``scipy.sparse`` matrix for the whole batch
+for the sparse CPU solvers.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+__all__ = ["SparseQP", "DenseQP"]
+
+
+def _scatter(idx: Tensor, val: Tensor, m: int, n: int) -> Tensor:
+    """Dense ``(B, m, n)`` from a shared pattern ``idx (2, nnz)`` and values ``(B, nnz)``."""
+    B = val.shape[0]
+    out = val.new_zeros(B, m * n)
+    out = out.index_add(1, idx[0] * n + idx[1], val)
+    return out.reshape(B, m, n)
+
+
+@dataclass
+class DenseQP:
+    """Dense batched QP: ``H (B, n, n)``, ``f (B, n)``, ``A (B, me, n)``, ``b (B, me)``,
+    ``G (B, mi, n)``, ``h (B, mi)`` (bounds already folded into ``G, h``), constant ``c (B,)``."""
+
+    H: Tensor
+    f: Tensor
+    A: Tensor
+    b: Tensor
+    G: Tensor
+    h: Tensor
+    c: Tensor
+
+
+@dataclass
+class SparseQP:
+    """One QP per batch element with a shared sparsity pattern (see the module docstring).
+
+    Attributes:
+        n: number of variables.
+        H_idx, H_val: the full symmetric Hessian, ``(2, nnz)`` and ``(B, nnz)``.
+        f: ``(B, n)``; c: ``(B,)`` constant term.
+        A_idx, A_val, b: equality constraints ``A z = b``, ``b (B, me)``.
+        G_idx, G_val, h: inequality constraints ``G z <= h``, ``h (B, mi)``.
+        lb, ub: ``(B, n)`` simple bounds (``-inf``/``inf`` where absent).
+    """
+
+    n: int
+    H_idx: Tensor
+    H_val: Tensor
+    f: Tensor
+    c: Tensor
+    A_idx: Tensor
+    A_val: Tensor
+    b: Tensor
+    G_idx: Tensor
+    G_val: Tensor
+    h: Tensor
+    lb: Tensor
+    ub: Tensor
+
+    @property
+    def batch(self) -> int:
+        return self.f.shape[0]
+
+    @property
+    def me(self) -> int:
+        return self.b.shape[1]
+
+    @property
+    def mi(self) -> int:
+        return self.h.shape[1]
+
+    # ------------------------------------------------------------------ evaluation
+    def _matvec(self, idx: Tensor, val: Tensor, z: Tensor, m: int) -> Tensor:
+        return z.new_zeros(z.shape[0], m).index_add(1, idx[0], val * z[:, idx[1]])
+
+    def objective(self, z: Tensor) -> Tensor:
+        """``(B,)`` value ``1/2 z'Hz + f'z + c`` at ``z (B, n)``."""
+        Hz = self._matvec(self.H_idx, self.H_val, z, self.n)
+        return 0.5 * (z * Hz).sum(-1) + (self.f * z).sum(-1) + self.c
+
+    def residuals(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """``A z - b (B, me)`` and ``G z - h (B, mi)``."""
+        return (
+            self._matvec(self.A_idx, self.A_val, z, self.me) - self.b,
+            self._matvec(self.G_idx, self.G_val, z, self.mi) - self.h,
+        )
+
+    # ------------------------------------------------------------------ conversions
+    def dense(self, bounds: bool = True) -> DenseQP:
+        """Dense batched tensors (differentiable in every field). With ``bounds`` the
+        finite simple bounds become rows of ``G z <= h``: rows ``z_j <= ub_j`` and
+        ``-z_j <= -lb_j`` for every ``j`` finite in some element, and an element whose
+        bound is infinite gets the always-inactive row ``0 z <= 1``."""
+        n = self.n
+        H = _scatter(self.H_idx, self.H_val, n, n)
+        A = _scatter(self.A_idx, self.A_val, self.me, n)
+        G = _scatter(self.G_idx, self.G_val, self.mi, n)
+        h = self.h
+        if bounds:
+            eye = torch.eye(n, dtype=self.f.dtype, device=self.f.device)
+            rows_G, rows_h = [G], [h]
+            for sign, bnd in ((1.0, self.ub), (-1.0, -self.lb)):
+                fin = torch.isfinite(bnd)
+                cols = fin.any(0).nonzero().squeeze(1)
+                if cols.numel():
+                    Gb = sign * eye[cols].expand(self.batch, -1, -1)
+                    finc = fin[:, cols]
+                    Gb = Gb * finc.unsqueeze(-1).to(Gb.dtype)
+                    rows_G.append(Gb)
+                    rows_h.append(torch.where(finc, bnd[:, cols], torch.ones_like(bnd[:, cols])))
+            G, h = torch.cat(rows_G, 1), torch.cat(rows_h, 1)
+        return DenseQP(H=H, f=self.f, A=A, b=self.b, G=G, h=h, c=self.c)
+
+    def scipy(self):
+        """The whole batch as one block-diagonal QP in ``scipy.sparse`` CSC form (float64
+        numpy): ``P (Bn, Bn)``, ``q``, ``A (Bme, Bn)``, ``b``, ``G (Bmi, Bn)``, ``h``,
+        ``lb``, ``ub``. Block-diagonal, so one call of a sparse solver solves the batch."""
+        import numpy as np
+        import scipy.sparse as sp
+
+        B, n = self.batch, self.n
+
+        def block(idx: Tensor, val: Tensor, m: int):
+            off = torch.arange(B, device=idx.device)
+            r = (idx[0][None, :] + m * off[:, None]).reshape(-1)
+            c = (idx[1][None, :] + n * off[:, None]).reshape(-1)
+            v = val.detach().reshape(-1)
+            return sp.csc_matrix(
+                (
+                    v.cpu().double().numpy(),
+                    (r.cpu().numpy(), c.cpu().numpy()),
+                ),
+                shape=(B * m, B * n),
+            )
+
+        def flat(t: Tensor):
+            return t.detach().reshape(-1).cpu().double().numpy()
+
+        P = block(self.H_idx, self.H_val, n)
+        P.sum_duplicates()
+        return dict(
+            P=P,
+            q=flat(self.f),
+            A=block(self.A_idx, self.A_val, self.me),
+            b=flat(self.b),
+            G=block(self.G_idx, self.G_val, self.mi),
+            h=flat(self.h),
+            lb=flat(self.lb),
+            ub=flat(self.ub),
+            np=np,
+        )
+
+    # ------------------------------------------------------------------ reduction
+    def fix(self, mask: Tensor, values: Tensor) -> SparseQP:
+        """The QP in the free variables with ``z[:, mask] = values (B, nfix)`` substituted
+        (e.g. the static parameters in the two-level method, Sec. 4.2.2)."""
+        n = self.n
+        full = self.f.new_zeros(self.batch, n)
+        full[:, mask] = values.to(full)
+        free = ~mask
+        new = torch.full((n,), -1, dtype=torch.long, device=mask.device)
+        new[free] = torch.arange(int(free.sum()), device=mask.device)
+        nf = int(free.sum())
+
+        def split(idx: Tensor, val: Tensor, m: int):
+            keep = free[idx[1]]
+            moved = val[:, ~keep] * full[:, idx[1][~keep]]  # A_p p, moved to the rhs
+            rhs = val.new_zeros(self.batch, m).index_add(1, idx[0][~keep], moved)
+            kidx = torch.stack([idx[0][keep], new[idx[1][keep]]])
+            return kidx, val[:, keep], rhs
+
+        A_idx, A_val, Ab = split(self.A_idx, self.A_val, self.me)
+        G_idx, G_val, Gh = split(self.G_idx, self.G_val, self.mi)
+        r, cidx = self.H_idx
+        ww = free[r] & free[cidx]
+        wp = free[r] & mask[cidx]
+        pp = mask[r] & mask[cidx]
+        f = self.f.index_add(1, r[wp], self.H_val[:, wp] * full[:, cidx[wp]])
+        c = (
+            self.c
+            + (self.f * full).sum(-1)
+            + 0.5 * (self.H_val[:, pp] * full[:, r[pp]] * full[:, cidx[pp]]).sum(-1)
+        )
+        return SparseQP(
+            n=nf,
+            H_idx=torch.stack([new[r[ww]], new[cidx[ww]]]),
+            H_val=self.H_val[:, ww],
+            f=f[:, free],
+            c=c,
+            A_idx=A_idx,
+            A_val=A_val,
+            b=self.b - Ab,
+            G_idx=G_idx,
+            G_val=G_val,
+            h=self.h - Gh,
+            lb=self.lb[:, free],
+            ub=self.ub[:, free],
+        )

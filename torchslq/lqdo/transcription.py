@@ -1,0 +1,505 @@
+"""Direct transcription of an :class:`~torchslq.lqdo.problem.LQDOProblem` (Sec. 2.2).
+
+Variables per batch element, ``z = [vec(U), vec(Xi), p]`` (eq. 3) with ``U (nt, nu)`` and
+``Xi (nt, nx)`` stored node-major: ``n = nt (nu + nx) + np``.
+
+Both methods write the defects (eqs. 5-6) as ``M1 Xi - M2 F = 0`` with ``F_k = f(t_k, U_k,
+Xi_k, p)`` and two ``(nd, nt)`` operators:
+
+* ``"TR"`` (trapezoidal, single step): ``M1 = [.. -1 1 ..]``, ``M2 = [.. h_k/2 h_k/2 ..]``,
+  ``nd = nt - 1``; composite trapezoidal quadrature (eq. 9). Any mesh: ``nodes`` points
+  equally spaced, or ``mesh`` a strictly increasing tensor.
+* ``"PS"`` (single-interval Legendre pseudospectral on Legendre-Gauss-Lobatto points,
+  Herber 2015 [33]): ``M1 = D`` the LGL differentiation matrix scaled by ``2 / (tf - t0)``,
+  ``M2 = I``, ``nd = nt``; LGL quadrature weights.
+
+The QP of the reference LQDO problem about ``z_ref`` (Prob. 14: constraints linearised,
+eq. 12, objective quadratised, eq. 13) is assembled from per-node Jacobians and
+Hessians (:func:`~torchslq.lqdo.problem.row_derivatives`, all nodes and elements at once)
+scattered into one shared sparsity pattern: there is no Python loop over nodes or batch
+elements. OLQ elements (Sec. 3.1) give the same QP pieces at every reference; they are
+built on the first call and reused (Sec. 4.1), and for the dynamics only the non-OLQ
+rows are differentiated again.
+
+Equality rows: defects (``nd nx``), path equalities (``nt ke``), boundary equalities,
+fixed initial states, fixed final states. Inequality rows: path inequalities
+(``nt ki``), boundary inequalities.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from .problem import LQDOProblem, row_derivatives
+from .qp import SparseQP
+
+__all__ = ["Transcription", "transcribe", "lgl"]
+
+
+def lgl(N: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Legendre-Gauss-Lobatto points, weights and differentiation matrix on ``[-1, 1]``.
+
+    Newton iteration on ``(1 - x^2) P'_{N-1}(x)`` from the Chebyshev-Gauss-Lobatto points
+    (the classical ``lglnodes`` scheme).
+
+    Returns:
+        ``tau (N,)`` increasing, ``w (N,)`` (exact for polynomials of degree ``2N - 3``),
+        ``D (N, N)`` (exact derivative at the nodes for degree ``N - 1``).
+    """
+    if N < 2:
+        raise ValueError(f"nodes must be at least 2 for PS; got {N}")
+    n = N - 1
+    x = np.cos(np.pi * np.arange(N) / n)
+    P = np.zeros((N, N))
+    xold = 2.0
+    for _ in range(100):
+        if np.max(np.abs(x - xold)) < 1e-16:
+            break
+        xold = x
+        P[:, 0], P[:, 1] = 1.0, x
+        for k in range(2, N):
+            P[:, k] = ((2 * k - 1) * x * P[:, k - 1] - (k - 1) * P[:, k - 2]) / k
+        x = xold - (x * P[:, n] - P[:, n - 1]) / (N * P[:, n])
+    P[:, 0], P[:, 1] = 1.0, x
+    for k in range(2, N):
+        P[:, k] = ((2 * k - 1) * x * P[:, k - 1] - (k - 1) * P[:, k - 2]) / k
+    tau = x[::-1].copy()
+    PN = P[::-1, n].copy()
+    w = 2.0 / (n * N * PN**2)
+    with np.errstate(divide="ignore"):
+        D = PN[:, None] / PN[None, :] / (tau[:, None] - tau[None, :])
+    np.fill_diagonal(D, 0.0)
+    D[0, 0] = -n * N / 4.0
+    D[-1, -1] = n * N / 4.0
+    return tau, w, D
+
+
+class Transcription:
+    """A transcribed problem: mesh, weights, defect operators, variable layout, and the
+    builders of the nonlinear program (Prob. 4) and of the reference LQDO QP (Prob. 14/18).
+
+    Args:
+        problem: the NLDO problem.
+        method: ``"TR"`` or ``"PS"``.
+        nodes: mesh points ``nt`` (ignored when ``mesh`` is given).
+        mesh: ``(nt,)`` strictly increasing times from ``t0`` to ``tf`` (TR only).
+        dtype, device: of every tensor built.
+    """
+
+    def __init__(
+        self,
+        problem: LQDOProblem,
+        method: str = "TR",
+        nodes: int = 20,
+        mesh: Tensor | None = None,
+        dtype: torch.dtype = torch.float64,
+        device: torch.device | str | None = None,
+    ) -> None:
+        if not isinstance(problem, LQDOProblem):
+            raise TypeError(f"problem must be an LQDOProblem; got {type(problem).__name__}")
+        method = method.upper()
+        if method not in ("TR", "PS"):
+            raise ValueError(f"method must be 'TR' or 'PS'; got {method!r}")
+        self.problem, self.method = problem, method
+        self.dtype, self.device = dtype, torch.device(device) if device is not None else None
+        kw = dict(dtype=dtype, device=device)
+        t0, tf = problem.t0, problem.tf
+        if method == "TR":
+            if mesh is not None:
+                t = torch.as_tensor(mesh, **kw).reshape(-1)
+                if t.numel() < 2 or not bool((t[1:] > t[:-1]).all()):
+                    raise ValueError("mesh must be strictly increasing with at least 2 points")
+                if abs(float(t[0]) - t0) > 1e-12 or abs(float(t[-1]) - tf) > 1e-12:
+                    raise ValueError(f"mesh must run from t0={t0} to tf={tf}")
+            else:
+                if not isinstance(nodes, int) or nodes < 2:
+                    raise ValueError(f"nodes must be an int >= 2; got {nodes!r}")
+                t = torch.linspace(t0, tf, nodes, **kw)
+            nt = t.numel()
+            hk = t[1:] - t[:-1]
+            w = torch.zeros(nt, **kw)
+            w[:-1] += hk / 2
+            w[1:] += hk / 2
+            i = torch.arange(nt - 1, device=device)
+            # pairs (defect row, node) of the two operators' nonzeros
+            self.pair_i = torch.cat([i, i])
+            self.pair_k = torch.cat([i, i + 1])
+            self.pair_m1 = torch.cat([-torch.ones_like(hk), torch.ones_like(hk)])
+            self.pair_m2 = torch.cat([hk / 2, hk / 2])
+            nd = nt - 1
+        else:
+            if mesh is not None:
+                raise ValueError("mesh is only for method='TR' (PS uses the LGL points)")
+            if not isinstance(nodes, int) or nodes < 2:
+                raise ValueError(f"nodes must be an int >= 2; got {nodes!r}")
+            tau, wn, D = lgl(nodes)
+            nt = nodes
+            half = (tf - t0) / 2
+            t = torch.as_tensor(half * tau + (tf + t0) / 2, **kw)
+            w = torch.as_tensor(half * wn, **kw)
+            ii, kk = torch.meshgrid(
+                torch.arange(nt, device=device), torch.arange(nt, device=device), indexing="ij"
+            )
+            self.pair_i, self.pair_k = ii.reshape(-1), kk.reshape(-1)
+            self.pair_m1 = torch.as_tensor(D / half, **kw).reshape(-1)
+            self.pair_m2 = (ii == kk).reshape(-1).to(dtype)
+            nd = nt
+        self.t, self.w, self.nt, self.nd = t, w, nt, nd
+        P = problem
+        nu, nx, np_ = P.nu, P.nx, P.np
+        self.n = nt * (nu + nx) + np_
+        self.off_u, self.off_x, self.off_p = 0, nt * nu, nt * (nu + nx)
+        ar = torch.arange(nt, device=device)
+        iu = self.off_u + ar[:, None] * nu + torch.arange(nu, device=device)
+        ix = self.off_x + ar[:, None] * nx + torch.arange(nx, device=device)
+        ip = self.off_p + torch.arange(np_, device=device)
+        self.idx_u, self.idx_x, self.idx_p = iu, ix, ip
+        # node-local variable maps: path [u_k, xi_k, p], boundary [p, xi_1, xi_nt]
+        self.loc_path = torch.cat([iu, ix, ip.expand(nt, np_)], 1)
+        self.loc_bnd = torch.cat([ip, ix[0], ix[-1]])
+        self.k = {name: P.out_dim(name) for name in ("path_eq", "path_ineq")}
+        self.k.update({name: P.out_dim(name) for name in ("boundary_eq", "boundary_ineq")})
+        self.fix0 = ~P.initial.isnan().reshape(-1, nx)[0]
+        self.fixf = ~P.final.isnan().reshape(-1, nx)[0]
+        self.me = (
+            nd * nx
+            + nt * self.k["path_eq"]
+            + self.k["boundary_eq"]
+            + int(self.fix0.sum())
+            + int(self.fixf.sum())
+        )
+        self.mi = nt * self.k["path_ineq"] + self.k["boundary_ineq"]
+        self._cache: dict = {}
+
+    # ------------------------------------------------------------------ layout
+    def pack(self, u: Tensor, xi: Tensor, p: Tensor | None = None) -> Tensor:
+        """``z (B, n)`` from ``u (B, nt, nu)``, ``xi (B, nt, nx)``, ``p (B, np)``."""
+        B = xi.shape[0]
+        parts = [u.reshape(B, -1), xi.reshape(B, -1)]
+        if self.problem.np:
+            if p is None:
+                raise ValueError("p is required: the problem has static parameters")
+            parts.append(p.reshape(B, -1))
+        return torch.cat(parts, 1)
+
+    def unpack(self, z: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        """``u (B, nt, nu)``, ``xi (B, nt, nx)``, ``p (B, np)`` from ``z (B, n)``."""
+        self._check_z(z)
+        B, P, nt = z.shape[0], self.problem, self.nt
+        return (
+            z[:, : self.off_x].reshape(B, nt, P.nu),
+            z[:, self.off_x : self.off_p].reshape(B, nt, P.nx),
+            z[:, self.off_p :],
+        )
+
+    def _check_z(self, z: Tensor) -> None:
+        if not torch.is_tensor(z) or z.ndim != 2 or z.shape[1] != self.n:
+            raise ValueError(
+                f"z must be a (B, {self.n}) tensor; got "
+                f"{tuple(z.shape) if torch.is_tensor(z) else type(z).__name__}"
+            )
+
+    def initial_guess(
+        self,
+        B: int = 1,
+        u0: Tensor | None = None,
+        uf: Tensor | None = None,
+        xi0: Tensor | None = None,
+        xif: Tensor | None = None,
+        p: Tensor | None = None,
+    ) -> Tensor:
+        """Straight lines from the start to the end values (the paper's initial guess for
+        the crane): ``xi0``/``xif`` default to the fixed initial/final states (zero where
+        free), ``u0``/``uf`` to zero, ``p`` to zero. Returns ``z (B, n)``."""
+        P, kw = self.problem, dict(dtype=self.dtype, device=self.device)
+
+        def v(x, default, dim):
+            x = default if x is None else torch.as_tensor(x, **kw)
+            return torch.nan_to_num(x.to(**kw), nan=0.0).expand(B, dim)
+
+        s = ((self.t - self.t[0]) / (self.t[-1] - self.t[0]))[None, :, None]
+        zu = torch.zeros(P.nu, **kw)
+        ua, ub_ = v(u0, zu, P.nu), v(uf, zu, P.nu)
+        xa, xb = v(xi0, P.initial, P.nx), v(xif, P.final, P.nx)
+        u = ua[:, None] + s * (ub_ - ua)[:, None]
+        xi = xa[:, None] + s * (xb - xa)[:, None]
+        pp = v(p, torch.zeros(P.np, **kw), P.np)
+        return self.pack(u, xi, pp)
+
+    def bounds(self, B: int) -> tuple[Tensor, Tensor]:
+        """Simple bounds ``lb, ub (B, n)`` (eq. 4 with the bounds of Prob. 1)."""
+        P, nt, kw = self.problem, self.nt, dict(dtype=self.dtype, device=self.device)
+
+        def cat(u, x, p):
+            u, x, p = (torch.as_tensor(a).to(**kw) for a in (u, x, p))
+            parts = [
+                u.expand(B, P.nu)[:, None].expand(B, nt, P.nu).reshape(B, -1),
+                x.expand(B, P.nx)[:, None].expand(B, nt, P.nx).reshape(B, -1),
+                p.expand(B, P.np),
+            ]
+            return torch.cat(parts, 1)
+
+        return cat(P.u_lb, P.xi_lb, P.p_lb), cat(P.u_ub, P.xi_ub, P.p_ub)
+
+    # ------------------------------------------------------------------ node rows
+    def _path_rows(self, z: Tensor) -> tuple[Tensor, Tensor]:
+        """``t (B nt,)`` and ``[u_k, xi_k, p] (B nt, nu + nx + np)`` at every node."""
+        B = z.shape[0]
+        zz = z[:, self.loc_path.reshape(-1)].reshape(B * self.nt, -1)
+        return self.t.repeat(B), zz
+
+    def _bnd_rows(self, z: Tensor) -> Tensor:
+        return z[:, self.loc_bnd]
+
+    def _fixed(self, which: str, B: int) -> Tensor:
+        v = getattr(self.problem, which).to(dtype=self.dtype, device=self.device)
+        mask = self.fix0 if which == "initial" else self.fixf
+        return v.expand(B, -1)[:, mask] if v.ndim == 1 else v[:, mask].expand(B, -1)
+
+    # ------------------------------------------------------------------ nonlinear program
+    def objective(self, z: Tensor) -> Tensor:
+        """``(B,)`` the transcribed objective, eq. (9): ``sum_k w_k l_k + m``."""
+        self._check_z(z)
+        P, B = self.problem, z.shape[0]
+        v = z.new_zeros(B)
+        if P.lagrange is not None:
+            t, zz = self._path_rows(z)
+            v = v + (P.call("lagrange", t, zz).reshape(B, self.nt) * self.w).sum(1)
+        if P.mayer is not None:
+            v = v + P.call("mayer", None, self._bnd_rows(z))[:, 0]
+        return v
+
+    def equalities(self, z: Tensor) -> Tensor:
+        """``(B, me)`` the equality constraints of Prob. (4) (defects, eqs. 5-6; path and
+        boundary equalities, eq. 7; fixed initial/final states), ``= 0`` when feasible."""
+        self._check_z(z)
+        P, B, nt = self.problem, z.shape[0], self.nt
+        _, xi, _ = self.unpack(z)
+        t, zz = self._path_rows(z)
+        F = P.call("dynamics", t, zz).reshape(B, nt, P.nx)
+        d = z.new_zeros(B, self.nd, P.nx)
+        d = d.index_add(1, self.pair_i, self.pair_m1[:, None] * xi[:, self.pair_k])
+        d = d.index_add(1, self.pair_i, -self.pair_m2[:, None] * F[:, self.pair_k])
+        out = [d.reshape(B, -1)]
+        if self.k["path_eq"]:
+            out.append(P.call("path_eq", t, zz).reshape(B, -1))
+        if self.k["boundary_eq"]:
+            out.append(P.call("boundary_eq", None, self._bnd_rows(z)))
+        out.append(xi[:, 0, self.fix0] - self._fixed("initial", B))
+        out.append(xi[:, -1, self.fixf] - self._fixed("final", B))
+        return torch.cat(out, 1)
+
+    def inequalities(self, z: Tensor) -> Tensor:
+        """``(B, mi)`` path and boundary inequalities (eq. 8), ``<= 0`` when feasible."""
+        self._check_z(z)
+        P, B = self.problem, z.shape[0]
+        out = [z.new_zeros(B, 0)]
+        if self.k["path_ineq"]:
+            t, zz = self._path_rows(z)
+            out.append(P.call("path_ineq", t, zz).reshape(B, -1))
+        if self.k["boundary_ineq"]:
+            out.append(P.call("boundary_ineq", None, self._bnd_rows(z)))
+        return torch.cat(out, 1)
+
+    # ------------------------------------------------------------------ the QP
+    def _linear(self, name: str, z: Tensor, path: bool) -> tuple[Tensor, Tensor]:
+        """Jacobian and offset of element ``name`` linearised at ``z``: ``e(z') ~ J z'_loc
+        + r`` with ``r = e(z) - J z_loc`` (eq. 12); rows the problem marks OLQ are
+        computed once and reused. Returns ``J (B, R, k, nz)`` and ``r (B, R, k)``
+        (``R = nt`` for path elements, 1 for boundary ones)."""
+        P, B = self.problem, z.shape[0]
+        olq = P.olq_rows(name).to(z.device)
+        if path:
+            t, zz = self._path_rows(z)
+        else:
+            t, zz = None, self._bnd_rows(z)
+        R = zz.shape[0] // B
+        key = (name, B, z.dtype, z.device)
+        cached = self._cache.get(key)
+        k = olq.numel()
+
+        def fn(x: Tensor) -> Tensor:
+            return P.call(name, t, x)
+
+        if cached is not None and bool(olq.all()):
+            return cached
+        rows = None if cached is None else (~olq).nonzero().squeeze(1)
+        val, jac, _ = row_derivatives(fn, zz, rows=rows)
+        if cached is not None:
+            J = cached[0].clone()
+            J[:, :, ~olq] = jac.reshape(B, R, -1, zz.shape[1])
+        else:
+            J = jac.reshape(B, R, k, zz.shape[1])
+        r = val.reshape(B, R, k) - (J * zz.reshape(B, R, 1, -1)).sum(-1)
+        if cached is not None:
+            r = torch.where(olq, cached[1], r)
+        if cached is None and bool(olq.any()):
+            self._cache[key] = (J.detach(), r.detach())
+        return J, r
+
+    def _quadratic(self, name: str, z: Tensor, path: bool) -> tuple[Tensor, Tensor, Tensor]:
+        """Quadratic model of a scalar objective term at ``z`` (eq. 13) in the node-local
+        variables: ``Hk (B, R, nz, nz)``, linear ``gk (B, R, nz)``, constant ``ck (B, R)``
+        with ``l(z') ~ 1/2 z'Hk z' + gk'z' + ck``; cached when the term is OLQ."""
+        P, B = self.problem, z.shape[0]
+        key = (name, B, z.dtype, z.device)
+        if key in self._cache:
+            return self._cache[key]
+        if path:
+            t, zz = self._path_rows(z)
+        else:
+            t, zz = None, self._bnd_rows(z)
+        R = zz.shape[0] // B
+
+        def fn(x: Tensor) -> Tensor:
+            return P.call(name, t, x)
+
+        val, jac, hess = row_derivatives(fn, zz, hessian=True)
+        g = jac[:, 0]
+        Hz = (hess @ zz.unsqueeze(-1)).squeeze(-1)
+        lin = g - Hz
+        const = val[:, 0] - (g * zz).sum(-1) + 0.5 * (zz * Hz).sum(-1)
+        out = (hess.reshape(B, R, *hess.shape[1:]), lin.reshape(B, R, -1), const.reshape(B, R))
+        if bool(P.olq_rows(name).all()):
+            self._cache[key] = tuple(o.detach() for o in out)
+        return out
+
+    def qp(self, z_ref: Tensor) -> SparseQP:
+        """The QP of the reference LQDO problem about ``z_ref (B, n)`` (Prob. 14 in the
+        form of Prob. 18). For an OLQ problem it is the transcribed problem itself."""
+        self._check_z(z_ref)
+        z = z_ref.detach()
+        P, B, nt, nx = self.problem, z.shape[0], self.nt, self.problem.nx
+        dev, dt = z.device, z.dtype
+        n = self.n
+        # ---------------- objective
+        H_idx, H_val = [], []
+        f = z.new_zeros(B, n)
+        c = z.new_zeros(B)
+        for name, path, loc, w in (
+            ("lagrange", True, self.loc_path, self.w),
+            ("mayer", False, self.loc_bnd[None], None),
+        ):
+            if P.element(name) is None:
+                continue
+            Hk, gk, ck = self._quadratic(name, z, path)
+            if w is not None:
+                Hk, gk, ck = Hk * w[:, None, None], gk * w[:, None], ck * w
+            nz = loc.shape[1]
+            H_idx.append(
+                torch.stack(
+                    [
+                        loc[:, :, None].expand(-1, nz, nz).reshape(-1),
+                        loc[:, None, :].expand(-1, nz, nz).reshape(-1),
+                    ]
+                )
+            )
+            H_val.append(Hk.reshape(B, -1))
+            f = f.index_add(1, loc.reshape(-1), gk.reshape(B, -1))
+            c = c + ck.sum(1)
+        # ---------------- equalities
+        A_idx, A_val, b = [], [], []
+        row0 = 0
+        Jf, rf = self._linear("dynamics", z, True)  # (B, nt, nx, nz), (B, nt, nx)
+        nzp = self.loc_path.shape[1]
+        a = torch.arange(nx, device=dev)
+        # M1 Xi: rows i nx + a, columns xi_{k, a}
+        A_idx.append(
+            torch.stack(
+                [
+                    (self.pair_i[:, None] * nx + a).reshape(-1),
+                    self.idx_x[self.pair_k].reshape(-1),
+                ]
+            )
+        )
+        A_val.append(self.pair_m1[:, None].expand(-1, nx).reshape(1, -1).expand(B, -1))
+        # -M2 J_k z_k
+        A_idx.append(
+            torch.stack(
+                [
+                    (self.pair_i[:, None, None] * nx + a[:, None]).expand(-1, nx, nzp).reshape(-1),
+                    self.loc_path[self.pair_k][:, None, :].expand(-1, nx, nzp).reshape(-1),
+                ]
+            )
+        )
+        A_val.append((-self.pair_m2[:, None, None] * Jf[:, self.pair_k]).reshape(B, -1))
+        bd = z.new_zeros(B, self.nd, nx).index_add(
+            1, self.pair_i, self.pair_m2[:, None] * rf[:, self.pair_k]
+        )
+        b.append(bd.reshape(B, -1))
+        row0 += self.nd * nx
+
+        def add_linear(name, path, rows_list, idx_list, val_list, row0):
+            J, r = self._linear(name, z, path)  # (B, R, k, nz)
+            R, k, nz = J.shape[1:]
+            loc = self.loc_path if path else self.loc_bnd[None]
+            rr = row0 + torch.arange(R * k, device=dev).reshape(R, k)
+            idx_list.append(
+                torch.stack(
+                    [
+                        rr[:, :, None].expand(R, k, nz).reshape(-1),
+                        loc[:, None, :].expand(R, k, nz).reshape(-1),
+                    ]
+                )
+            )
+            val_list.append(J.reshape(B, -1))
+            rows_list.append(-r.reshape(B, -1))
+            return row0 + R * k
+
+        if self.k["path_eq"]:
+            row0 = add_linear("path_eq", True, b, A_idx, A_val, row0)
+        if self.k["boundary_eq"]:
+            row0 = add_linear("boundary_eq", False, b, A_idx, A_val, row0)
+        for which, node, mask in (("initial", 0, self.fix0), ("final", nt - 1, self.fixf)):
+            cols = self.idx_x[node][mask]
+            m = cols.numel()
+            A_idx.append(torch.stack([row0 + torch.arange(m, device=dev), cols]))
+            A_val.append(z.new_ones(B, m))
+            b.append(self._fixed(which, B))
+            row0 += m
+        # ---------------- inequalities
+        G_idx, G_val, h = [z.new_zeros(2, 0, dtype=torch.long)], [z.new_zeros(B, 0)], []
+        r0 = 0
+        if self.k["path_ineq"]:
+            r0 = add_linear("path_ineq", True, h, G_idx, G_val, r0)
+        if self.k["boundary_ineq"]:
+            r0 = add_linear("boundary_ineq", False, h, G_idx, G_val, r0)
+        lb, ub = self.bounds(B)
+        if not H_idx:
+            H_idx, H_val = [z.new_zeros(2, 0, dtype=torch.long)], [z.new_zeros(B, 0)]
+        return SparseQP(
+            n=n,
+            H_idx=torch.cat(H_idx, 1),
+            H_val=torch.cat(H_val, 1).to(dt),
+            f=f,
+            c=c,
+            A_idx=torch.cat(A_idx, 1),
+            A_val=torch.cat(A_val, 1),
+            b=torch.cat(b, 1),
+            G_idx=torch.cat(G_idx, 1),
+            G_val=torch.cat(G_val, 1),
+            h=torch.cat(h, 1) if h else z.new_zeros(B, 0),
+            lb=lb,
+            ub=ub,
+        )
+
+
+def transcribe(
+    problem: LQDOProblem,
+    method: str = "TR",
+    nodes: int = 20,
+    mesh: Tensor | None = None,
+    dtype: torch.dtype = torch.float64,
+    device: torch.device | str | None = None,
+) -> Transcription:
+    """Transcribe ``problem`` with trapezoidal (``"TR"``) or Legendre-Gauss-Lobatto
+    pseudospectral (``"PS"``) defects and quadrature on ``nodes`` points (Sec. 2.2).
+
+    Example::
+
+        tr = transcribe(problem, "PS", nodes=10)
+        qp = tr.qp(tr.initial_guess())     # the reference LQDO QP (Prob. 14)
+    """
+    return Transcription(problem, method=method, nodes=nodes, mesh=mesh, dtype=dtype, device=device)
