@@ -1,5 +1,6 @@
 """torchslq: batched, differentiable nonlinear optimal control in PyTorch."""
 
+from .constraints import Constraints
 from .costs import Cost, CostExpansion, QuadraticCost
 from .dynamics import (
     ContinuousDynamics,
@@ -19,6 +20,7 @@ from .status import Status, status_names
 __version__ = "0.1.0"
 
 __all__ = [
+    "Constraints",
     "ContinuousDynamics",
     "DDP",
     "Cost",

@@ -29,6 +29,8 @@ class Status(IntEnum):
       ``Quu`` not positive definite, for ILQR/DDP even with ``mu_max``);
     * ``STALLED``: accepted steps stopped changing the cost beyond rounding noise while
       the stopping test was unmet (the precision of the dtype is reached);
+    * ``INFEASIBLE``: a constrained solve (``constraints=``) could not bring the element's
+      largest constraint violation below ``constraint_tol``, even at the largest penalty;
     * ``RUNNING`` is only seen inside a solver loop.
     """
 
@@ -40,6 +42,7 @@ class Status(IntEnum):
     DIVERGED = 4
     NOT_POSITIVE_DEFINITE = 5
     STALLED = 6  # accepted steps stopped changing the cost beyond rounding noise
+    INFEASIBLE = 7  # constraint violation above constraint_tol at the largest penalty
 
     @property
     def label(self) -> str:

@@ -20,7 +20,8 @@ The direction is :class:`~torchslq.solvers.newton.RegularizedNewton` with
 
 from __future__ import annotations
 
-from typing import Any, ClassVar
+from collections.abc import Sequence
+from typing import TYPE_CHECKING, Any, ClassVar
 
 from torch import Tensor
 
@@ -28,6 +29,9 @@ from .base import Solver
 from .descent import descent_rule
 from .ilqr import ILQR
 from .options import DDPOptions
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..constraints import Constraints
 
 __all__ = ["DDP"]
 
@@ -61,6 +65,12 @@ class DDP(ILQR):
         u_min: float | Tensor | None = None,
         u_max: float | Tensor | None = None,
         *,
+        constraints: Constraints | Sequence[Constraints] | None = None,
+        constraint_tol: float | None = None,
+        penalty_init: float = 1.0,
+        penalty_factor: float = 10.0,
+        penalty_max: float = 1e10,
+        al_max_iter: int = 30,
         second_order: str = "value",
         vhp_memory_limit: int | None = 256 * 2**20,
         rtol: float = 0.0,

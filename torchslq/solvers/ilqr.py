@@ -6,6 +6,7 @@ Lieskovský et al. 2025, discrete form). See :mod:`torchslq.solvers.newton`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -19,7 +20,9 @@ from .newton import RegularizedNewton, active_bounds, resolve_bounds
 from .options import ILQROptions
 
 if TYPE_CHECKING:  # pragma: no cover
+    from ..constraints import Constraints
     from ..problem import Problem
+    from .result import SolverResult
 
 __all__ = ["ILQR", "active_bounds", "resolve_bounds"]
 
@@ -41,6 +44,19 @@ class ILQR(DescentSolver):
             ``(T, m)`` or ``(B, T, m)`` (``-inf``/``+inf`` entries allowed; None: no
             bound on that side). ``u_init`` is clamped into the box. When every bound is
             infinite the solve is exactly the unconstrained one.
+        constraints: optional :class:`torchslq.Constraints` (or a list): path, terminal
+            and state constraints, inequality or equality. The solve is then an
+            augmented-Lagrangian outer loop over this solver
+            (:mod:`torchslq.solvers.augmented_lagrangian`) with per-element multipliers
+            and penalties; ``max_iter``/``tol`` apply to each inner solve, and the
+            result has ``multipliers``, ``max_violation`` and ``outer_iterations``
+            (``iterations``: the inner iterations of all subproblems). An element that
+            cannot reach ``constraint_tol`` ends ``infeasible``; the others go on.
+        constraint_tol: the largest violation accepted (None: 1e-6 in float64, 1e-4
+            otherwise).
+        penalty_init, penalty_factor, penalty_max: the penalty ``ρ`` at the start, its
+            growth factor (when the violation did not shrink fourfold) and its limit.
+        al_max_iter: the limit on multiplier updates (outer iterations).
         rtol, stop, step_tol, stall_iters, armijo_c1, armijo_beta, max_backtracks,
             armijo_passes, linearize_method, progress, compact: as for
             :class:`torchslq.SLQ`.
@@ -64,6 +80,12 @@ class ILQR(DescentSolver):
         u_min: float | Tensor | None = None,
         u_max: float | Tensor | None = None,
         *,
+        constraints: Constraints | Sequence[Constraints] | None = None,
+        constraint_tol: float | None = None,
+        penalty_init: float = 1.0,
+        penalty_factor: float = 10.0,
+        penalty_max: float = 1e10,
+        al_max_iter: int = 30,
         rtol: float = 0.0,
         stop: str = "grad",
         step_tol: float | None = None,
@@ -80,6 +102,23 @@ class ILQR(DescentSolver):
         **unknown: Any,
     ):
         super().__init__(**{k: v for k, v in locals().items() if k not in ("self", "__class__")})
+
+    def solve(
+        self,
+        problem: Problem,
+        x0: Tensor,
+        u_init: Tensor | None = None,
+        logger: Any = None,
+        *,
+        x_init: Tensor | None = None,
+    ) -> SolverResult:
+        if self.options.constraints is None:
+            return super().solve(problem, x0, u_init, logger, x_init=x_init)
+        from .augmented_lagrangian import solve_constrained
+
+        return solve_constrained(self, problem, x0, u_init, logger, x_init)
+
+    solve.__doc__ = DescentSolver.solve.__doc__
 
     def _newton(self, **second_order: Any) -> RegularizedNewton:
         o = self.options

@@ -178,9 +178,30 @@ class ILQROptions(DescentOptions):
     hessian_floor: float | None = None
     u_min: Any = None
     u_max: Any = None
+    constraints: Any = None
+    constraint_tol: float | None = None
+    penalty_init: float = 1.0
+    penalty_factor: float = 10.0
+    penalty_max: float = 1e10
+    al_max_iter: int = 30
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        if self.constraints is not None:
+            from ..constraints.spec import ConstraintSet
+
+            if not isinstance(self.constraints, ConstraintSet):
+                object.__setattr__(self, "constraints", ConstraintSet(self.constraints))
+        if self.constraint_tol is not None:
+            check_real("constraint_tol", self.constraint_tol, 0.0)
+        check_real("penalty_init", self.penalty_init, 0.0)
+        check_real("penalty_factor", self.penalty_factor, 1.0)
+        check_real("penalty_max", self.penalty_max, 0.0)
+        if self.penalty_init > self.penalty_max:
+            raise ValueError(
+                f"penalty_init ({self.penalty_init}) must not exceed penalty_max ({self.penalty_max})"
+            )
+        check_int("al_max_iter", self.al_max_iter, 1)
         if self.rollout != "closed_loop" or self.line_search != "armijo":
             raise ValueError(
                 "ILQR/DDP use rollout='closed_loop' and line_search='armijo' "

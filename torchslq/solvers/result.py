@@ -38,6 +38,15 @@ class SolverResult:
         active_bounds: for control-limited solves (iLQR/DDP with ``u_min``/``u_max``),
             ``(B, T, m)`` int8: ``-1`` where ``u`` is at its lower bound, ``+1`` at its
             upper bound, ``0`` elsewhere; None for unconstrained solves.
+        multipliers: for solves with ``constraints=``, ``{"stage": (B, T, p),
+            "terminal": (B, q)}``: the Lagrange multipliers of the constraint rows (``>= 0``
+            for inequality rows, zero where inactive); None otherwise.
+        max_violation: for solves with ``constraints=``, ``(B,)`` the largest violation
+            (``|c|`` of an equality row, ``max(c, 0)`` of an inequality row) at the
+            returned trajectory; None otherwise.
+        outer_iterations: for solves with ``constraints=``, ``(B,)`` the augmented
+            Lagrangian's multiplier updates (``iterations`` then counts the inner
+            iLQR/DDP iterations of all subproblems); None otherwise.
 
     Results of an unbatched solve (``x0`` of shape ``(n,)``) drop the batch dim.
     """
@@ -54,6 +63,9 @@ class SolverResult:
     history: dict[str, Tensor] = field(default_factory=dict)
     options: dict = field(default_factory=dict)
     active_bounds: Tensor | None = None
+    multipliers: dict[str, Tensor] | None = None
+    max_violation: Tensor | None = None
+    outer_iterations: Tensor | None = None
 
     def to_dict(self) -> dict:
         """Every field by name (tensors as they are): what :meth:`save` writes."""
@@ -118,6 +130,11 @@ class SolverResult:
             history=hist,
             options=self.options,
             active_bounds=None if self.active_bounds is None else sq(self.active_bounds),
+            multipliers=None
+            if self.multipliers is None
+            else {k: sq(v) for k, v in self.multipliers.items()},
+            max_violation=None if self.max_violation is None else sq(self.max_violation),
+            outer_iterations=None if self.outer_iterations is None else sq(self.outer_iterations),
         )
 
 

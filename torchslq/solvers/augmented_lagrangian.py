@@ -1,0 +1,252 @@
+"""Constrained iLQR/DDP: an augmented-Lagrangian outer loop on the shared core.
+
+The outer iteration (one :func:`~torchslq.solvers.core.iterate` step per element) is
+
+1. solve ``min_u J + AL(c; λ, ρ)`` with the unconstrained iLQR/DDP from the current
+   trajectory (the inner solve, warm started; control bounds stay in its box QP);
+2. update the multipliers ``λ <- λ̂`` (:func:`~torchslq.constraints.multiplier_estimate`);
+3. raise the penalty ``ρ <- min(φ ρ, ρ_max)`` of an element whose largest violation did
+   not fall below a quarter of the previous one (Conn, Gould & Toint's rule; ALTRO and
+   trajax's ``constrained_ilqr`` raise it every iteration).
+
+Every element has its own ``λ``, ``ρ``, outer iteration count and status: it is
+``converged`` when its largest violation is at most ``constraint_tol`` and the inner
+solve's gradient (the Lagrangian's, with the updated ``λ``) is below ``tol``;
+``infeasible`` when the violation stays above ``constraint_tol`` after an inner solve
+at ``ρ_max``; an inner ``non_finite`` / ``not_positive_definite`` ends it with that
+status. Finished elements are frozen; where the problem data are batch-shared, the
+inner solves run on the running elements only.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import Tensor
+
+from ..constraints.augmented import AugmentedLagrangianCost, multiplier_estimate
+from ..constraints.spec import ConstraintSet, max_violation
+from ..costs.quadratic import compiled_cost_evaluation
+from ..dynamics.rollout import rollout
+from ..problem import Problem
+from ..status import Status
+from .base import checked_x_init
+from .core import Advance, ElementState, LoopSettings, Measure, iterate
+from .options import loggable
+from .result import SolverResult
+
+if TYPE_CHECKING:  # pragma: no cover
+    from .ilqr import ILQR
+
+__all__ = ["ALState", "AugmentedLagrangian", "default_constraint_tol", "solve_constrained"]
+
+# the violation must fall below this fraction of the previous one, or the penalty rises
+PROGRESS_RATIO = 0.25
+
+
+def default_constraint_tol(dtype: torch.dtype) -> float:
+    """``constraint_tol`` when not given: 1e-6 in float64, 1e-4 in lower precision."""
+    return 1e-6 if dtype == torch.float64 else 1e-4
+
+
+@dataclass(frozen=True)
+class ALState(ElementState):
+    """Per-solve state of the augmented-Lagrangian loop (batch-first).
+
+    Attributes (besides ``x, u`` and ``J``, the problem's cost):
+        lam ``(B, T, p)``, lam_T ``(B, q)``: multipliers; rho ``(B,)``: penalties.
+        violation ``(B,)``: largest violation at ``(x, u)``.
+        inner_grad ``(B,)``: the last inner solve's gradient norm (NaN before the first).
+        inner_status ``(B,)``: its status; inner_iterations ``(B,)``: their total.
+        K ``(B, T, m, n)``, k ``(B, T, m)``: the last inner solve's gains.
+    """
+
+    lam: Tensor = None
+    lam_T: Tensor = None
+    rho: Tensor = None
+    violation: Tensor = None
+    inner_grad: Tensor = None
+    inner_status: Tensor = None
+    inner_iterations: Tensor = None
+    K: Tensor = None
+    k: Tensor = None
+
+
+@dataclass(frozen=True)
+class AugmentedLagrangian:
+    """The outer iteration rule (module docstring).
+
+    Args:
+        inner: the unconstrained solver of the subproblems (an ILQR/DDP without
+            constraints, no progress bar, no compaction).
+        constraints: the rows; stage_eq ``(p,)``, terminal_eq ``(q,)``: their kinds.
+        tol: the inner gradient tolerance (the Lagrangian's stationarity).
+        constraint_tol: the largest violation accepted.
+        penalty_factor, penalty_max: the penalty schedule.
+        per_element_data: the problem has per-element tensors, so subproblems are
+            solved on the whole batch (finished elements' results are discarded).
+    """
+
+    inner: Any
+    constraints: ConstraintSet
+    stage_eq: Tensor
+    terminal_eq: Tensor
+    tol: float
+    constraint_tol: float
+    penalty_factor: float
+    penalty_max: float
+    per_element_data: bool = False
+
+    def _violation(self, x: Tensor, u: Tensor) -> Tensor:
+        return max_violation(self.constraints.values(x, u), self.stage_eq, self.terminal_eq)
+
+    def measure(self, problem: Problem, state: ALState, running: Tensor, it: int):
+        viol = self._violation(state.x, state.u)
+        done = (viol <= self.constraint_tol) & (state.inner_grad < self.tol)
+        fail = torch.full_like(state.inner_status, int(Status.RUNNING))
+        for code in (Status.NON_FINITE, Status.NOT_POSITIVE_DEFINITE):
+            fail = fail.masked_fill(state.inner_status == code, int(code))
+        fail = fail.masked_fill(~torch.isfinite(viol), int(Status.NON_FINITE))
+        hist = {
+            "max_violation": viol,
+            "penalty": state.rho,
+            "inner_iterations": state.inner_iterations.to(viol.dtype),
+        }
+        state = replace(state, violation=viol)
+        return state, Measure(
+            grad_norm=state.inner_grad, done=done, fail=fail, cost=state.J, history=hist
+        )
+
+    def advance(self, problem: Problem, state: ALState, m: Measure, running: Tensor):
+        idx = None if self.per_element_data else running.nonzero().squeeze(1)
+        sub = state.take(idx)
+        al_cost = AugmentedLagrangianCost(
+            problem.cost, self.constraints, sub.lam, sub.lam_T, sub.rho,
+            self.stage_eq, self.terminal_eq,
+        )  # fmt: skip
+        inner_problem = Problem(problem.dynamics, al_cost, problem.horizon)
+        r = self.inner.solve(inner_problem, sub.x[:, 0], sub.u, x_init=sub.x)
+        v = self.constraints.values(r.x, r.u)
+        viol = max_violation(v, self.stage_eq, self.terminal_eq)
+        rho = sub.rho
+        lam = multiplier_estimate(v.stage, sub.lam, rho[:, None, None], self.stage_eq)
+        lam_T = multiplier_estimate(v.terminal, sub.lam_T, rho[:, None], self.terminal_eq)
+        slow = (viol > self.constraint_tol) & ~(viol <= PROGRESS_RATIO * sub.violation)
+        new_rho = torch.where(slow, (rho * self.penalty_factor).clamp_max(self.penalty_max), rho)
+        new = replace(
+            sub,
+            x=r.x,
+            u=r.u,
+            J=problem.cost(r.x, r.u),
+            lam=lam,
+            lam_T=lam_T,
+            rho=new_rho,
+            violation=viol,
+            inner_grad=r.grad_norm,
+            inner_status=r.status,
+            inner_iterations=sub.inner_iterations + r.iterations,
+            K=r.K,
+            k=r.k,
+        )
+        # infeasible: still violated after a subproblem solved at the largest penalty
+        infeasible = (rho >= self.penalty_max) & (viol > self.constraint_tol)
+        end = torch.full_like(r.status, int(Status.RUNNING))
+        end = end.masked_fill(infeasible, int(Status.INFEASIBLE))
+        if idx is None:
+            # the whole batch was solved: keep the finished elements as they were
+            keep = running
+
+            def pick(a: Tensor, b: Tensor) -> Tensor:
+                return torch.where(keep.view(-1, *([1] * (a.ndim - 1))), a, b)
+
+            new = replace(new, **{k: pick(v, getattr(sub, k)) for k, v in new._batched()})
+            end = torch.where(running, end, torch.full_like(end, int(Status.RUNNING)))
+        state = state.put(idx, new)
+        if idx is not None:
+            end = torch.full_like(state.inner_status, int(Status.RUNNING)).index_copy(0, idx, end)
+        accept = running.clone()
+        return Advance(state=state, accept=accept, step=torch.ones_like(state.J), end=end)
+
+
+def solve_constrained(
+    solver: ILQR,
+    problem: Problem,
+    x0: Tensor,
+    u_init: Tensor | None,
+    logger: Any,
+    x_init: Tensor | None,
+) -> SolverResult:
+    """``solver.solve`` for a solver whose options hold ``constraints`` (module docstring)."""
+    o = solver.options
+    x0, u, unbatched = problem.check_inputs(x0, u_init)
+    if x_init is not None:
+        x_init = checked_x_init(x_init, x0, problem.horizon)
+    Bsz, T = x0.shape[0], problem.horizon
+    cset = o.constraints.to(dtype=x0.dtype, device=x0.device)
+    stage_eq, terminal_eq = cset.dims(problem.state_dim, problem.control_dim, x0)
+    ctol = default_constraint_tol(x0.dtype) if o.constraint_tol is None else o.constraint_tol
+    inner = solver.with_options(constraints=None, progress=False, compact=False)
+    u, x_init, _ = inner.prepare(problem, x0, u, x_init)  # clamp into the control bounds
+    per_element = problem.per_element_tensor(Bsz) is not None
+    rule = AugmentedLagrangian(
+        inner=inner,
+        constraints=cset,
+        stage_eq=stage_eq,
+        terminal_eq=terminal_eq,
+        tol=o.tol,
+        constraint_tol=ctol,
+        penalty_factor=o.penalty_factor,
+        penalty_max=o.penalty_max,
+        per_element_data=per_element,
+    )
+    record = o.record(solver.name)
+    settings = LoopSettings(
+        max_iter=o.al_max_iter,
+        rtol=0.0,
+        stall_iters=0,
+        compact=not per_element,
+        progress=o.progress,
+        name=solver.name,
+    )
+    n, m = problem.state_dim, problem.control_dim
+    with torch.no_grad(), compiled_cost_evaluation():
+        x = rollout(problem.transition, x0, u) if x_init is None else x_init
+        zeros = x0.new_zeros(Bsz)
+        state = ALState(
+            x=x,
+            u=u,
+            J=problem.cost(x, u),
+            lam=x0.new_zeros(Bsz, T, stage_eq.numel()),
+            lam_T=x0.new_zeros(Bsz, terminal_eq.numel()),
+            rho=torch.full_like(zeros, float(o.penalty_init)),
+            violation=torch.full_like(zeros, float("inf")),
+            inner_grad=torch.full_like(zeros, float("nan")),
+            inner_status=torch.full((Bsz,), int(Status.RUNNING), device=x0.device),
+            inner_iterations=torch.zeros(Bsz, dtype=torch.int64, device=x0.device),
+            K=x0.new_zeros(Bsz, T, m, n),
+            k=x0.new_zeros(Bsz, T, m),
+        )
+        out = iterate(rule, problem, state, settings, logger=logger, options=loggable(record))
+    s = out.state
+    result = SolverResult(
+        x=s.x,
+        u=s.u,
+        cost=s.J,
+        grad_norm=out.grad_norm,
+        iterations=s.inner_iterations,
+        status=out.status,
+        converged=out.status == Status.CONVERGED,
+        K=s.K,
+        k=s.k,
+        history=out.history,
+        options=record,
+        multipliers={"stage": s.lam, "terminal": s.lam_T},
+        max_violation=s.violation,
+        outer_iterations=out.iterations,
+    )
+    result = solver.finish(result, inner.prepare(problem, x0, u, None)[2])
+    if logger is not None:
+        logger.log_result(result, problem)
+    return result.squeeze_batch() if unbatched else result
