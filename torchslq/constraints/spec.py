@@ -260,7 +260,12 @@ class ConstraintSet(nn.Module):
 
     def __init__(self, constraints: Constraints | Sequence[Constraints]):
         super().__init__()
-        items = [constraints] if isinstance(constraints, Constraints) else list(constraints)
+        if isinstance(constraints, Constraints):
+            items = [constraints]
+        elif isinstance(constraints, (list, tuple)):
+            items = list(constraints)
+        else:
+            items = []
         if not items or not all(isinstance(c, Constraints) for c in items):
             raise TypeError(
                 "constraints must be a torchslq.Constraints or a list of them, got "

@@ -80,8 +80,14 @@ def check_passes(passes: Any) -> tuple[int, int | None] | None:
 
 
 def options_record(name: str, options: Any) -> dict[str, Any]:
-    """``{"solver": name, **options}`` with tensors kept as they are (for ``result.options``)."""
-    return {"solver": name, **{f.name: getattr(options, f.name) for f in fields(options)}}
+    """``{"solver": name, **options}`` with tensors kept as they are (for ``result.options``);
+    modules (the ``constraints``) as their description, so that a result can be saved and
+    loaded with tensors only."""
+
+    def entry(v: Any) -> Any:
+        return repr(v) if isinstance(v, torch.nn.Module) else v
+
+    return {"solver": name, **{f.name: entry(getattr(options, f.name)) for f in fields(options)}}
 
 
 def loggable(record: dict[str, Any]) -> dict[str, Any]:
