@@ -171,6 +171,92 @@ def _add_solve_options(p: argparse.ArgumentParser, batch: int, logdir: str, roll
     p.add_argument("--no-progress", action="store_true", help="hide the progress bar")
 
 
+def _sharded_job(rank: int, world_size: int, opts: dict) -> None:
+    """One process of ``torchslq solve --out-dir``: its shards of the task's batch."""
+    from .distributed import solve_sharded
+    from .tasks import make_task
+
+    args = argparse.Namespace(**opts)
+    kw = {} if args.horizon is None else {"horizon": args.horizon}
+    problem, x0 = make_task(
+        args.system,
+        batch=args.batch,
+        seed=args.seed,
+        device=_device(args.device),
+        dtype=DTYPES[args.dtype],
+        **kw,
+    )
+    solver = _make_solver(args.solver, args, compact=args.system in ("pendulum", "cartpole"))
+    solve_sharded(solver, problem, x0, args.out_dir, shard_size=args.shard_size)
+
+
+def _solve_sharded(args: argparse.Namespace) -> int:
+    """``torchslq solve SYSTEM --out-dir DIR``: the batch in shards of ``--shard-size``,
+    solved by ``--workers`` local processes (or torchrun's), one SolverResult file per
+    shard, resumable (:func:`torchslq.distributed.solve_sharded`)."""
+    import os
+
+    from .distributed import init_from_env, iter_shards, launch, shard_bounds, shard_path
+    from .status import status_names
+    from .tasks import TASKS
+
+    if args.system not in TASKS:
+        return _fail(f"unknown system {args.system!r}; choose from {', '.join(TASKS)}")
+    if args.horizon is not None and args.system not in ("pendulum", "cartpole"):
+        return _fail("--horizon applies to the pendulum and cartpole tasks")
+    for name, value in (("--batch", args.batch), ("--shard-size", args.shard_size)):
+        if value < 1:
+            return _fail(f"{name} must be >= 1, got {value}")
+    if args.workers < 1:
+        return _fail(f"--workers must be >= 1, got {args.workers}")
+    if args.horizon is not None and args.horizon < 1:
+        return _fail(f"--horizon must be >= 1, got {args.horizon}")
+    try:
+        _device(args.device)
+        _make_solver(args.solver, args)
+    except ValueError as err:
+        return _fail(str(err))
+    out = Path(args.out_dir)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        return _fail(f"cannot write --out-dir {str(args.out_dir)!r}: {err.strerror or err}")
+    opts = vars(args).copy()
+    num = len(shard_bounds(args.batch, args.shard_size))
+    t0 = time.perf_counter()
+    try:
+        if "WORLD_SIZE" in os.environ:  # under torchrun: this process is one rank
+            rank, world = init_from_env(backend="gloo")
+            _sharded_job(rank, world, opts)
+            if rank != 0:
+                return 0
+        else:
+            before = sum(shard_path(out, i).exists() for i in range(num))
+            if args.workers == 1:
+                _sharded_job(0, 1, opts)
+            else:
+                threads = max(1, (args.threads or torch.get_num_threads()) // args.workers)
+                launch(
+                    _sharded_job,
+                    args.workers,
+                    (opts,),
+                    start_method=args.start_method,
+                    threads=threads,
+                )
+            print(f"{num - before} shards solved now, {before} were already on disk")
+    except ValueError as err:
+        return _fail(str(err))
+    elapsed = time.perf_counter() - t0
+    counts: dict[str, int] = {}
+    for _, _, res in iter_shards(out):
+        for name in status_names(res.status):
+            counts[name] = counts.get(name, 0) + 1
+    print(f"{args.system}: {args.batch} problems in {num} shards of {args.shard_size} -> {out}")
+    print("status: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())))
+    print(f"wall time: {elapsed:.2f} s; load with torchslq.distributed.load_sharded({str(out)!r})")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(prog="torchslq", description="Batched, differentiable optimal control.")
     sub = parser.add_subparsers(dest="command", required=True, parser_class=_Parser)
@@ -181,6 +267,28 @@ def build_parser() -> argparse.ArgumentParser:
     solve = sub.add_parser("solve", help="solve a batch of a built-in system")
     solve.add_argument("system", help="pendulum | cartpole | drag-vehicle | hopper")
     _add_solve_options(solve, batch=64, logdir="runs/solve", rollout="closed_loop")
+    shard = solve.add_argument_group(
+        "sharded solve (results streamed to disk, resumable; torchslq.distributed)"
+    )
+    shard.add_argument(
+        "--out-dir", default=None, help="write one SolverResult file per shard into this folder"
+    )
+    shard.add_argument("--shard-size", type=int, default=1024, help="problems per shard")
+    shard.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="local worker processes (gloo); under torchrun its processes are used",
+    )
+    shard.add_argument(
+        "--horizon", type=int, default=None, help="pendulum/cartpole horizon (default: the task's)"
+    )
+    shard.add_argument(
+        "--start-method",
+        default="spawn",
+        choices=("spawn", "fork"),
+        help="how --workers start (fork: faster, Linux and CPU only)",
+    )
     rep = sub.add_parser("reproduce", help="reproduce a paper's table, ours beside the paper's")
     rep.add_argument("name", help=" | ".join(REPRODUCTIONS))
     rep.add_argument("--line-search", default="armijo", choices=("exact", "armijo"))
@@ -192,6 +300,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "demo":
         return _run("pendulum", args, "pendulum swing-up demo")
     if args.command == "solve":
+        if args.out_dir is not None:
+            return _solve_sharded(args)
+        if args.horizon is not None or args.workers != 1:
+            return _fail("--horizon and --workers go with --out-dir (the sharded solve)")
         return _run(args.system, args, f"{args.system} ({args.batch} problems)")
     return _reproduce(args.name, args)
 
