@@ -250,3 +250,87 @@ def test_solver_options_validation():
         ts.DDP(constraints=lq_constraints(), constraint_tol=0.0)
     with pytest.raises(TypeError, match="unknown option"):
         ts.SLQ(constraints=lq_constraints())
+
+
+class Pendulum(Dynamics):
+    state_dim, control_dim = 2, 1
+
+    def forward(self, x, u):
+        dx = torch.stack([x[..., 1], u[..., 0] - torch.sin(x[..., 0])], -1)
+        return x + DT * dx
+
+
+class SpeedLimit(torch.nn.Module):
+    """``omega_t <= w`` with a learnable ``w``."""
+
+    def __init__(self):
+        super().__init__()
+        self.w = torch.nn.Parameter(torch.tensor(0.8, dtype=torch.float64))
+
+    def forward(self, x, u, t):
+        return x[..., 1:2] - self.w
+
+
+def test_mpc_constrained_gradients_match_finite_differences():
+    """Implicit gradients with the active set held (speed limit, terminal equality,
+    control bound) against central differences of re-solves, for x0, the cost's goal
+    and the constraint's own parameter, along a random direction."""
+    torch.manual_seed(0)
+    goal = torch.tensor([1.5, 0.0], dtype=torch.float64, requires_grad=True)
+    limit = SpeedLimit()
+    cost = ts.QuadraticCost(
+        Q=0.1 * torch.eye(2, dtype=torch.float64),
+        R=torch.eye(1, dtype=torch.float64),
+        Qf=torch.eye(2, dtype=torch.float64),
+        x_ref=goal,
+    )
+    constraints = [
+        ts.Constraints(stage=limit),
+        ts.Constraints(terminal=lambda x: x[..., :1] - 1.2, kind="equality"),
+    ]
+    solver = ts.ILQR(tol=1e-11, max_iter=200, constraint_tol=1e-10, progress=False)
+    mpc = ts.MPC(
+        Pendulum(), cost, 20, solver=solver, constraints=constraints, u_max=1.1, warm_start=False
+    )
+    assert any(p is limit.w for p in mpc.parameters())
+    x0 = torch.tensor([[0.0, 0.0]], dtype=torch.float64, requires_grad=True)
+    W = torch.randn(1, 20, 1, dtype=torch.float64)
+    V = torch.randn(1, 21, 2, dtype=torch.float64)
+
+    def loss():
+        x, u = mpc(x0)
+        return (W * u).sum() + (V * x).sum()
+
+    L = loss()
+    r = mpc.last_result
+    assert (r.status == Status.CONVERGED).all()
+    # the speed limit binds on element 0, the control bound somewhere, the goal always
+    assert (r.multipliers["stage"][0] > 0).any() and r.active_bounds.abs().sum() > 0
+    L.backward()
+    params = [x0, goal, limit.w]
+    grads = [p.grad.clone() for p in params]
+    dirs = [torch.randn_like(p) for p in params]
+    analytic = sum((g * d).sum() for g, d in zip(grads, dirs, strict=True)).item()
+    eps = 1e-4  # solves are exact to ~1e-10: a larger step keeps their error out of the quotient
+    with torch.no_grad():
+        for p, d in zip(params, dirs, strict=True):
+            p += eps * d
+        Lp = loss().item()
+        for p, d in zip(params, dirs, strict=True):
+            p -= 2 * eps * d
+        Lm = loss().item()
+        for p, d in zip(params, dirs, strict=True):
+            p += eps * d
+    fd = (Lp - Lm) / (2 * eps)
+    assert abs(analytic - fd) < 1e-5 * (1 + abs(fd))
+    # holding the active set matters: the unconstrained layer's gradient differs
+    assert abs(limit.w.grad.item()) > 1e-3
+
+
+def test_mpc_constraints_need_a_capable_solver():
+    c = ts.Constraints(x_max=1.0)
+    problem = lq_problem()
+    with pytest.raises(ValueError, match="supports_constraints"):
+        ts.MPC(problem.dynamics, problem.cost, T, solver=ts.SLQ(progress=False), constraints=c)
+    with pytest.raises(ValueError, match="unroll"):
+        ts.MPC(problem.dynamics, problem.cost, T, constraints=c, backward="unroll")

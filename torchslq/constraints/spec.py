@@ -301,6 +301,21 @@ class ConstraintSet(nn.Module):
         empty = torch.zeros(0, dtype=torch.bool, device=like.device)
         return (torch.cat(se) if se else empty), (torch.cat(te) if te else empty)
 
+    def stage_values(self, x: Tensor, u: Tensor) -> Tensor:
+        """The stage rows ``(..., T, p)`` at ``x (..., T, n)`` (no final state), ``u (..., T, m)``."""
+        t = torch.arange(u.shape[-2], device=x.device)
+        parts = [v for v, _ in self._stage_parts(x, u, t)]
+        if not parts:
+            return x.new_zeros(*u.shape[:-1], 0)
+        return torch.cat([p.expand(*u.shape[:-1], p.shape[-1]) for p in parts], -1)
+
+    def terminal_values(self, x: Tensor) -> Tensor:
+        """The terminal rows ``(..., q)`` at final states ``x (..., n)``."""
+        parts = [w for w in (c.terminal_values(x) for c in self.items) if w is not None]
+        if not parts:
+            return x.new_zeros(*x.shape[:-1], 0)
+        return torch.cat([p.expand(*x.shape[:-1], p.shape[-1]) for p in parts], -1)
+
     def values(self, x: Tensor, u: Tensor, jacobians: bool = False) -> ConstraintValues:
         """All rows at ``x (..., T+1, n)``, ``u (..., T, m)``: stage ``(..., T, p)`` and
         terminal ``(..., q)``; with ``jacobians``, their Jacobians as well."""

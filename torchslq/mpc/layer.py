@@ -33,6 +33,7 @@ from ..solvers.ilqr import ILQR
 from ..solvers.newton import resolve_bounds
 from ..solvers.result import SolverResult
 from ..status import Status, status_names
+from .constrained import constrained_implicit_solution
 from .implicit import implicit_solution
 from .unroll import unrolled_solve
 
@@ -108,6 +109,14 @@ class MPC(nn.Module):
             ``compact=True``; same results, the batch does not wait for its slowest
             member); ``True``/``False``: always / never (``True`` fails for per-element
             problem tensors).
+        constraints: optional :class:`torchslq.Constraints` (or a list): state, path and
+            terminal constraints, solved by the solver's augmented-Lagrangian loop
+            (needs :class:`torchslq.ILQR`/:class:`torchslq.DDP`). The backward pass holds
+            the active set (equality rows, inequality rows with a positive multiplier,
+            controls at a bound) and differentiates the KKT conditions of that
+            equality-constrained problem (:mod:`torchslq.mpc.constrained`: one dense
+            KKT solve per element); gradients also reach the constraints' own tensors.
+            Not with ``backward="unroll"``.
 
     Example::
 
@@ -130,6 +139,7 @@ class MPC(nn.Module):
         unconverged: str = "warn",
         unroll_iters: int | None = None,
         compact: bool | str = "auto",
+        constraints: Any = None,
     ):
         super().__init__()
         self.problem = Problem(dynamics, cost, horizon)
@@ -160,6 +170,17 @@ class MPC(nn.Module):
         if u_min is not None or u_max is not None:
             # a new solver with the bounds: the one given is never changed
             solver = solver.with_options(u_min=u_min, u_max=u_max)
+        if constraints is not None:
+            if not getattr(solver, "supports_constraints", False):
+                raise ValueError(
+                    "constraints need an ILQR or DDP solver (one with supports_constraints), "
+                    f"got {type(solver).__name__}"
+                )
+            if backward == "unroll":
+                raise ValueError("constraints are differentiated implicitly: not with 'unroll'")
+            solver = solver.with_options(constraints=constraints)
+        # the constraints' tensors are the layer's (a ConstraintSet module, or None)
+        self.constraints = getattr(solver.options, "constraints", None) if constraints else None
         self.solver = solver
         self._solvers: dict[tuple, Any] = {}  # per (tol, compact): the solver a forward uses
         self.compact = compact
@@ -248,12 +269,12 @@ class MPC(nn.Module):
             return False
         if x0.requires_grad:
             return True
-        tensors = list(self.problem.parameters()) + list(self.problem.buffers())
+        tensors = list(self.parameters()) + list(self.buffers())
         return any(t.requires_grad for t in tensors) or self._has_hidden_graph()
 
     def _has_hidden_graph(self) -> bool:
         # tensors held as plain attributes (not parameters/buffers) of the cost/dynamics
-        for mod in self.problem.modules():
+        for mod in self.modules():
             for v in vars(mod).values():
                 if torch.is_tensor(v) and v.requires_grad:
                     return True
@@ -371,9 +392,18 @@ class MPC(nn.Module):
             if result.active_bounds is not None:
                 active = result.active_bounds != 0
             hessian = "exact" if self.backward_mode == "implicit" else "gn"
-            x, u, lq_status = implicit_solution(
-                self.problem, x0, result.x, result.u, hessian=hessian, active=active
-            )
+            if self.constraints is not None:
+                stage_eq, terminal_eq = self.constraints.dims(
+                    self.problem.state_dim, self.problem.control_dim, x0
+                )
+                x, u, lq_status = constrained_implicit_solution(
+                    self.problem, self.constraints, x0, result.x, result.u,
+                    result.multipliers, stage_eq, terminal_eq, hessian=hessian, active_u=active,
+                )  # fmt: skip
+            else:
+                x, u, lq_status = implicit_solution(
+                    self.problem, x0, result.x, result.u, hessian=hessian, active=active
+                )
             not_pd = (lq_status == Status.NOT_POSITIVE_DEFINITE) & ~bad
             if bool(not_pd.any()):
                 status = torch.where(not_pd, lq_status, status)

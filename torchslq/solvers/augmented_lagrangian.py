@@ -44,6 +44,9 @@ __all__ = ["ALState", "AugmentedLagrangian", "default_constraint_tol", "solve_co
 
 # the violation must fall below this fraction of the previous one, or the penalty rises
 PROGRESS_RATIO = 0.25
+# the subproblems' gradient tolerance: at most INNER_TOL_START, times this per iteration
+INNER_TOL_START = 1e-3
+INNER_TOL_DECREASE = 0.1
 
 
 def default_constraint_tol(dtype: torch.dtype) -> float:
@@ -60,6 +63,7 @@ class ALState(ElementState):
         violation ``(B,)``: largest violation at ``(x, u)``.
         inner_grad ``(B,)``: the last inner solve's gradient norm (NaN before the first).
         inner_status ``(B,)``: its status; inner_iterations ``(B,)``: their total.
+        inner_tol ``(B,)``: the gradient tolerance of the element's next subproblem.
         K ``(B, T, m, n)``, k ``(B, T, m)``: the last inner solve's gains.
     """
 
@@ -70,6 +74,7 @@ class ALState(ElementState):
     inner_grad: Tensor = None
     inner_status: Tensor = None
     inner_iterations: Tensor = None
+    inner_tol: Tensor = None
     K: Tensor = None
     k: Tensor = None
 
@@ -127,7 +132,10 @@ class AugmentedLagrangian:
             self.stage_eq, self.terminal_eq,
         )  # fmt: skip
         inner_problem = Problem(problem.dynamics, al_cost, problem.horizon)
-        r = self.inner.solve(inner_problem, sub.x[:, 0], sub.u, x_init=sub.x)
+        # subproblems far from the solution need not be solved tightly (Conn, Gould &
+        # Toint): the tolerance falls tenfold per outer iteration down to ``tol``
+        inner = self.inner.with_options(tol=float(sub.inner_tol.max()))
+        r = inner.solve(inner_problem, sub.x[:, 0], sub.u, x_init=sub.x)
         v = self.constraints.values(r.x, r.u)
         viol = max_violation(v, self.stage_eq, self.terminal_eq)
         rho = sub.rho
@@ -147,6 +155,7 @@ class AugmentedLagrangian:
             inner_grad=r.grad_norm,
             inner_status=r.status,
             inner_iterations=sub.inner_iterations + r.iterations,
+            inner_tol=(sub.inner_tol * INNER_TOL_DECREASE).clamp_min(self.tol),
             K=r.K,
             k=r.k,
         )
@@ -225,6 +234,7 @@ def solve_constrained(
             inner_grad=torch.full_like(zeros, float("nan")),
             inner_status=torch.full((Bsz,), int(Status.RUNNING), device=x0.device),
             inner_iterations=torch.zeros(Bsz, dtype=torch.int64, device=x0.device),
+            inner_tol=torch.full_like(zeros, max(o.tol, min(INNER_TOL_START, o.tol**0.5))),
             K=x0.new_zeros(Bsz, T, m, n),
             k=x0.new_zeros(Bsz, T, m),
         )

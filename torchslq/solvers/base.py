@@ -67,6 +67,8 @@ class Solver:
             ``result.options`` and the TensorBoard hparams).
         supports_bounds: whether ``u_min``/``u_max`` are honoured as hard box
             constraints (:class:`torchslq.ILQR`, :class:`torchslq.DDP`).
+        supports_constraints: whether ``constraints=`` (:class:`torchslq.Constraints`)
+            are honoured (:class:`torchslq.ILQR`, :class:`torchslq.DDP`).
         supports_x_init: whether ``solve`` accepts the rollout of ``u_init`` as
             ``x_init`` (and ``compact=True``).
     """
@@ -74,6 +76,7 @@ class Solver:
     name: ClassVar[str] = "solver"
     options_class: ClassVar[type]
     supports_bounds: ClassVar[bool] = False
+    supports_constraints: ClassVar[bool] = False
     supports_x_init: ClassVar[bool] = False
 
     options: Any

@@ -67,6 +67,7 @@ class ILQR(DescentSolver):
     name: ClassVar[str] = "ilqr"
     options_class: ClassVar[type] = ILQROptions
     supports_bounds: ClassVar[bool] = True
+    supports_constraints: ClassVar[bool] = True
 
     def __init__(
         self,
