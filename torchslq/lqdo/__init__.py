@@ -8,16 +8,21 @@ fixed-parameter method (nested co-design) with exact upper-level gradients.
 See ``docs/lqdo.md``.
 """
 
+from .backends import QPSolution, qp_solve, solve_dense, solve_sparse
 from .problem import LQDOProblem, detect_olq
 from .qp import DenseQP, SparseQP
 from .transcription import Transcription, lgl, transcribe
 
 __all__ = [
     "DenseQP",
+    "QPSolution",
     "LQDOProblem",
     "SparseQP",
     "Transcription",
     "detect_olq",
     "lgl",
+    "qp_solve",
+    "solve_dense",
+    "solve_sparse",
     "transcribe",
 ]

@@ -136,6 +136,7 @@ class LQDOProblem:
             if v.ndim == 2 and not (v.isnan() == v[:1].isnan()).all():
                 raise ValueError(f"{name}: the NaN (free) pattern must be the same in every row")
         self._olq_cache: dict[str, Tensor] = {}
+        self._pattern: dict[str, Tensor] = {}
 
     # ------------------------------------------------------------------ element access
     def element(self, name: str) -> Callable[..., Tensor] | None:
@@ -190,6 +191,14 @@ class LQDOProblem:
         return out
 
     # ------------------------------------------------------------------ OLQ flags
+    def pattern(self, name: str) -> Tensor:
+        """Structural nonzeros of element ``name``'s derivative found at random points:
+        ``(k, nz)`` Jacobian pattern, ``(nz, nz)`` Hessian pattern for ``lagrange``/``mayer``.
+        The transcription widens it whenever a derivative outside it is nonzero."""
+        if name not in self._pattern:
+            detect_olq(self, name)
+        return self._pattern[name]
+
     def olq_rows(self, name: str) -> Tensor:
         """``(k,)`` bool: which output rows of element ``name`` are OLQ (declared, or
         detected once by :func:`detect_olq` and cached)."""
@@ -214,9 +223,9 @@ def row_derivatives(
     """Value, Jacobian (and Hessian) of a row-wise function at every row at once.
 
     ``fn`` maps ``z (R, nz)`` to ``(R, k)`` and each output row depends only on its own
-    input row, so pulling back a basis vector replicated over the rows gives every row's
-    Jacobian row in one vector-Jacobian product (``torch.func.vjp`` + ``vmap`` over the
-    basis): no loop over nodes or batch elements.
+    input row, so the gradient of one output summed over the rows is that output's
+    Jacobian row at every row: one backward pass per output (``k`` passes, and ``nz``
+    more for the Hessian), none per node or batch element.
 
     Args:
         fn: the row-wise function.
@@ -227,28 +236,27 @@ def row_derivatives(
     Returns:
         ``value (R, k)``, ``jac (R, len(rows), nz)``, ``hess (R, nz, nz)`` or None.
     """
-    val, vjp_fn = torch.func.vjp(fn, z)
-    k = val.shape[-1]
-    idx = torch.arange(k, device=z.device) if rows is None else rows
-    basis = torch.eye(k, dtype=z.dtype, device=z.device)[idx]  # (kk, k)
-    basis = basis[:, None, :].expand(idx.numel(), z.shape[0], k)
-    jac = (
-        torch.func.vmap(vjp_fn)(basis)[0].permute(1, 0, 2)
-        if idx.numel()
-        else z.new_zeros(z.shape[0], 0, z.shape[-1])
-    )
-    hess = None
-    if hessian:
+    with torch.enable_grad():
+        zz = z.detach().requires_grad_(True)
+        val = fn(zz)
+        k = val.shape[-1]
+        idx = list(range(k)) if rows is None else [int(r) for r in rows]
 
-        def grad_fn(zz: Tensor) -> Tensor:
-            v, g = torch.func.vjp(fn, zz)
-            return g(torch.ones_like(v))[0]
+        def grad(out: Tensor, create: bool) -> Tensor:
+            if not out.requires_grad:  # a constant row
+                return torch.zeros_like(zz)
+            g = torch.autograd.grad(
+                out.sum(), zz, retain_graph=True, create_graph=create, allow_unused=True
+            )[0]
+            return torch.zeros_like(zz) if g is None else g
 
-        _, gvjp = torch.func.vjp(grad_fn, z)
-        nz = z.shape[-1]
-        eb = torch.eye(nz, dtype=z.dtype, device=z.device)[:, None, :].expand(nz, z.shape[0], nz)
-        hess = torch.func.vmap(gvjp)(eb)[0].permute(1, 0, 2)
-    return val, jac, hess
+        cols = [grad(val[:, r], hessian) for r in idx]
+        jac = torch.stack(cols, 1) if cols else zz.new_zeros(zz.shape[0], 0, zz.shape[1])
+        hess = None
+        if hessian:
+            g0 = jac[:, 0]
+            hess = torch.stack([grad(g0[:, j], False) for j in range(zz.shape[1])], 1)
+    return val.detach(), jac.detach(), None if hess is None else hess.detach()
 
 
 def detect_olq(problem: LQDOProblem, name: str, samples: int = 4, seed: int = 0) -> Tensor:
@@ -284,6 +292,8 @@ def detect_olq(problem: LQDOProblem, name: str, samples: int = 4, seed: int = 0)
     scalar = name in _SCALAR
     _, jac, hess = row_derivatives(f, z, hessian=scalar)
     d = hess.unsqueeze(1) if scalar else jac  # (R, k, ...)
+    # structural nonzeros of the Jacobian (Hessian for scalar terms) at the random points
+    problem._pattern[name] = (d != 0).any(0).reshape(hess.shape[1:] if scalar else jac.shape[1:])
     d = d.reshape(nt, samples, d.shape[1], -1)
     ref = d[:, :1]
     scale = ref.abs().amax(dim=(0, 1, 3), keepdim=True).clamp_min(1.0)

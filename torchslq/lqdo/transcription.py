@@ -366,6 +366,14 @@ class Transcription:
             self._cache[key] = tuple(o.detach() for o in out)
         return out
 
+    def _widen(self, name: str, D: Tensor) -> Tensor:
+        """The element's derivative pattern, widened by the nonzeros of ``D (B, R, a, b)``
+        (a derivative that is zero at the random probe points but not here)."""
+        P = self.problem
+        pat = P.pattern(name).to(D.device) | (D != 0).any(0).any(0)
+        P._pattern[name] = pat
+        return pat
+
     def qp(self, z_ref: Tensor) -> SparseQP:
         """The QP of the reference LQDO problem about ``z_ref (B, n)`` (Prob. 14 in the
         form of Prob. 18). For an OLQ problem it is the transcribed problem itself."""
@@ -387,23 +395,15 @@ class Transcription:
             Hk, gk, ck = self._quadratic(name, z, path)
             if w is not None:
                 Hk, gk, ck = Hk * w[:, None, None], gk * w[:, None], ck * w
-            nz = loc.shape[1]
-            H_idx.append(
-                torch.stack(
-                    [
-                        loc[:, :, None].expand(-1, nz, nz).reshape(-1),
-                        loc[:, None, :].expand(-1, nz, nz).reshape(-1),
-                    ]
-                )
-            )
-            H_val.append(Hk.reshape(B, -1))
+            ii, jj = self._widen(name, Hk).nonzero().T
+            H_idx.append(torch.stack([loc[:, ii].reshape(-1), loc[:, jj].reshape(-1)]))
+            H_val.append(Hk[:, :, ii, jj].reshape(B, -1))
             f = f.index_add(1, loc.reshape(-1), gk.reshape(B, -1))
             c = c + ck.sum(1)
         # ---------------- equalities
         A_idx, A_val, b = [], [], []
         row0 = 0
         Jf, rf = self._linear("dynamics", z, True)  # (B, nt, nx, nz), (B, nt, nx)
-        nzp = self.loc_path.shape[1]
         a = torch.arange(nx, device=dev)
         # M1 Xi: rows i nx + a, columns xi_{k, a}
         A_idx.append(
@@ -415,16 +415,17 @@ class Transcription:
             )
         )
         A_val.append(self.pair_m1[:, None].expand(-1, nx).reshape(1, -1).expand(B, -1))
-        # -M2 J_k z_k
+        # -M2 J_k z_k on the Jacobian's structural nonzeros (rows ak, node-local vars jk)
+        ak, jk = self._widen("dynamics", Jf).nonzero().T
         A_idx.append(
             torch.stack(
                 [
-                    (self.pair_i[:, None, None] * nx + a[:, None]).expand(-1, nx, nzp).reshape(-1),
-                    self.loc_path[self.pair_k][:, None, :].expand(-1, nx, nzp).reshape(-1),
+                    (self.pair_i[:, None] * nx + ak).reshape(-1),
+                    self.loc_path[self.pair_k][:, jk].reshape(-1),
                 ]
             )
         )
-        A_val.append((-self.pair_m2[:, None, None] * Jf[:, self.pair_k]).reshape(B, -1))
+        A_val.append((-self.pair_m2[:, None] * Jf[:, self.pair_k][:, :, ak, jk]).reshape(B, -1))
         bd = z.new_zeros(B, self.nd, nx).index_add(
             1, self.pair_i, self.pair_m2[:, None] * rf[:, self.pair_k]
         )
@@ -435,16 +436,10 @@ class Transcription:
             J, r = self._linear(name, z, path)  # (B, R, k, nz)
             R, k, nz = J.shape[1:]
             loc = self.loc_path if path else self.loc_bnd[None]
-            rr = row0 + torch.arange(R * k, device=dev).reshape(R, k)
-            idx_list.append(
-                torch.stack(
-                    [
-                        rr[:, :, None].expand(R, k, nz).reshape(-1),
-                        loc[:, None, :].expand(R, k, nz).reshape(-1),
-                    ]
-                )
-            )
-            val_list.append(J.reshape(B, -1))
+            ak, jk = self._widen(name, J).nonzero().T
+            rr = row0 + torch.arange(R, device=dev)[:, None] * k + ak
+            idx_list.append(torch.stack([rr.reshape(-1), loc[:, jk].reshape(-1)]))
+            val_list.append(J[:, :, ak, jk].reshape(B, -1))
             rows_list.append(-r.reshape(B, -1))
             return row0 + R * k
 
