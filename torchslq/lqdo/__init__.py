@@ -10,12 +10,15 @@ See ``docs/lqdo.md``.
 
 from .backends import QPSolution, qp_solve, solve_dense, solve_sparse
 from .problem import LQDOProblem, detect_olq
+from .qlin import QLINResult, Quasilinearization
 from .qp import DenseQP, SparseQP
 from .transcription import Transcription, lgl, transcribe
 
 __all__ = [
     "DenseQP",
+    "QLINResult",
     "QPSolution",
+    "Quasilinearization",
     "LQDOProblem",
     "SparseQP",
     "Transcription",

@@ -366,6 +366,15 @@ class Transcription:
             self._cache[key] = tuple(o.detach() for o in out)
         return out
 
+    @property
+    def is_olq(self) -> bool:
+        """Every element is OLQ: the reference QP is the transcribed problem itself
+        (an OLQ problem, Sec. 3.1), whatever the reference."""
+        P = self.problem
+        names = ("dynamics", "lagrange", "mayer", "path_eq", "path_ineq")
+        names += ("boundary_eq", "boundary_ineq")
+        return all(bool(P.olq_rows(k).all()) for k in names if P.element(k) is not None)
+
     def _widen(self, name: str, D: Tensor) -> Tensor:
         """The element's derivative pattern, widened by the nonzeros of ``D (B, R, a, b)``
         (a derivative that is zero at the random probe points but not here)."""

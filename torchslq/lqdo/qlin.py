@@ -1,0 +1,271 @@
+"""Quasilinearization (Herber & Sundarrajan 2020, Sec. 4.3.4, Algorithm 1).
+
+Each iteration builds the reference LQDO problem (Prob. 14) about the previous solution
+with the chosen transcription, solves its QP, and stops when the objective changes by
+no more than ``tol``. The loop is the library's shared solver core
+(:func:`torchslq.solvers.core.iterate`): per-element status, masks that freeze a finished
+element, the history and logging are the same as for every other solver. Its
+``measure`` is the paper's stopping test (cheap), and its ``advance`` builds and solves
+the QP for the whole batch at once.
+
+For an OLQ problem (every element OLQ, Sec. 3.1) the first QP is the transcribed problem
+itself, and the loop stops after that one iteration.
+
+Safeguard (``safeguard="merit"``, not in the paper; its conclusion asks for it): the QP
+solution is a direction ``d = z_qp - z``; the step ``z + a d`` is chosen among
+``a = 1, 1/2, ..., 2^-9`` (all trials evaluated as one batch) by Armijo's rule on the
+l1 merit function ``v(z) + rho ||c(z)||_1`` with ``rho`` at least twice the largest QP
+multiplier (Nocedal & Wright 2006, Sec. 18.3). With the safeguard an element stops only
+after a full step with ``|dv| <= tol`` and constraint violation ``<= feas_tol``.
+
+The result's ``grad_norm`` slot holds the largest nonlinear constraint violation at the
+iterate (the quantity QLIN drives to zero besides the objective change).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+
+import torch
+from torch import Tensor
+
+from ..solvers.core import Advance, ElementState, LoopSettings, Measure, iterate, shared
+from ..status import Status
+from .backends import QPSolution, solve_dense, solve_sparse
+from .transcription import Transcription
+
+__all__ = ["Quasilinearization", "QLINResult", "violation"]
+
+
+def violation(tr: Transcription, z: Tensor) -> Tensor:
+    """``(B, m)`` nonnegative violations of every constraint of Prob. (4) at ``z``:
+    equalities (absolute), inequalities and simple bounds (positive parts)."""
+    lb, ub = tr.bounds(z.shape[0])
+    return torch.cat(
+        [
+            tr.equalities(z).abs(),
+            tr.inequalities(z).clamp_min(0),
+            (lb.to(z) - z).clamp_min(0).nan_to_num(0.0, posinf=0.0),
+            (z - ub.to(z)).clamp_min(0).nan_to_num(0.0, posinf=0.0),
+        ],
+        1,
+    )
+
+
+@dataclass(frozen=True)
+class _State(ElementState):
+    z: Tensor = None  # (B, n)
+    J_prev: Tensor = None  # (B,) objective of the previous iterate (inf at the start)
+    viol: Tensor = None  # (B,) largest constraint violation
+    full: Tensor = None  # (B,) bool, the last step was the full QP step
+    rho: Tensor = None  # (B,) merit penalty
+    qp_time: Tensor = shared(None)  # (1,) accumulated QP solve seconds
+
+
+@dataclass
+class QLINResult:
+    """Outcome of :meth:`Quasilinearization.solve`.
+
+    Attributes:
+        z: ``(B, n)`` final iterate; u, xi, p its parts ``(B, nt, nu)``, ``(B, nt, nx)``,
+            ``(B, np)``.
+        objective: ``(B,)`` transcribed objective ``v`` (eq. 9) at ``z``.
+        violation: ``(B,)`` largest constraint violation at ``z``.
+        iterations: ``(B,)`` QP subproblems solved (Algorithm 1's ``k``).
+        status: ``(B,)`` :class:`torchslq.Status` (``converged``; ``max_iter`` when the
+            iterates keep moving, e.g. oscillate; ``not_positive_definite`` when a QP
+            subproblem has no solution; ``line_search_failed`` for the safeguard).
+        history: per-iteration ``(B, k+1)`` ``cost``, ``grad_norm`` (the violation),
+            ``step``; ``time``.
+        time: wall-clock seconds; qp_time: of which in the QP solver.
+    """
+
+    z: Tensor
+    u: Tensor
+    xi: Tensor
+    p: Tensor
+    objective: Tensor
+    violation: Tensor
+    iterations: Tensor
+    status: Tensor
+    history: dict
+    time: float
+    qp_time: float
+
+
+class _Rule:
+    def __init__(self, owner: Quasilinearization, tr: Transcription):
+        self.o, self.tr = owner, tr
+        self.olq = tr.is_olq
+
+    def measure(self, problem, state: _State, running: Tensor, it: int):
+        o = self.o
+        dv = (state.J - state.J_prev).abs()
+        done = dv <= o.tol * state.J.abs().clamp_min(1.0)
+        if o.safeguard is not None:
+            done = done & state.full & (state.viol <= o.feas_tol)
+        if it >= 1 and self.olq:  # the QP was the problem itself: solved in one iteration
+            done = done | state.full
+        fail = torch.full_like(state.J, int(Status.RUNNING), dtype=torch.int64)
+        return state, Measure(
+            grad_norm=state.viol, done=done, fail=fail, cost=state.J, history={"dv": dv}
+        )
+
+    def _solve(self, z: Tensor) -> QPSolution:
+        qp = self.tr.qp(z)
+        if self.o.backend == "dense":
+            return solve_dense(qp, **self.o.qp_options)
+        return solve_sparse(qp, solver=self.o.backend, **self.o.qp_options)
+
+    def advance(self, problem, state: _State, m: Measure, running: Tensor) -> Advance:
+        tr, o = self.tr, self.o
+        t0 = time.perf_counter()
+        sol = self._solve(state.z)
+        qp_t = state.qp_time + (time.perf_counter() - t0)
+        qp_ok = sol.status == int(Status.CONVERGED)
+        end = torch.where(
+            qp_ok | ~running,
+            torch.full_like(sol.status, int(Status.RUNNING)),
+            torch.full_like(sol.status, int(Status.NOT_POSITIVE_DEFINITE)),
+        )
+        d = torch.where(qp_ok[:, None], sol.z - state.z, torch.zeros_like(state.z))
+        alpha = torch.ones_like(state.J)
+        rho = state.rho
+        if o.safeguard == "merit":
+            alpha, rho, ok = self._merit_search(state, d, sol)
+            end = torch.where(
+                qp_ok & ~ok & running, torch.full_like(end, int(Status.LINE_SEARCH_FAILED)), end
+            )
+            alpha = torch.where(ok, alpha, torch.zeros_like(alpha))
+        accept = qp_ok & running & (alpha > 0)
+        z_new = torch.where(accept[:, None], state.z + alpha[:, None] * d, state.z)
+        J_new = tr.objective(z_new).detach()
+        viol = violation(tr, z_new).amax(1).detach()
+        u, xi, _ = tr.unpack(z_new)
+        new = replace(
+            state,
+            x=xi,
+            u=u,
+            J=torch.where(accept, J_new, state.J),
+            J_prev=torch.where(accept, state.J, state.J_prev),
+            z=z_new,
+            viol=torch.where(accept, viol, state.viol),
+            full=accept & (alpha == 1.0),
+            rho=rho,
+            qp_time=qp_t,
+        )
+        return Advance(state=new, accept=accept, step=alpha, end=end)
+
+    def _merit_search(self, state: _State, d: Tensor, sol: QPSolution):
+        tr = self.tr
+        B, n = d.shape
+        mult = torch.cat([sol.lam.abs(), sol.mu.abs(), d.new_zeros(B, 1)], 1).amax(1)
+        rho = torch.maximum(state.rho, 2.0 * mult + 1e-8)
+        with torch.enable_grad():
+            z = state.z.detach().requires_grad_(True)
+            g = torch.autograd.grad(tr.objective(z).sum(), z)[0]
+        c0 = violation(tr, state.z).sum(1)
+        phi0 = state.J + rho * c0
+        slope = (g * d).sum(1) - rho * c0  # directional derivative of the l1 merit
+        alphas = 0.5 ** torch.arange(10, dtype=d.dtype, device=d.device)
+        K = alphas.numel()
+        trial = state.z[None] + alphas[:, None, None] * d[None]  # (K, B, n)
+        flat = trial.reshape(K * B, n)
+        phi = tr.objective(flat).reshape(K, B) + rho * violation(tr, flat).sum(1).reshape(K, B)
+        armijo = phi <= phi0 + 1e-4 * alphas[:, None] * torch.minimum(
+            slope, torch.zeros_like(slope)
+        )
+        armijo &= torch.isfinite(phi)
+        first = torch.where(
+            armijo.any(0), armijo.to(torch.int64).argmax(0), torch.zeros(B, dtype=torch.int64)
+        )
+        return alphas[first], rho, armijo.any(0)
+
+
+class Quasilinearization:
+    """Quasilinearization, Algorithm 1 (QLIN), with an optional merit line search.
+
+    Args:
+        tol: the stopping test ``|v(x^k) - v(x^{k-1})| <= tol max(1, |v|)``.
+        max_iter: Algorithm 1's ``k_max``.
+        backend: ``"clarabel"`` (default), ``"osqp"`` (sparse CPU solvers) or ``"dense"``
+            (the batched torch interior point, CPU or GPU).
+        safeguard: None (the paper's Algorithm 1) or ``"merit"`` (see the module docstring).
+        feas_tol: constraint violation required to stop with the safeguard.
+        qp_options: passed to the QP backend (e.g. ``tol``).
+
+    Example::
+
+        tr = transcribe(problem, "TR", nodes=20)
+        res = Quasilinearization().solve(tr, tr.initial_guess())
+    """
+
+    def __init__(
+        self,
+        tol: float = 1e-6,
+        max_iter: int = 50,
+        backend: str = "clarabel",
+        safeguard: str | None = None,
+        feas_tol: float = 1e-6,
+        qp_options: dict | None = None,
+    ) -> None:
+        if backend not in ("clarabel", "osqp", "dense"):
+            raise ValueError(f"backend must be 'clarabel', 'osqp' or 'dense'; got {backend!r}")
+        if safeguard not in (None, "merit"):
+            raise ValueError(f"safeguard must be None or 'merit'; got {safeguard!r}")
+        if not tol > 0:
+            raise ValueError(f"tol must be positive; got {tol}")
+        if not isinstance(max_iter, int) or max_iter < 1:
+            raise ValueError(f"max_iter must be a positive int; got {max_iter!r}")
+        self.tol, self.max_iter, self.backend = tol, max_iter, backend
+        self.safeguard, self.feas_tol = safeguard, feas_tol
+        self.qp_options = dict(qp_options or {})
+
+    def solve(self, tr: Transcription, z0: Tensor) -> QLINResult:
+        """Run Algorithm 1 from the initial reference ``z0 (B, n)`` (or ``(n,)``).
+
+        Returns:
+            :class:`QLINResult` (batch-first; an unbatched ``z0`` still gives ``B = 1``).
+        """
+        if not isinstance(tr, Transcription):
+            raise TypeError(f"tr must be a Transcription; got {type(tr).__name__}")
+        z0 = torch.as_tensor(z0)
+        if z0.ndim == 1:
+            z0 = z0[None]
+        tr._check_z(z0)
+        t0 = time.perf_counter()
+        z0 = z0.detach()
+        u, xi, _ = tr.unpack(z0)
+        B = z0.shape[0]
+        J0 = tr.objective(z0).detach()
+        state = _State(
+            x=xi,
+            u=u,
+            J=J0,
+            z=z0,
+            J_prev=torch.full_like(J0, float("inf")),
+            viol=violation(tr, z0).amax(1).detach(),
+            full=torch.zeros(B, dtype=torch.bool, device=z0.device),
+            rho=torch.zeros_like(J0),
+            qp_time=torch.zeros((), dtype=torch.float64),
+        )
+        settings = LoopSettings(
+            max_iter=self.max_iter, rtol=0.0, stall_iters=0, progress=False, name="QLIN"
+        )
+        out = iterate(_Rule(self, tr), tr, state, settings)
+        s = out.state
+        u, xi, p = tr.unpack(s.z)
+        return QLINResult(
+            z=s.z,
+            u=u,
+            xi=xi,
+            p=p,
+            objective=s.J,
+            violation=s.viol,
+            iterations=out.iterations,
+            status=out.status,
+            history=out.history,
+            time=time.perf_counter() - t0,
+            qp_time=float(s.qp_time),
+        )
