@@ -22,8 +22,9 @@ process). Engine: ``torch.distributed`` with gloo on the CPU (NCCL when CUDA is 
     python examples/mpc_ddp_training.py                          # 1 process
     python examples/mpc_ddp_training.py --quick --local-workers 2
 
-Rank 0 prints the loss and the learned parameters every ``--print-every`` epochs and
-writes ``--out`` (a JSON summary) at the end.
+Rank 0 prints the full-batch loss (before the epoch's step) and the learned parameters
+every ``--print-every`` epochs and writes ``--out`` (a JSON summary) at the end. Adam,
+learning rate ``--lr`` times ``--lr-decay`` per epoch.
 """
 
 from __future__ import annotations
@@ -156,6 +157,7 @@ def train(rank: int, world_size: int, args: argparse.Namespace) -> dict:
     learner = Learner(args.dt, args.horizon)
     model = wrap(learner, world_size)
     opt = torch.optim.Adam(model.parameters(), lr=args.lr)
+    sched = torch.optim.lr_scheduler.ExponentialLR(opt, gamma=args.lr_decay)
     history = []
     t0 = time.perf_counter()
     with warnings.catch_warnings():
@@ -165,6 +167,7 @@ def train(rank: int, world_size: int, args: argparse.Namespace) -> dict:
             loss = local_loss(model, x0, xe, ue, rank, world_size)
             loss.backward()  # DDP all-reduces the gradients here
             opt.step()
+            sched.step()
             total = loss.detach().clone()
             if world_size > 1:
                 dist.all_reduce(total)  # the full-batch loss, for printing
@@ -201,6 +204,7 @@ def parse_args(argv: list[str] | None = None) -> argparse.Namespace:
     ap.add_argument("--dt", type=float, default=0.05)
     ap.add_argument("--epochs", type=int, default=60)
     ap.add_argument("--lr", type=float, default=0.05, help="Adam learning rate")
+    ap.add_argument("--lr-decay", type=float, default=0.95, help="learning rate factor per epoch")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--print-every", type=int, default=10)
     ap.add_argument(

@@ -279,9 +279,21 @@ def test_method_argument():
     args = random_problem(1, 2, 4, 3, 2)
     with pytest.raises(ValueError, match="^method"):
         lqr_solve(**args, method="parallel")
-    chosen = choose_method(4, 2, torch.device("cpu"), F64)
-    assert chosen in ("sequential", "scan")
-    auto = lqr_solve(**args, method="auto")
-    ref = lqr_solve(**args, method=chosen)
-    for name in FIELDS:
-        assert torch.equal(getattr(auto, name), getattr(ref, name)), name
+
+
+def test_auto_follows_the_measured_rule(backend):
+    """``auto``: the sequential kernel, except a single problem with T >= 100 on the CPU
+    torch path (where benchmarks/results/parallel_lq.md measured the scan faster)."""
+    cpu = torch.device("cpu")
+    scan_one = "scan" if backend == "torch" else "sequential"
+    assert choose_method(100, 1, cpu, F64) == scan_one
+    assert choose_method(10000, 1, cpu, torch.float32) == scan_one
+    assert choose_method(99, 1, cpu, F64) == "sequential"
+    assert choose_method(10000, 32, cpu, F64) == "sequential"
+    assert choose_method(10000, 1, "cuda", F64) == "sequential"  # not measured
+    for bsz, T in ((1, 120), (2, 5)):
+        args = random_problem(1, bsz, T, 3, 2)
+        auto = lqr_solve(**args, method="auto")
+        ref = lqr_solve(**args, method=choose_method(T, bsz, cpu, F64))
+        for name in FIELDS:
+            assert torch.equal(getattr(auto, name), getattr(ref, name)), name
