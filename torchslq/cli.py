@@ -226,8 +226,13 @@ def _solve_sharded(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     try:
         if "WORLD_SIZE" in os.environ:  # under torchrun: this process is one rank
+            import torch.distributed as dist
+
             rank, world = init_from_env(backend="gloo")
-            _sharded_job(rank, world, opts)
+            try:
+                _sharded_job(rank, world, opts)
+            finally:
+                dist.destroy_process_group()
             if rank != 0:
                 return 0
         else:
