@@ -334,3 +334,27 @@ def test_mpc_constraints_need_a_capable_solver():
         ts.MPC(problem.dynamics, problem.cost, T, solver=ts.SLQ(progress=False), constraints=c)
     with pytest.raises(ValueError, match="unroll"):
         ts.MPC(problem.dynamics, problem.cost, T, constraints=c, backward="unroll")
+
+
+def test_multipliers_warm_start_solver_and_mpc():
+    """Starting from the solution's own multipliers, one outer iteration suffices (and
+    gives the same solution); the MPC layer reuses them between calls."""
+    problem = lq_problem()
+    solver = ts.ILQR(constraints=lq_constraints(), tol=1e-10, progress=False)
+    cold = solver.solve(problem, X0)
+    warm = solver.solve(problem, X0, cold.u, multipliers=cold.multipliers)
+    assert (warm.status == Status.CONVERGED).all()
+    assert (warm.outer_iterations == 1).all() and (cold.outer_iterations > 3).all()
+    torch.testing.assert_close(warm.u, cold.u, atol=1e-6, rtol=0)
+    with pytest.raises(ValueError, match="multipliers"):
+        ts.ILQR(progress=False).solve(problem, X0, multipliers=cold.multipliers)
+    with pytest.raises(ValueError, match=r"multipliers\['stage'\]"):
+        solver.solve(problem, X0, multipliers={"stage": torch.zeros(3), "terminal": torch.zeros(2)})
+    mpc = ts.MPC(
+        problem.dynamics, problem.cost, T, solver=solver, constraints=lq_constraints(),
+        warm_start="reuse",
+    )  # fmt: skip
+    first = mpc(X0).result
+    second = mpc(X0).result
+    assert (first.outer_iterations > 3).all() and (second.outer_iterations == 1).all()
+    torch.testing.assert_close(second.u, first.u, atol=1e-6, rtol=0)

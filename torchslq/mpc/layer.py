@@ -249,12 +249,18 @@ class MPC(nn.Module):
         u = result.u.detach()
         if self.warm_start == "reuse":
             self._warm = {"u": u}
+            if result.multipliers is not None:
+                self._warm["multipliers"] = result.multipliers
             return
 
         def shift(t: Tensor) -> Tensor:
             return torch.cat([t[:, 1:], t[:, -1:]], dim=1)
 
         warm = {"u": shift(u)}
+        if result.multipliers is not None:
+            # the constraint multipliers are warm started like the controls
+            mult = result.multipliers
+            warm["multipliers"] = {"stage": shift(mult["stage"]), "terminal": mult["terminal"]}
         K = getattr(result, "K", None)
         if K is not None and K.shape[:2] == u.shape[:2]:
             # an element without valid gains (e.g. a failed solve) gets the plain shift
@@ -299,6 +305,10 @@ class MPC(nn.Module):
         guess, guess_x = self._initial_guess(x0b, u_init)
         solver = self._solver_for(x0b.dtype, Bsz)
         kw = {"x_init": guess_x} if guess_x is not None and self._supports_compact() else {}
+        w = self._warm
+        if self.constraints is not None and u_init is None and w and "multipliers" in w:
+            if w["u"].shape[0] == Bsz:
+                kw["multipliers"] = w["multipliers"]
         with torch.no_grad():
             result = solver.solve(self.problem, x0b.detach(), guess, **kw)
         self.last_result = result

@@ -155,7 +155,12 @@ class AugmentedLagrangian:
             inner_grad=r.grad_norm,
             inner_status=r.status,
             inner_iterations=sub.inner_iterations + r.iterations,
-            inner_tol=(sub.inner_tol * INNER_TOL_DECREASE).clamp_min(self.tol),
+            # once feasible, only stationarity is left: the next subproblem at ``tol``
+            inner_tol=torch.where(
+                viol <= self.constraint_tol,
+                torch.full_like(sub.inner_tol, self.tol),
+                (sub.inner_tol * INNER_TOL_DECREASE).clamp_min(self.tol),
+            ),
             K=r.K,
             k=r.k,
         )
@@ -186,8 +191,11 @@ def solve_constrained(
     u_init: Tensor | None,
     logger: Any,
     x_init: Tensor | None,
+    multipliers: dict[str, Tensor] | None = None,
 ) -> SolverResult:
-    """``solver.solve`` for a solver whose options hold ``constraints`` (module docstring)."""
+    """``solver.solve`` for a solver whose options hold ``constraints`` (module docstring);
+    ``multipliers`` (``{"stage": (B, T, p), "terminal": (B, q)}``, e.g. a previous
+    solve's, shifted) start the outer loop instead of zeros."""
     o = solver.options
     x0, u, unbatched = problem.check_inputs(x0, u_init)
     if x_init is not None:
@@ -220,6 +228,7 @@ def solve_constrained(
         name=solver.name,
     )
     n, m = problem.state_dim, problem.control_dim
+    lam, lam_T = _initial_multipliers(multipliers, x0, T, stage_eq, terminal_eq)
     with torch.no_grad(), compiled_cost_evaluation():
         x = rollout(problem.transition, x0, u) if x_init is None else x_init
         zeros = x0.new_zeros(Bsz)
@@ -227,14 +236,18 @@ def solve_constrained(
             x=x,
             u=u,
             J=problem.cost(x, u),
-            lam=x0.new_zeros(Bsz, T, stage_eq.numel()),
-            lam_T=x0.new_zeros(Bsz, terminal_eq.numel()),
+            lam=lam,
+            lam_T=lam_T,
             rho=torch.full_like(zeros, float(o.penalty_init)),
             violation=torch.full_like(zeros, float("inf")),
             inner_grad=torch.full_like(zeros, float("nan")),
             inner_status=torch.full((Bsz,), int(Status.RUNNING), device=x0.device),
             inner_iterations=torch.zeros(Bsz, dtype=torch.int64, device=x0.device),
-            inner_tol=torch.full_like(zeros, max(o.tol, min(INNER_TOL_START, o.tol**0.5))),
+            # warm-started multipliers: near the solution, subproblems at ``tol`` at once
+            inner_tol=torch.full_like(
+                zeros,
+                o.tol if multipliers is not None else max(o.tol, min(INNER_TOL_START, o.tol**0.5)),
+            ),
             K=x0.new_zeros(Bsz, T, m, n),
             k=x0.new_zeros(Bsz, T, m),
         )
@@ -260,3 +273,36 @@ def solve_constrained(
     if logger is not None:
         logger.log_result(result, problem)
     return result.squeeze_batch() if unbatched else result
+
+
+def _initial_multipliers(
+    given: dict[str, Tensor] | None, x0: Tensor, T: int, stage_eq: Tensor, terminal_eq: Tensor
+) -> tuple[Tensor, Tensor]:
+    """``(lam (B, T, p), lam_T (B, q))``: zeros, or ``given`` checked (shapes, finite,
+    ``>= 0`` on inequality rows) and broadcast over the batch."""
+    Bsz, p, q = x0.shape[0], stage_eq.numel(), terminal_eq.numel()
+    if given is None:
+        return x0.new_zeros(Bsz, T, p), x0.new_zeros(Bsz, q)
+    if not isinstance(given, dict) or set(given) != {"stage", "terminal"}:
+        raise TypeError("multipliers must be a dict with keys 'stage' and 'terminal'")
+    out = []
+    for key, shape, eq in (("stage", (T, p), stage_eq), ("terminal", (q,), terminal_eq)):
+        t = given[key]
+        if (
+            not torch.is_tensor(t)
+            or t.shape[-len(shape) :] != shape
+            or t.ndim
+            not in (
+                len(shape),
+                len(shape) + 1,
+            )
+        ):
+            got = tuple(t.shape) if torch.is_tensor(t) else type(t).__name__
+            raise ValueError(f"multipliers[{key!r}] must have shape (B, {shape}), got {got}")
+        if t.ndim == len(shape) + 1 and t.shape[0] not in (1, Bsz):
+            raise ValueError(f"multipliers[{key!r}] has batch size {t.shape[0]} but x0 has {Bsz}")
+        t = t.detach().to(dtype=x0.dtype, device=x0.device).expand(Bsz, *shape).clone()
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"multipliers[{key!r}] contains non-finite values")
+        out.append(torch.where(eq, t, t.clamp_min(0.0)))  # inequality multipliers are >= 0
+    return out[0], out[1]

@@ -112,14 +112,22 @@ class ILQR(DescentSolver):
         logger: Any = None,
         *,
         x_init: Tensor | None = None,
+        multipliers: dict[str, Tensor] | None = None,
     ) -> SolverResult:
         if self.options.constraints is None:
+            if multipliers is not None:
+                raise ValueError("multipliers are for solves with constraints=")
             return super().solve(problem, x0, u_init, logger, x_init=x_init)
         from .augmented_lagrangian import solve_constrained
 
-        return solve_constrained(self, problem, x0, u_init, logger, x_init)
+        return solve_constrained(self, problem, x0, u_init, logger, x_init, multipliers)
 
-    solve.__doc__ = DescentSolver.solve.__doc__
+    solve.__doc__ = (DescentSolver.solve.__doc__ or "").replace(
+        "        Returns:",
+        "            multipliers: with ``constraints=``: initial multipliers\n"
+        '                ``{"stage": (B, T, p), "terminal": (B, q)}`` (e.g. a previous\n'
+        "                result's ``multipliers``); zeros by default.\n\n        Returns:",
+    )
 
     def _newton(self, **second_order: Any) -> RegularizedNewton:
         o = self.options
