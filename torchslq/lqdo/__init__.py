@@ -13,6 +13,7 @@ from .problem import LQDOProblem, detect_olq
 from .qlin import QLINResult, Quasilinearization
 from .qp import DenseQP, SparseQP
 from .transcription import Transcription, lgl, transcribe
+from .twolevel import LowerLevel, TLFPResult, TwoLevel
 
 __all__ = [
     "DenseQP",
@@ -20,8 +21,11 @@ __all__ = [
     "QPSolution",
     "Quasilinearization",
     "LQDOProblem",
+    "LowerLevel",
     "SparseQP",
+    "TLFPResult",
     "Transcription",
+    "TwoLevel",
     "detect_olq",
     "lgl",
     "qp_solve",

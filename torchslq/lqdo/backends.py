@@ -77,7 +77,20 @@ def solve_sparse(
     N = B * n
     P = sp.triu(d["P"], format="csc")
     t0 = time.perf_counter()
-    if solver == "clarabel":
+    if B * mi == 0 and not (np.isfinite(d["lb"]).any() or np.isfinite(d["ub"]).any()):
+        # equality constraints only: the QP is its KKT linear system (one sparse LU)
+        from scipy.sparse.linalg import splu
+
+        K = sp.bmat([[d["P"], d["A"].T], [d["A"], None]], format="csc")
+        rhs = np.concatenate([-d["q"], d["b"]])
+        try:
+            sol = splu(K).solve(rhs)
+            ok = bool(np.all(np.isfinite(sol)))
+        except RuntimeError:  # singular KKT matrix
+            sol, ok = np.full(N + B * me, np.nan), False
+        x, lam, mu = sol[:N], sol[N:], np.zeros(0)
+        iters = 1
+    elif solver == "clarabel":
         try:
             import clarabel
         except ImportError as e:  # pragma: no cover - depends on the environment
