@@ -358,3 +358,29 @@ def test_multipliers_warm_start_solver_and_mpc():
     second = mpc(X0).result
     assert (first.outer_iterations > 3).all() and (second.outer_iterations == 1).all()
     torch.testing.assert_close(second.u, first.u, atol=1e-6, rtol=0)
+
+
+def test_polish_reaches_the_qp_solution_to_round_off():
+    """Newton steps on the active set end the AL loop early and meet the KKT conditions
+    to round-off: the certified QP solution to 1e-9 (the loop alone: 1e-6)."""
+    problem = lq_problem()
+    plain = ts.ILQR(constraints=lq_constraints(), tol=1e-10, progress=False)
+    polished = plain.with_options(polish=True)
+    r0 = plain.solve(problem, X0)
+    r = polished.solve(problem, X0)
+    assert (r.status == Status.CONVERGED).all()
+    assert (r.max_violation <= 1e-12).all() and (r.grad_norm <= 1e-10).all()
+    assert (r.outer_iterations < r0.outer_iterations).all()
+    for b in range(X0.shape[0]):
+        x0 = X0[b].numpy()
+        _, _, G, h, _, _ = dense_qp(x0)
+        active = G @ r.u[b, :, 0].numpy() >= h - 1e-5
+        U, nu_in, nu_eq = certified_qp_solution(x0, active)
+        assert np.abs(r.u[b, :, 0].numpy() - U).max() < 1e-9
+        ours_in = np.concatenate(
+            [
+                r.multipliers["stage"][b].reshape(-1).numpy(),
+                r.multipliers["terminal"][b, :1].numpy(),
+            ]
+        )
+        assert np.abs(ours_in - nu_in).max() < 1e-8 * (1 + np.abs(nu_in).max())

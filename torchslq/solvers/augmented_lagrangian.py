@@ -27,6 +27,7 @@ import torch
 from torch import Tensor
 
 from ..constraints.augmented import AugmentedLagrangianCost, multiplier_estimate
+from ..constraints.polish import kkt_error, polish
 from ..constraints.spec import ConstraintSet, max_violation
 from ..costs.quadratic import compiled_cost_evaluation
 from ..dynamics.rollout import rollout
@@ -47,6 +48,8 @@ PROGRESS_RATIO = 0.25
 # the subproblems' gradient tolerance: at most INNER_TOL_START, times this per iteration
 INNER_TOL_START = 1e-3
 INNER_TOL_DECREASE = 0.1
+# with polish=True the loop hands over to the Newton steps at this violation
+POLISH_FROM = 1e-4
 
 
 def default_constraint_tol(dtype: torch.dtype) -> float:
@@ -205,15 +208,20 @@ def solve_constrained(
     stage_eq, terminal_eq = cset.dims(problem.state_dim, problem.control_dim, x0)
     ctol = default_constraint_tol(x0.dtype) if o.constraint_tol is None else o.constraint_tol
     inner = solver.with_options(constraints=None, progress=False, compact=False)
-    u, x_init, _ = inner.prepare(problem, x0, u, x_init)  # clamp into the control bounds
+    u, x_init, extra = inner.prepare(problem, x0, u, x_init)  # clamp into the control bounds
+    lo, hi = extra.get("lo"), extra.get("hi")
     per_element = problem.per_element_tensor(Bsz) is not None
+    # with polishing (and sub-batches possible) the loop stops at a looser violation and
+    # Newton steps on the active set finish; elements they fail resume the loop
+    resume = o.polish and not per_element
+    loop_ctol = max(ctol, POLISH_FROM) if resume else ctol
     rule = AugmentedLagrangian(
         inner=inner,
         constraints=cset,
         stage_eq=stage_eq,
         terminal_eq=terminal_eq,
         tol=o.tol,
-        constraint_tol=ctol,
+        constraint_tol=loop_ctol,
         penalty_factor=o.penalty_factor,
         penalty_max=o.penalty_max,
         per_element_data=per_element,
@@ -252,22 +260,27 @@ def solve_constrained(
             k=x0.new_zeros(Bsz, T, m),
         )
         out = iterate(rule, problem, state, settings, logger=logger, options=loggable(record))
-    s = out.state
+        s, status, grad_norm, outer = out.state, out.status, out.grad_norm, out.iterations
+        if o.polish:
+            s, status, grad_norm, outer = _polish_and_resume(
+                problem, replace(rule, constraint_tol=ctol), settings, s, status, grad_norm,
+                outer, lo, hi, resume,
+            )  # fmt: skip
     result = SolverResult(
         x=s.x,
         u=s.u,
         cost=s.J,
-        grad_norm=out.grad_norm,
+        grad_norm=grad_norm,
         iterations=s.inner_iterations,
-        status=out.status,
-        converged=out.status == Status.CONVERGED,
+        status=status,
+        converged=status == Status.CONVERGED,
         K=s.K,
         k=s.k,
         history=out.history,
         options=record,
         multipliers={"stage": s.lam, "terminal": s.lam_T},
         max_violation=s.violation,
-        outer_iterations=out.iterations,
+        outer_iterations=outer,
     )
     result = solver.finish(result, inner.prepare(problem, x0, u, None)[2])
     if logger is not None:
@@ -306,3 +319,65 @@ def _initial_multipliers(
             raise ValueError(f"multipliers[{key!r}] contains non-finite values")
         out.append(torch.where(eq, t, t.clamp_min(0.0)))  # inequality multipliers are >= 0
     return out[0], out[1]
+
+
+def _polish_and_resume(
+    problem: Problem,
+    rule: AugmentedLagrangian,
+    settings: LoopSettings,
+    s: ALState,
+    status: Tensor,
+    grad_norm: Tensor,
+    outer: Tensor,
+    lo: Tensor | None,
+    hi: Tensor | None,
+    resume: bool,
+) -> tuple[ALState, Tensor, Tensor, Tensor]:
+    """Polish the converged elements (:func:`~torchslq.constraints.polish.polish`) to
+    ``rule``'s tolerances; with ``resume``, the elements it fails go back to the loop
+    (their multipliers and penalties as they were), the others keep the polished point."""
+    cand = status == Status.CONVERGED
+    idx = None if not resume else cand.nonzero().squeeze(1)
+    sub = s.take(idx)
+    take = (lambda t: t) if idx is None else (lambda t: None if t is None else t[idx])
+    x, u, lam, lam_T, ok = polish(
+        problem, rule.constraints, rule.stage_eq, rule.terminal_eq, sub.x, sub.u, sub.lam,
+        sub.lam_T, take(lo), take(hi), tol=rule.tol, constraint_tol=rule.constraint_tol,
+    )  # fmt: skip
+    if idx is None:
+        ok = ok & cand
+    keep = ok.view(-1, 1, 1)
+    viol, gnorm, _ = kkt_error(
+        problem, rule.constraints, rule.stage_eq, rule.terminal_eq, x, u, lam, lam_T,
+        take(lo), take(hi),
+    )  # fmt: skip
+    polished = replace(
+        sub,
+        x=torch.where(keep, x, sub.x),
+        u=torch.where(keep, u, sub.u),
+        J=torch.where(ok, problem.cost(x, u), sub.J),
+        lam=torch.where(keep, lam, sub.lam),
+        lam_T=torch.where(ok.view(-1, 1), lam_T, sub.lam_T),
+        violation=torch.where(ok, viol, sub.violation),
+        inner_grad=torch.where(ok, gnorm, sub.inner_grad),
+    )
+    s = s.put(idx, polished)
+    gsub = grad_norm if idx is None else grad_norm[idx]
+    grad_norm = _put(grad_norm, idx, torch.where(ok, gnorm, gsub))
+    if not resume:
+        return s, status, grad_norm, outer
+    redo = idx[~ok]
+    if redo.numel() == 0:
+        return s, status, grad_norm, outer
+    # the elements the Newton steps could not finish: the loop at the strict tolerances
+    again = replace(s.take(redo), inner_tol=torch.full_like(s.J[redo], rule.tol))
+    out = iterate(rule, problem, again, replace(settings, progress=False))
+    s = s.put(redo, out.state)
+    status = status.index_copy(0, redo, out.status)
+    grad_norm = grad_norm.index_copy(0, redo, out.grad_norm)
+    outer = outer.index_copy(0, redo, outer[redo] + out.iterations)
+    return s, status, grad_norm, outer
+
+
+def _put(full: Tensor, idx: Tensor | None, part: Tensor) -> Tensor:
+    return part if idx is None else full.index_copy(0, idx, part)

@@ -71,6 +71,7 @@ class DDP(ILQR):
         penalty_factor: float = 10.0,
         penalty_max: float = 1e10,
         al_max_iter: int = 30,
+        polish: bool = False,
         second_order: str = "value",
         vhp_memory_limit: int | None = 256 * 2**20,
         rtol: float = 0.0,

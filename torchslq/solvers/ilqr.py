@@ -57,6 +57,11 @@ class ILQR(DescentSolver):
         penalty_init, penalty_factor, penalty_max: the penalty ``ρ`` at the start, its
             growth factor (when the violation did not shrink fourfold) and its limit.
         al_max_iter: the limit on multiplier updates (outer iterations).
+        polish: finish with Newton steps on the KKT conditions of the active set
+            (:mod:`torchslq.constraints.polish`): quadratic instead of linear convergence
+            at the end, and KKT conditions met to round-off; the loop then hands over at
+            a violation of ``1e-4`` and resumes for an element the steps do not finish.
+            One dense LU per element and step (``(T (2n + m + p))^3``).
         rtol, stop, step_tol, stall_iters, armijo_c1, armijo_beta, max_backtracks,
             armijo_passes, linearize_method, progress, compact: as for
             :class:`torchslq.SLQ`.
@@ -87,6 +92,7 @@ class ILQR(DescentSolver):
         penalty_factor: float = 10.0,
         penalty_max: float = 1e10,
         al_max_iter: int = 30,
+        polish: bool = False,
         rtol: float = 0.0,
         stop: str = "grad",
         step_tol: float | None = None,

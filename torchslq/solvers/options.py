@@ -190,6 +190,7 @@ class ILQROptions(DescentOptions):
     penalty_factor: float = 10.0
     penalty_max: float = 1e10
     al_max_iter: int = 30
+    polish: bool = False
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -208,6 +209,8 @@ class ILQROptions(DescentOptions):
                 f"penalty_init ({self.penalty_init}) must not exceed penalty_max ({self.penalty_max})"
             )
         check_int("al_max_iter", self.al_max_iter, 1)
+        if not isinstance(self.polish, bool):
+            raise TypeError(f"polish must be a bool, got {self.polish!r}")
         if self.rollout != "closed_loop" or self.line_search != "armijo":
             raise ValueError(
                 "ILQR/DDP use rollout='closed_loop' and line_search='armijo' "
