@@ -203,3 +203,45 @@ def test_cli_sharded_solve_with_two_workers(tmp_path, capsys):
     # command-line errors: one line, exit status 2
     assert main(["solve", "pendulum", "--workers", "2"]) == 2
     assert main([*argv[:-6], "--shard-size", "0"]) == 2
+
+
+# ----------------------------------------------------------------------------- launch
+
+_SLEEPER = """
+import os, sys, time
+from torchslq.distributed import launch
+
+def sleeper(rank, world, path):
+    with open(path + f".{rank}", "w") as f:
+        f.write(str(os.getpid()))
+    time.sleep(120)
+
+if __name__ == "__main__":
+    launch(sleeper, 2, (sys.argv[1],), timeout_s=120, start_method="fork")
+"""
+
+
+def test_sigterm_to_the_launcher_stops_its_workers(tmp_path):
+    import signal
+    import subprocess
+    import time
+
+    script = tmp_path / "sleeper.py"
+    script.write_text(_SLEEPER)
+    mark = str(tmp_path / "pid")
+    proc = subprocess.Popen([sys.executable, str(script), mark])
+    try:
+        deadline = time.monotonic() + 60
+        while not all(os.path.exists(f"{mark}.{r}") for r in (0, 1)):
+            assert time.monotonic() < deadline and proc.poll() is None, "workers did not start"
+            time.sleep(0.1)
+        time.sleep(0.2)  # the pid files are complete
+        pids = [int(Path(f"{mark}.{r}").read_text()) for r in (0, 1)]
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) != 0
+        for pid in pids:  # gone (reaped by the launcher), not orphaned
+            with pytest.raises(ProcessLookupError):
+                os.kill(pid, 0)
+    finally:
+        if proc.poll() is None:
+            proc.kill()

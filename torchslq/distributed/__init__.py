@@ -12,10 +12,10 @@
   command line.
 * Processes: ``torchrun`` (:func:`init_from_env`) or local workers (:func:`launch`).
 
-Why ``torch.distributed`` and not Ray: see :mod:`torchslq.distributed.launch`.
+Why ``torch.distributed`` and not Ray: see :mod:`torchslq.distributed.processes`.
 """
 
-from .launch import free_port, init_from_env, launch, rank_and_world
+from .processes import free_port, init_from_env, launch, rank_and_world
 from .sharded import (
     ShardReport,
     iter_shards,

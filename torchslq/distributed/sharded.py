@@ -2,7 +2,7 @@
 
 A data-generation job (optimal trajectories for policy distillation, say) splits its
 initial states ``x0 (N, n)`` into shards of ``shard_size`` rows; every process of the
-job (``torch.distributed`` ranks, :mod:`torchslq.distributed.launch`) solves its shards
+job (``torch.distributed`` ranks, :func:`torchslq.distributed.launch`) solves its shards
 one after the other and writes each result as one file as soon as it is done.
 
 On-disk format (``out_dir``)::

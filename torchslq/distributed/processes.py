@@ -19,7 +19,9 @@ dependency of torchslq.
 from __future__ import annotations
 
 import os
+import signal
 import socket
+import threading
 import time
 from collections.abc import Callable
 from datetime import timedelta
@@ -130,6 +132,10 @@ def launch(
         torch.multiprocessing.ProcessRaisedException / ProcessExitedException: a worker
             raised or died (the others are terminated).
         TimeoutError: the run took longer than ``timeout_s``.
+
+    The workers are terminated whenever this call ends early: a worker's failure, the
+    timeout, an exception here, or SIGTERM to the calling process (handled while the
+    call waits, from the main thread).
     """
     if not isinstance(nprocs, int) or nprocs < 1:
         raise ValueError(f"nprocs must be a positive int, got {nprocs!r}")
@@ -142,11 +148,19 @@ def launch(
         start_method=start_method,
     )
     deadline = time.monotonic() + timeout_s
+
+    def _terminated(signum, frame):  # SIGTERM to this process: stop the workers too
+        raise SystemExit(128 + signum)
+
+    main_thread = threading.current_thread() is threading.main_thread()
+    previous = signal.signal(signal.SIGTERM, _terminated) if main_thread else None
     try:
         while not ctx.join(timeout=max(0.1, min(1.0, deadline - time.monotonic()))):
             if time.monotonic() > deadline:
                 raise TimeoutError(f"launch: workers still running after {timeout_s:.0f} s")
     finally:
+        if main_thread:
+            signal.signal(signal.SIGTERM, previous)
         for p in ctx.processes:
             if p.is_alive():
                 p.terminate()
