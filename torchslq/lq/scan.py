@@ -149,16 +149,16 @@ def _combine_value(e1: Elems, e2: Elems) -> Elems:
     A2, b2, C2, eta2, J2, bad2 = e2
     n = A1.shape[-1]
     eye = torch.eye(n, dtype=A1.dtype, device=A1.device)
-    LU, piv, info = torch.linalg.lu_factor_ex(eye + C1 @ J2)
-    rhs = torch.cat([A1, (b1 + (C1 @ eta2.unsqueeze(-1))[..., 0]).unsqueeze(-1), C1 @ A2.mT], -1)
-    X = torch.linalg.lu_solve(LU, piv, rhs)  # W [A1, b1 + C1 eta2, C1 A2']
-    AX = A2 @ X
+    CX = C1 @ torch.cat([J2, eta2.unsqueeze(-1), A2.mT], -1)  # C1 [J2, eta2, A2']
+    LU, piv, info = torch.linalg.lu_factor_ex(eye + CX[..., :n])
+    rhs = torch.cat([A1, (b1 + CX[..., n]).unsqueeze(-1), CX[..., n + 1 :]], -1)
+    AX = A2 @ torch.linalg.lu_solve(LU, piv, rhs)  # A2 W [A1, b1 + C1 eta2, C1 A2']
     A = AX[..., :n]
     b = AX[..., n] + b2
     C = AX[..., n + 1 :] + C2
-    rhs2 = torch.cat([J2 @ A1, (eta2 - (J2 @ b1.unsqueeze(-1))[..., 0]).unsqueeze(-1)], -1)
-    Y = torch.linalg.lu_solve(LU, piv, rhs2, adjoint=True)  # W' [J2 A1, eta2 - J2 b1]
-    AY = A1.mT @ Y
+    JX = J2 @ torch.cat([A1, b1.unsqueeze(-1)], -1)  # J2 [A1, b1]
+    rhs2 = torch.cat([JX[..., :n], (eta2 - JX[..., n]).unsqueeze(-1)], -1)
+    AY = A1.mT @ torch.linalg.lu_solve(LU, piv, rhs2, adjoint=True)  # A1' W' [..]
     J = AY[..., :n] + J1
     eta = AY[..., n] + eta1
     bad = bad1 | bad2 | (info != 0)
