@@ -189,7 +189,7 @@ ARG_NAMES = ("A", "B", "Q", "R", "x0", "q", "r", "S", "c")
 
 
 def test_gradcheck_scan():
-    args = random_problem(11, 2, 3, 3, 2)
+    args = random_problem(11, 1, 3, 2, 2)
     inputs = tuple(args[k].detach().clone().requires_grad_(True) for k in ARG_NAMES)
 
     def f(*xs):
