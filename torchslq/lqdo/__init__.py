@@ -8,7 +8,7 @@ fixed-parameter method (nested co-design) with exact upper-level gradients.
 See ``docs/lqdo.md``.
 """
 
-from .backends import QPSolution, qp_solve, solve_dense, solve_sparse
+from .backends import QPSolution, qp_solve, solve, solve_dense, solve_sparse
 from .problem import LQDOProblem, detect_olq
 from .qlin import QLINResult, Quasilinearization
 from .qp import DenseQP, SparseQP
@@ -29,6 +29,7 @@ __all__ = [
     "detect_olq",
     "lgl",
     "qp_solve",
+    "solve",
     "solve_dense",
     "solve_sparse",
     "transcribe",

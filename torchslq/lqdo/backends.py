@@ -18,6 +18,7 @@ exact upper-level gradient.
 from __future__ import annotations
 
 import time
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -26,7 +27,7 @@ from torch import Tensor
 from ..status import Status
 from .qp import DenseQP, SparseQP
 
-__all__ = ["QPSolution", "qp_solve", "solve_dense", "solve_sparse", "SPARSE_SOLVERS"]
+__all__ = ["QPSolution", "qp_solve", "solve", "solve_dense", "solve_sparse", "SPARSE_SOLVERS"]
 
 SPARSE_SOLVERS = ("clarabel", "osqp")
 
@@ -72,15 +73,15 @@ def solve_sparse(
     import numpy as np
     import scipy.sparse as sp
 
-    d = qp.scipy()
+    t0 = time.perf_counter()
     B, n, me, mi = qp.batch, qp.n, qp.me, qp.mi
     N = B * n
-    P = sp.triu(d["P"], format="csc")
-    t0 = time.perf_counter()
-    if B * mi == 0 and not (np.isfinite(d["lb"]).any() or np.isfinite(d["ub"]).any()):
+    no_bounds = not bool((torch.isfinite(qp.lb).any() | torch.isfinite(qp.ub).any()).item())
+    if B * mi == 0 and no_bounds:
         # equality constraints only: the QP is its KKT linear system (one sparse LU)
         from scipy.sparse.linalg import splu
 
+        d = qp.scipy()
         K = sp.bmat([[d["P"], d["A"].T], [d["A"], None]], format="csc")
         rhs = np.concatenate([-d["q"], d["b"]])
         try:
@@ -91,36 +92,14 @@ def solve_sparse(
         x, lam, mu = sol[:N], sol[N:], np.zeros(0)
         iters = 1
     elif solver == "clarabel":
-        try:
-            import clarabel
-        except ImportError as e:  # pragma: no cover - depends on the environment
-            raise ImportError("solver='clarabel' needs the clarabel package") from e
-        fu, fl = np.isfinite(d["ub"]), np.isfinite(d["lb"])
-        I = sp.identity(N, format="csr")
-        Acon = sp.vstack([d["A"], d["G"], I[fu], -I[fl]], format="csc")
-        bcon = np.concatenate([d["b"], d["h"], d["ub"][fu], -d["lb"][fl]])
-        cones = [clarabel.ZeroConeT(B * me)] if B * me else []
-        nin = B * mi + int(fu.sum()) + int(fl.sum())
-        if nin:
-            cones.append(clarabel.NonnegativeConeT(nin))
-        s = clarabel.DefaultSettings()
-        s.verbose = False
-        s.tol_gap_abs = s.tol_gap_rel = s.tol_feas = tol
-        if max_iter is not None:
-            s.max_iter = max_iter
-        res = clarabel.DefaultSolver(P, d["q"], Acon, bcon, cones, s).solve()
-        x = np.asarray(res.x)
-        y = np.asarray(res.z)
-        lam, mu = y[: B * me], y[B * me : B * (me + mi)]
-        # AlmostSolved: met Clarabel's reduced tolerances (the LGL transcriptions are
-        # ill-conditioned: their differentiation matrices grow like nt^2)
-        ok = str(res.status).split(".")[-1] in ("Solved", "AlmostSolved")
-        iters = int(res.iterations)
+        x, lam, mu, ok, iters = _clarabel(qp, tol, max_iter)
     else:
         try:
             import osqp
         except ImportError as e:  # pragma: no cover
             raise ImportError("solver='osqp' needs the osqp package") from e
+        d = qp.scipy()
+        P = sp.triu(d["P"], format="csc")
         I = sp.identity(N, format="csc")
         Acon = sp.vstack([d["A"], d["G"], I], format="csc")
         lo = np.concatenate([d["b"], np.full(B * mi, -np.inf), d["lb"]])
@@ -185,6 +164,133 @@ def _max_step(v, dv):
         return v.new_ones(v.shape[0])
     ratio = torch.where(dv < 0, -v / dv, torch.full_like(v, float("inf")))
     return ratio.amin(-1).clamp(max=1.0)
+
+
+_CLARABEL_CACHE: OrderedDict = OrderedDict()  # pattern key -> (solver, P/A structures)
+
+
+def _csc_structure(rows, cols, ncols: int):
+    """CSC structure of COO entries (duplicates summed): for each entry its position in
+    the compressed data, and the ``indices``/``indptr`` arrays."""
+    import numpy as np
+
+    order = np.lexsort((rows, cols))
+    r, c = rows[order], cols[order]
+    new = np.ones(r.size, dtype=bool)
+    new[1:] = (r[1:] != r[:-1]) | (c[1:] != c[:-1])
+    pos = np.empty(r.size, dtype=np.int64)
+    pos[order] = np.cumsum(new) - 1
+    indptr = np.searchsorted(c[new], np.arange(ncols + 1))
+    return pos, r[new], indptr, int(new.sum())
+
+
+def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = False):
+    """The batch as one block-diagonal conic QP for Clarabel. The CSC structures (and the
+    solver object, whose KKT symbolic factorisation is the expensive part of its setup)
+    are kept per sparsity pattern, so the next QP of a quasilinearization or two-level
+    loop only updates the numbers (``DefaultSolver.update``)."""
+    import numpy as np
+    import scipy.sparse as sp
+
+    try:
+        import clarabel
+    except ImportError as e:  # pragma: no cover - depends on the environment
+        raise ImportError("solver='clarabel' needs the clarabel package") from e
+
+    B, n, me, mi = qp.batch, qp.n, qp.me, qp.mi
+    N = B * n
+
+    def np_(t):
+        return t.detach().cpu().numpy()
+
+    Hi, Ai, Gi = np_(qp.H_idx), np_(qp.A_idx), np_(qp.G_idx)
+    lb, ub = np_(qp.lb).reshape(-1).astype(np.float64), np_(qp.ub).reshape(-1).astype(np.float64)
+    fu, fl = np.isfinite(ub), np.isfinite(lb)
+    key = hash(
+        (
+            B,
+            n,
+            me,
+            mi,
+            Hi.tobytes(),
+            Ai.tobytes(),
+            Gi.tobytes(),
+            fu.tobytes(),
+            fl.tobytes(),
+            tol,
+            max_iter,
+        )
+    )
+    up = Hi[0] <= Hi[1]  # Clarabel takes the upper triangle of P
+    off = np.arange(B)[:, None]
+    Hv = np_(qp.H_val)[:, up].reshape(-1)
+    nfu, nfl = int(fu.sum()), int(fl.sum())
+    A_vals = np.concatenate(
+        [np_(qp.A_val).reshape(-1), np_(qp.G_val).reshape(-1), np.ones(nfu), -np.ones(nfl)]
+    )
+    bcon = np.concatenate([np_(qp.b).reshape(-1), np_(qp.h).reshape(-1), ub[fu], -lb[fl]]).astype(
+        np.float64
+    )
+    q = np_(qp.f).reshape(-1).astype(np.float64)
+    entry = None if fresh else _CLARABEL_CACHE.get(key)
+    if entry is None:
+        pr = (Hi[0][up][None] + n * off).reshape(-1)
+        pc = (Hi[1][up][None] + n * off).reshape(-1)
+        Ppos, Pind, Pptr, Pnnz = _csc_structure(pr, pc, N)
+        m0 = B * (me + mi)
+        ar = np.concatenate(
+            [
+                (Ai[0][None] + me * off).reshape(-1),
+                (B * me + Gi[0][None] + mi * off).reshape(-1),
+                m0 + np.arange(nfu),
+                m0 + nfu + np.arange(nfl),
+            ]
+        )
+        ac = np.concatenate(
+            [
+                (Ai[1][None] + n * off).reshape(-1),
+                (Gi[1][None] + n * off).reshape(-1),
+                np.nonzero(fu)[0],
+                np.nonzero(fl)[0],
+            ]
+        )
+        Apos, Aind, Aptr, Annz = _csc_structure(ar, ac, N)
+        Pd = np.bincount(Ppos, weights=Hv, minlength=Pnnz)
+        Ad = np.bincount(Apos, weights=A_vals, minlength=Annz)
+        Pm = sp.csc_matrix((Pd, Pind, Pptr), shape=(N, N))
+        Am = sp.csc_matrix((Ad, Aind, Aptr), shape=(m0 + nfu + nfl, N))
+        cones = [clarabel.ZeroConeT(B * me)] if B * me else []
+        if B * mi + nfu + nfl:
+            cones.append(clarabel.NonnegativeConeT(B * mi + nfu + nfl))
+        st = clarabel.DefaultSettings()
+        st.verbose = False
+        st.presolve_enable = False  # keeps data updates allowed
+        st.tol_gap_abs = st.tol_gap_rel = st.tol_feas = tol
+        if max_iter is not None:
+            st.max_iter = max_iter
+        solver = clarabel.DefaultSolver(Pm, q, Am, bcon, cones, st)
+        _CLARABEL_CACHE[key] = (solver, Ppos, Pnnz, Apos, Annz)
+        while len(_CLARABEL_CACHE) > 8:
+            _CLARABEL_CACHE.popitem(last=False)
+    else:
+        solver, Ppos, Pnnz, Apos, Annz = entry
+        _CLARABEL_CACHE.move_to_end(key)
+        solver.update(
+            P=np.bincount(Ppos, weights=Hv, minlength=Pnnz),
+            q=q,
+            A=np.bincount(Apos, weights=A_vals, minlength=Annz),
+            b=bcon,
+        )
+    res = solver.solve()
+    x, y = np.asarray(res.x), np.asarray(res.z)
+    # AlmostSolved: met Clarabel's reduced tolerances (the LGL transcriptions are
+    # ill-conditioned: their differentiation matrices grow like nt^2)
+    ok = str(res.status).split(".")[-1] in ("Solved", "AlmostSolved")
+    if not ok and entry is not None:
+        # a reused solver that fails is set up afresh once (its warm internal state,
+        # e.g. equilibration from another QP, can hurt an ill-conditioned update)
+        return _clarabel(qp, tol, max_iter, fresh=True)
+    return x, y[: B * me], y[B * me : B * (me + mi)], ok, int(res.iterations)
 
 
 def _ip(H, f, A, b, G, h, tol, max_iter):
@@ -370,3 +476,19 @@ def solve_dense(qp: SparseQP | DenseQP, tol: float | None = None, max_iter: int 
         iterations=int(iters),
         time=time.perf_counter() - t0,
     )
+
+
+def solve(qp: SparseQP, backend: str = "clarabel", fallback_n: int = 2000, **options) -> QPSolution:
+    """Solve with ``backend`` (``"clarabel"``, ``"osqp"`` or ``"dense"``). When a sparse
+    solver fails on a QP of at most ``fallback_n`` variables, the batch is solved again by
+    the dense interior point (Clarabel stalls on some LGL transcriptions, whose
+    differentiation matrices are dense and ill-conditioned)."""
+    if backend == "dense":
+        return solve_dense(qp, **options)
+    sol = solve_sparse(qp, solver=backend, **options)
+    if bool((sol.status != int(Status.CONVERGED)).any()) and qp.n <= fallback_n:
+        opts = {k: v for k, v in options.items() if k == "max_iter"}
+        dense = solve_dense(qp, **opts)
+        dense.time += sol.time
+        return dense
+    return sol

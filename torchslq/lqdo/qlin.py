@@ -32,7 +32,7 @@ from torch import Tensor
 
 from ..solvers.core import Advance, ElementState, LoopSettings, Measure, iterate, shared
 from ..status import Status
-from .backends import QPSolution, solve_dense, solve_sparse
+from .backends import QPSolution, solve
 from .transcription import Transcription
 
 __all__ = ["Quasilinearization", "QLINResult", "violation"]
@@ -113,10 +113,7 @@ class _Rule:
         )
 
     def _solve(self, z: Tensor) -> QPSolution:
-        qp = self.tr.qp(z)
-        if self.o.backend == "dense":
-            return solve_dense(qp, **self.o.qp_options)
-        return solve_sparse(qp, solver=self.o.backend, **self.o.qp_options)
+        return solve(self.tr.qp(z), self.o.backend, **self.o.qp_options)
 
     def advance(self, problem, state: _State, m: Measure, running: Tensor) -> Advance:
         tr, o = self.tr, self.o

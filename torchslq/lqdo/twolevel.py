@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from ..status import Status
-from .backends import QPSolution, solve_dense, solve_sparse
+from .backends import QPSolution, solve
 from .transcription import Transcription
 
 __all__ = ["TwoLevel", "TLFPResult", "LowerLevel"]
@@ -115,10 +115,7 @@ class TwoLevel:
         zref = torch.zeros(B, tr.n, dtype=tr.dtype, device=p.device)
         zref[:, mask] = p
         red = tr.qp(zref).fix(mask, p)
-        if self.backend == "dense":
-            sol = solve_dense(red, **self.qp_options)
-        else:
-            sol = solve_sparse(red, solver=self.backend, **self.qp_options)
+        sol = solve(red, self.backend, **self.qp_options)
         z = zref.clone()
         z[:, ~mask] = sol.z.detach()
         grad = p.new_zeros(B, P.np)
