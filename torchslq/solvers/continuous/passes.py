@@ -251,6 +251,14 @@ class Policy:
         )
 
 
+def merge_policy(keep_new: Tensor, new: Policy, old: Policy) -> Policy:
+    """Row ``b`` from ``new`` where ``keep_new[b]``, else from ``old``."""
+    N = max(new.dk.grid.shape[1], old.dk.grid.shape[1]) - 1
+    dk = _merge(keep_new, _padded(new.dk, N), _padded(old.dk, N))
+    z = _merge(keep_new, _padded(new.z, N), _padded(old.z, N))
+    return replace(new, dk=dk, z=z, nominal=merge_nominal(keep_new, new.nominal, old.nominal))
+
+
 @dataclass(frozen=True)
 class Backward:
     """One backward pass: the policy, ``eta = int Q_u' Q_uu^-1 Q_u dt`` (so

@@ -30,7 +30,15 @@ from ..core import Advance, ElementState, LoopSettings, Measure, iterate, shared
 from ..options import check_int, check_real, loggable, options_record
 from ..result import SolverResult
 from .expansion import Layout
-from .passes import Backward, Nominal, Policy, backward_pass, forward_pass, merge_nominal
+from .passes import (
+    Backward,
+    Nominal,
+    Policy,
+    backward_pass,
+    forward_pass,
+    merge_nominal,
+    merge_policy,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     from ...problem_continuous import ContinuousProblem
@@ -98,6 +106,7 @@ class ContinuousState(ElementState):
     h_fwd_min: Tensor | None = None
     h_fwd_max: Tensor | None = None
     trials: Tensor | None = None
+    fresh: Tensor | None = None  # (B,) bool: the policy belongs to the current nominal
 
 
 @dataclass
@@ -176,7 +185,10 @@ class ContinuousILQRRule:
     def measure(
         self, problem: ContinuousProblem, state: ContinuousState, running: Tensor, it: int
     ) -> tuple[ContinuousState, Measure]:
-        bwd = self.backward(problem, state.nominal, running)
+        # rows whose last accepted step ended them (cost_rtol, stall) still need the
+        # policy of their final nominal
+        active = running if state.fresh is None else running | ~state.fresh
+        bwd = self.backward(problem, state.nominal, active)
         o = self.o
         finite = bwd.ok & torch.isfinite(bwd.eta) & torch.isfinite(bwd.grad_norm)
         fail = torch.where(finite, int(Status.RUNNING), int(Status.NON_FINITE))
@@ -184,17 +196,22 @@ class ContinuousILQRRule:
         # the resolution of the integrated cost (no line search could verify it)
         resolution = o.rtol * state.J.abs().clamp_min(1.0)
         done = finite & ((bwd.grad_norm <= o.tol) | (0.5 * bwd.eta <= resolution))
-        hist = {
+        nan = torch.full_like(bwd.h_min, float("nan"))
+        hist = {  # NaN / 0 where no backward pass ran (finished rows)
             "n_bwd": bwd.n_steps,
             "n_fwd": state.n_fwd,
-            "h_bwd_min": bwd.h_min,
-            "h_bwd_max": bwd.h_max,
+            "h_bwd_min": torch.where(active, bwd.h_min, nan),
+            "h_bwd_max": torch.where(active, bwd.h_max, nan),
             "h_fwd_min": state.h_fwd_min,
             "h_fwd_max": state.h_fwd_max,
-            "expected_decrease": 0.5 * bwd.eta,
+            "expected_decrease": torch.where(active, 0.5 * bwd.eta, nan),
             "trials": state.trials,
         }
-        state = replace(state, policy=bwd.policy)
+        # the backward pass ran on the running rows only: the others keep their policy
+        policy = (
+            bwd.policy if state.policy is None else merge_policy(active, bwd.policy, state.policy)
+        )
+        state = replace(state, policy=policy, fresh=torch.ones_like(running))
         m = Measure(
             grad_norm=bwd.grad_norm,
             done=done,
@@ -241,7 +258,7 @@ class ContinuousILQRRule:
         end = torch.where(
             running & ~accepted, int(Status.LINE_SEARCH_FAILED), int(Status.RUNNING)
         ).to(torch.int64)
-        st = _state_from(nom, state.policy, trials)
+        st = replace(_state_from(nom, state.policy, trials), fresh=~accepted)
         return Advance(state=st, accept=accepted, step=torch.where(accepted, alpha, 0.0), end=end)
 
 
@@ -407,10 +424,6 @@ class ContinuousILQR(Solver):
             s = out.state
             policy = s.policy
             nom = s.nominal
-            if policy is None or policy.nominal is not nom:
-                # the last iterate came from an accepted step with no backward pass after
-                # it (max_iter): one more pass gives its policy
-                policy = rule.backward(problem, nom).policy
             d, K = policy.terms(nom.t)
         hist = out.history
         result = ContinuousILQRResult(
