@@ -14,7 +14,9 @@ from .logging import TensorBoardLogger
 from .lq import LQRSolution, lqr_solve, riccati_backward, rollout_linear
 from .mpc import MPC, MPCOutput
 from .problem import Problem
+from .problem_continuous import ContinuousProblem
 from .solvers import DDP, ILQR, PRONTO, SLQ, GoPRONTO, GoPRONTOResult, GradientMethod, SolverResult
+from .solvers.continuous import ContinuousILQR, ContinuousILQRResult
 from .status import Status, status_names
 
 __version__ = "0.1.0"
@@ -22,6 +24,9 @@ __version__ = "0.1.0"
 __all__ = [
     "Constraints",
     "ContinuousDynamics",
+    "ContinuousILQR",
+    "ContinuousILQRResult",
+    "ContinuousProblem",
     "DDP",
     "Cost",
     "CostExpansion",

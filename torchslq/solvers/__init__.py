@@ -3,6 +3,7 @@ descent directions and line searches the public solvers are made of, options, re
 
 from ..dynamics.rollout import costate_gradient, rollout, rollout_closed_loop
 from .base import DescentSolver, Solver
+from .continuous import ContinuousILQR, ContinuousILQROptions, ContinuousILQRResult
 from .core import Advance, ElementState, Measure, iterate
 from .ddp import DDP
 from .descent import CostateGradient, DescentRule, DescentState, GaussNewtonLQ, LineSearch
@@ -18,6 +19,9 @@ from .slq import SLQ, SLQOptions
 
 __all__ = [
     "Advance",
+    "ContinuousILQR",
+    "ContinuousILQROptions",
+    "ContinuousILQRResult",
     "CostateGradient",
     "DDP",
     "DDPOptions",
