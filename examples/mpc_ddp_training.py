@@ -15,7 +15,9 @@ wrapped in ``torch.nn.parallel.DistributedDataParallel``, which all-reduces (ave
 the parameter gradients after ``backward``. Each rank's loss is its rows' sum times
 ``world_size / N``, so the averaged gradient is exactly the gradient of the full-batch
 loss above, whatever the split (``tests/test_distributed.py`` checks this against one
-process). Engine: ``torch.distributed`` with gloo on the CPU (NCCL when CUDA is used).
+process). Engine: ``torch.distributed`` with gloo (the model here runs on the CPU; a
+model on GPUs would join with NCCL, one device per rank, and ``DistributedDataParallel(
+model, device_ids=[local_rank])``).
 
     torchrun --nproc_per_node 2 examples/mpc_ddp_training.py     # 2 processes
     python examples/mpc_ddp_training.py --local-workers 2        # the same without torchrun
@@ -260,7 +262,7 @@ def main(argv: list[str] | None = None) -> dict | None:
     if args.local_workers > 1:
         launch(_local_worker, args.local_workers, (args,), timeout_s=3600)
         return None
-    init_from_env()  # torchrun: join its process group; plain python: one process
+    init_from_env(backend="gloo")  # torchrun: join its group; plain python: one process
     rank, world_size = rank_and_world()
     torch.set_num_threads(1 if world_size > 1 else torch.get_num_threads())
     try:
