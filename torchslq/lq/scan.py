@@ -16,18 +16,19 @@ The problem is the one of :func:`torchslq.lqr_solve` (per batch element)::
 
 Backward pass (the value functions)
 -----------------------------------
-Step ``t`` is the conditional value function of the paper (Section IV, eq. 36 and
-Lemma 9), ``V_{t->t+1}(x, y) = max_lam 1/2 x'J x - eta'x + lam'(A~ x + b - y)
-- 1/2 lam'C lam`` (plus a constant), obtained by eliminating ``u`` (paper eqs. 37-38,
-with the cross term ``S`` and the linear term ``r`` of our cost)::
+(Equation labels (S1)-(S5) are this module's; the paper's constructs are named, not
+numbered.) Step ``t`` is the paper's conditional value function element of the LQ
+tracking problem, ``V_{t->t+1}(x, y) = max_lam 1/2 x'J x - eta'x + lam'(A~ x + b - y)
+- 1/2 lam'C lam`` (plus a constant), obtained by eliminating ``u`` (here with the cross
+term ``S`` and the linear term ``r`` of our cost)::  (S1)
 
     A~_t = A_t - B_t R_t^{-1} S_t        b_t  = c_t - B_t R_t^{-1} r_t
     C_t  = B_t R_t^{-1} B_t'             eta_t = S_t' R_t^{-1} r_t - q_t
     J_t  = Q_t - S_t' R_t^{-1} S_t
 
 and the terminal element is ``(0, 0, 0, -q_T, Q_T)``. Two consecutive segments
-``i->j`` and ``j->k`` combine by the associative operator of the paper's Lemma 8
-(eq. 29, with ``W = (I + C_ij J_jk)^{-1}``)::
+``i->j`` and ``j->k`` combine by the paper's associative operator for these elements
+(with ``W = (I + C_ij J_jk)^{-1}``)::  (S2)
 
     A_ik = A_jk W A_ij                 b_ik = A_jk W (b_ij + C_ij eta_jk) + b_jk
     C_ik = A_jk W C_ij A_jk' + C_jk    eta_ik = A_ij' W' (eta_jk - J_jk b_ij) + eta_ij
@@ -35,17 +36,17 @@ and the terminal element is ``(0, 0, 0, -q_T, Q_T)``. Two consecutive segments
 
 (``W' = (I + J_jk C_ij)^{-1}`` since ``C`` and ``J`` are symmetric, so one LU serves
 both). The suffix combination ``a_t ⊗ a_{t+1} ⊗ ... ⊗ a_T`` (a reverse associative scan)
-is the value function of step ``t`` (the paper's Theorem 10): ``V_t = J``, ``v_t =
--eta``. The gains then follow at every step at once (``Quu = R + B'V B``, ``K =
--Quu^{-1} Qux``, ``k = -Quu^{-1} qu``, a batched Cholesky over ``(B, T)``, eq. 13), and so
-does the value's constant term (a reverse cumulative sum).
+is the value function of step ``t``: ``V_t = J``, ``v_t = -eta`` (S3). The gains then
+follow at every step at once (``Quu = R + B'V_{t+1} B``, ``K = -Quu^{-1} Qux``, ``k =
+-Quu^{-1} qu``, a batched Cholesky over ``(B, T)``) (S4), and so does the value's constant
+term (a reverse cumulative sum).
 
 Forward pass (the states)
 -------------------------
 The closed loop ``x_{t+1} = (A_t + B_t K_t) x_t + (B_t k_t + c_t)`` is a composition of
-affine maps (the paper's Section V-A, eqs. 45-48), a prefix scan of ``(M, a)`` pairs with
+affine maps (the paper's parallel forward pass), a prefix scan of ``(M, a)`` pairs with
 ``(M_2, a_2) ∘ (M_1, a_1) = (M_2 M_1, M_2 a_1 + a_2)``; ``x_0`` is folded into the first
-element. The implicit backward pass of :func:`torchslq.lqr_solve` (one more LQ solve
+element (S5). The implicit backward pass of :func:`torchslq.lqr_solve` (one more LQ solve
 with the same quadratic terms, :func:`lq_adjoint_scan`) is two more affine scans.
 
 The scan (:func:`associative_scan`) is the odd-even recursion of Blelloch (1990) as in
@@ -141,7 +142,7 @@ def _prefix(combine: Combine, elems: Elems) -> Elems:
 
 
 def _combine_value(e1: Elems, e2: Elems) -> Elems:
-    """The paper's associative operator (Lemma 8, eq. 29): ``e1`` is the segment
+    """The paper's associative operator (S2): ``e1`` is the segment
     ``i->j`` (earlier), ``e2`` the segment ``j->k``; each is ``(A, b, C, eta, J, bad)``
     with ``A, C, J (B, T', n, n)``, ``b, eta (B, T', n)`` and ``bad (B, T')`` bool (a
     singular ``I + C J`` met on the way)."""
@@ -214,7 +215,7 @@ def _split(F: Tensor, H: Tensor, VhT: Tensor):
 
 def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[Tensor, ...]:
     """Value functions ``V (B, T+1, n, n)``, ``v (B, T+1, n)`` by the reverse scan of
-    the paper's elements (eqs. 36-38 and Lemma 8), and ``(B,)`` bool: some ``R`` not
+    the paper's elements (S1)-(S3), and ``(B,)`` bool: some ``R`` not
     positive definite or some ``I + C J`` singular in the element."""
     A, Bm, c, Q, R, S, q, r, QT, qT = _split(F, H, VhT)
     n = A.shape[-1]
@@ -222,7 +223,7 @@ def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[T
 
     A, Bm, c, Q, R, S, q, r = (t.expand(nb, *t.shape[1:]) for t in (A, Bm, c, Q, R, S, q, r))
     Lr, info_r = cholesky(R)
-    # R^{-1} [B', S, r]: the control eliminated from each step (eqs. 37-38)
+    # R^{-1} [B', S, r]: the control eliminated from each step (S1)
     W = chol_solve(torch.cat([Bm.mT, S, r.unsqueeze(-1)], -1), Lr)
     WB, WS, Wr = W[..., :n], W[..., n : 2 * n], W[..., 2 * n]
     At = A - Bm @ WS
@@ -274,7 +275,7 @@ def riccati_scan_homogeneous(F: Tensor, H: Tensor, VhT: Tensor) -> RiccatiFactor
         return riccati_homogeneous(F, H, VhT)
     V, v, bad = _value_scan(F, H, VhT, batch)
     Vh_top = torch.cat([V, v.unsqueeze(-1)], -1)  # (B, T+1, n, n+1): rows :n of Vh
-    # gains at every step at once (eq. 13): [Quu, Qu_xh] = H[:m] + B' Vh_{t+1}[:n] F
+    # gains at every step at once (S4): [Quu, Qu_xh] = H[:m] + B' Vh_{t+1}[:n] F
     P = Vh_top[:, 1:] @ F  # (B, T, n, m+n+1)
     Qu = H[..., :m, :] + F[..., :n, :m].mT @ P
     Quu, Qu_xh = Qu[..., :m], Qu[..., m:]
@@ -324,7 +325,7 @@ def _sequential_rows(F, H, VhT, fac: RiccatiFactors, idx: Tensor) -> RiccatiFact
 
 
 def rollout_scan_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`torchslq.lq.rollout_homogeneous` by one prefix scan (paper Section V-A).
+    """:func:`torchslq.lq.rollout_homogeneous` by one prefix scan (S5).
 
     Args:
         F: ``(Bf, T, n+1, m+n+1)``, Kk ``(Bk, T, m, n+1)``, x0 ``(B, n)`` (batches
