@@ -384,3 +384,53 @@ def test_polish_reaches_the_qp_solution_to_round_off():
             ]
         )
         assert np.abs(ours_in - nu_in).max() < 1e-8 * (1 + np.abs(nu_in).max())
+
+
+def test_augmented_terms_expansion_matches_autograd():
+    """The subproblem's quadratic model with ``curvature=True`` is the exact Hessian of the
+    augmented Lagrangian (autograd of its value), and its gradient is exact either way."""
+    from torchslq.constraints import AugmentedLagrangianCost
+
+    torch.manual_seed(1)
+    n, m, Tn = 3, 2, 4
+    centre = torch.tensor([0.2, -0.1], dtype=torch.float64)
+
+    def obstacle(x, u, t):
+        return (0.5 - (x[..., :2] - centre).pow(2).sum(-1) + 0.1 * u[..., 0] ** 2).unsqueeze(-1)
+
+    cset = ConstraintSet(
+        [
+            ts.Constraints(stage=obstacle),
+            ts.Constraints(terminal=lambda x: x[..., :2].sin() - 0.3, kind="equality"),
+        ]
+    )
+    base = ts.QuadraticCost(
+        Q=torch.eye(n, dtype=torch.float64), R=torch.eye(m, dtype=torch.float64)
+    )
+    x = 0.3 * torch.randn(2, Tn + 1, n, dtype=torch.float64)
+    u = 0.3 * torch.randn(2, Tn, m, dtype=torch.float64)
+    stage_eq, terminal_eq = cset.dims(n, m, x)
+    lam = torch.rand(2, Tn, 1, dtype=torch.float64)
+    lam_T = torch.randn(2, 2, dtype=torch.float64)
+    rho = torch.tensor([3.0, 0.5], dtype=torch.float64)
+    for curvature in (True, False):
+        al = AugmentedLagrangianCost(base, cset, lam, lam_T, rho, stage_eq, terminal_eq, curvature)
+        e = al.quadratize(x, u)
+        for b in range(2):
+
+            def f(xb, ub, b=b, al=al):
+                xx, uu = x.clone(), u.clone()
+                xx[b], uu[b] = xb, ub
+                return al(xx, uu)[b]
+
+            gx, gu = torch.func.grad(f, argnums=(0, 1))(x[b], u[b])
+            torch.testing.assert_close(e.lx[b], gx)
+            torch.testing.assert_close(e.lu[b], gu)
+            if not curvature:
+                continue
+            H = torch.autograd.functional.hessian(f, (x[b], u[b]))
+            for t in range(Tn):
+                torch.testing.assert_close(e.lxx[b, t], H[0][0][t, :, t, :])
+                torch.testing.assert_close(e.luu[b, t], H[1][1][t, :, t, :])
+                torch.testing.assert_close(e.lux[b, t], H[1][0][t, :, t, :])
+            torch.testing.assert_close(e.lxx[b, Tn], H[0][0][Tn, :, Tn, :])

@@ -10,8 +10,9 @@ Both are continuously differentiable with gradient ``λ̂' c_z``, where ``λ̂ =
 (equality) or ``max(0, λ + ρ c)`` (inequality) is also the first-order multiplier
 update. The quadratic model keeps the Gauss-Newton term ``ρ c_z' D c_z`` (``D``: the
 rows with ``λ + ρ c > 0``, every equality row), which is positive semidefinite; the
-rows' own second derivatives are left out (exact for linear constraints; the fixed
-point is exact either way, since the gradient is).
+rows' own second derivatives ``Σ λ̂_i ∇²c_i`` are added with ``curvature=True`` (without
+them the model is exact for linear rows only; the fixed point is exact either way,
+since the gradient is, but curved rows then cost more iterations).
 """
 
 from __future__ import annotations
@@ -19,6 +20,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor, nn
 
+from ..costs.general import Cost
 from ..costs.quadratic import CostExpansion
 from .spec import ConstraintSet, ConstraintValues
 
@@ -48,6 +50,9 @@ class AugmentedLagrangianCost(nn.Module):
         lam: stage multipliers ``(B, T, p)``; lam_T: terminal multipliers ``(B, q)``.
         rho: penalties ``(B,)``.
         stage_eq, terminal_eq: ``(p,)``, ``(q,)`` bool, each row's kind.
+        curvature: add the rows' curvature ``Σ λ̂_i ∇²c_i`` to the quadratic model (an
+            exact Hessian of the augmented terms where the rows are active; it may be
+            indefinite, which the solvers' regularisation handles).
 
     ``forward`` accepts trial batches ``x (..., B, T+1, n)`` (the line search's).
     """
@@ -61,8 +66,10 @@ class AugmentedLagrangianCost(nn.Module):
         rho: Tensor,
         stage_eq: Tensor,
         terminal_eq: Tensor,
+        curvature: bool = False,
     ):
         super().__init__()
+        self.curvature = curvature
         self.cost = cost
         self.constraints = constraints
         self.lam, self.lam_T, self.rho = lam, lam_T, rho
@@ -109,4 +116,17 @@ class AugmentedLagrangianCost(nn.Module):
             lux = v.cu.mT @ wcx
             if e.lux is not None:
                 lux = lux + e.lux
+            if self.curvature:
+                # the rows' own curvature weighted by λ̂ (the cost machinery's Hessians)
+                lam_s, lam_t = lam_hat, lam_hat_T
+                cset = self.constraints
+                curv = Cost(
+                    stage=lambda a, b, t: (lam_s * cset.stage_values(a, b)).sum(-1),
+                    terminal=lambda a: (lam_t * cset.terminal_values(a)).sum(-1),
+                    state_dim=n,
+                    control_dim=m,
+                ).quadratize(x.detach(), u.detach())
+                lxx = lxx + curv.lxx
+                luu = luu + curv.luu
+                lux = lux + curv.lux
         return CostExpansion(lxx=lxx, luu=luu, lux=lux, lx=lx, lu=lu)

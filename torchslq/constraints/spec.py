@@ -369,7 +369,7 @@ def max_violation(values: ConstraintValues, stage_eq: Tensor, terminal_eq: Tenso
     propagates)."""
     vs, vt = violation(values, stage_eq, terminal_eq)
     lead = vt.shape[:-1]
-    parts = [vs.reshape(*lead, -1), vt]
+    parts = [vs.flatten(-2), vt]
     allv = torch.cat(parts, -1)
     if allv.shape[-1] == 0:
         return allv.new_zeros(lead)

@@ -95,6 +95,8 @@ class AugmentedLagrangian:
         penalty_factor, penalty_max: the penalty schedule.
         per_element_data: the problem has per-element tensors, so subproblems are
             solved on the whole batch (finished elements' results are discarded).
+        curvature: the subproblems' quadratic model includes the rows' curvature
+            weighted by their multipliers (``constraint_hessian="exact"``).
     """
 
     inner: Any
@@ -106,6 +108,7 @@ class AugmentedLagrangian:
     penalty_factor: float
     penalty_max: float
     per_element_data: bool = False
+    curvature: bool = False
 
     def _violation(self, x: Tensor, u: Tensor) -> Tensor:
         return max_violation(self.constraints.values(x, u), self.stage_eq, self.terminal_eq)
@@ -132,7 +135,7 @@ class AugmentedLagrangian:
         sub = state.take(idx)
         al_cost = AugmentedLagrangianCost(
             problem.cost, self.constraints, sub.lam, sub.lam_T, sub.rho,
-            self.stage_eq, self.terminal_eq,
+            self.stage_eq, self.terminal_eq, curvature=self.curvature,
         )  # fmt: skip
         inner_problem = Problem(problem.dynamics, al_cost, problem.horizon)
         # subproblems far from the solution need not be solved tightly (Conn, Gould &
@@ -225,6 +228,7 @@ def solve_constrained(
         penalty_factor=o.penalty_factor,
         penalty_max=o.penalty_max,
         per_element_data=per_element,
+        curvature=o.constraint_hessian == "exact",
     )
     record = o.record(solver.name)
     settings = LoopSettings(
@@ -338,6 +342,8 @@ def _polish_and_resume(
     (their multipliers and penalties as they were), the others keep the polished point."""
     cand = status == Status.CONVERGED
     idx = None if not resume else cand.nonzero().squeeze(1)
+    if idx is not None and idx.numel() == 0:
+        return s, status, grad_norm, outer
     sub = s.take(idx)
     take = (lambda t: t) if idx is None else (lambda t: None if t is None else t[idx])
     x, u, lam, lam_T, ok = polish(

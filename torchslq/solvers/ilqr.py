@@ -62,6 +62,12 @@ class ILQR(DescentSolver):
             at the end, and KKT conditions met to round-off; the loop then hands over at
             a violation of ``1e-4`` and resumes for an element the steps do not finish.
             One dense LU per element and step (``(T (2n + m + p))^3``).
+        constraint_hessian: the constraint terms' Hessian in the subproblems:
+            ``"gauss_newton"`` (``ρ c_z' c_z`` on the active rows, positive semidefinite;
+            iLQR's default, in the spirit of dropping the dynamics' curvature) or
+            ``"exact"`` (plus the rows' curvature weighted by their multipliers; DDP's
+            default: with the dynamics' curvature it makes the subproblem steps Newton
+            steps, e.g. 4x fewer iterations on a unicycle around an obstacle).
         rtol, stop, step_tol, stall_iters, armijo_c1, armijo_beta, max_backtracks,
             armijo_passes, linearize_method, progress, compact: as for
             :class:`torchslq.SLQ`.
@@ -93,6 +99,7 @@ class ILQR(DescentSolver):
         penalty_max: float = 1e10,
         al_max_iter: int = 30,
         polish: bool = False,
+        constraint_hessian: str = "gauss_newton",
         rtol: float = 0.0,
         stop: str = "grad",
         step_tol: float | None = None,

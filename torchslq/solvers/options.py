@@ -191,6 +191,7 @@ class ILQROptions(DescentOptions):
     penalty_max: float = 1e10
     al_max_iter: int = 30
     polish: bool = False
+    constraint_hessian: str = "gauss_newton"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -211,6 +212,7 @@ class ILQROptions(DescentOptions):
         check_int("al_max_iter", self.al_max_iter, 1)
         if not isinstance(self.polish, bool):
             raise TypeError(f"polish must be a bool, got {self.polish!r}")
+        check_choice("constraint_hessian", self.constraint_hessian, ("gauss_newton", "exact"))
         if self.rollout != "closed_loop" or self.line_search != "armijo":
             raise ValueError(
                 "ILQR/DDP use rollout='closed_loop' and line_search='armijo' "
@@ -236,6 +238,7 @@ class DDPOptions(ILQROptions):
 
     second_order: str = "value"
     vhp_memory_limit: int | None = 256 * 2**20
+    constraint_hessian: str = "exact"
 
     def __post_init__(self) -> None:
         super().__post_init__()
