@@ -14,8 +14,9 @@ from torchslq.lqdo.backends import qp_solve, solve_dense, solve_sparse
 torch.set_default_dtype(torch.float64)
 
 
-def known_qp(B=3, n=6, me=2, mi=5, n_act=2, seed=0, dtype=torch.float64):
-    """QPs with a known solution (z*, lam*, mu*) and strict complementarity."""
+def known_qp(B=3, n=6, me=2, mi=5, n_act=2, seed=0, dtype=torch.float64, bounds=False):
+    """QPs with a known solution (z*, lam*, mu*) and strict complementarity; with
+    ``bounds`` also lb <= z <= ub with the lower bound of z_0 active (returned last)."""
     g = torch.Generator().manual_seed(seed)
     M = torch.randn(B, n, n, generator=g)
     H = M @ M.mT / n + torch.eye(n)
@@ -34,8 +35,13 @@ def known_qp(B=3, n=6, me=2, mi=5, n_act=2, seed=0, dtype=torch.float64):
         + (A.mT @ lam[..., None])[..., 0]
         + (G.mT @ mu[..., None])[..., 0]
     )
-    cast = [t.to(dtype) for t in (H, f, A, b, G, h, z, lam, mu)]
-    return cast
+    out = [H, f, A, b, G, h, z, lam, mu]
+    if bounds:
+        lb, ub = z - 1.0, z + 1.0
+        lb[:, 0] = z[:, 0]
+        f[:, 0] += 0.7  # the active lower bound's multiplier: -0.7 e_0 in the gradient
+        out += [lb, ub]
+    return [t.to(dtype) for t in out]
 
 
 def test_dense_ip_equality_qp_matches_dense_kkt():
@@ -87,11 +93,15 @@ def test_batch_equals_per_element_solves():
 
 
 def test_implicit_gradients_against_finite_differences():
-    H, f, A, b, G, h, *_ = known_qp(B=2, n=4, me=1, mi=3, n_act=2, seed=7)
-    ins = [t.clone().requires_grad_(True) for t in (H, f, A, b, G, h)]
+    H, f, A, b, G, h, z_star, _, _, lb, ub = known_qp(
+        B=2, n=4, me=1, mi=3, n_act=2, seed=7, bounds=True
+    )
+    z, *_ = qp_solve(H, f, A, b, G, h, lb, ub)
+    torch.testing.assert_close(z, z_star, rtol=1e-8, atol=1e-8)  # the bound is active
+    ins = [t.clone().requires_grad_(True) for t in (H, f, A, b, G, h, lb, ub)]
 
-    def fn(H, f, A, b, G, h):
-        z, lam, mu, _ = qp_solve(H, f, A, b, G, h, tol=1e-13, max_iter=100)
+    def fn(H, f, A, b, G, h, lb, ub):
+        z, lam, mu, _ = qp_solve(H, f, A, b, G, h, lb, ub, tol=1e-13, max_iter=100)
         return z, lam, mu
 
     assert torch.autograd.gradcheck(fn, ins, eps=1e-6, atol=1e-6, rtol=1e-4)

@@ -144,14 +144,53 @@ def _default_tol(dtype: torch.dtype) -> float:
     return 1e-10 if dtype == torch.float64 else 1e-5
 
 
-def _direction(rc, rd, re, ri, s, mu, LU, piv, G, Gt, n, mi):
+class _Ineq:
+    """The inequality rows ``[G; I_ub; -I_lb] z <= [h; ub; -lb]`` of the interior point
+    with the simple bounds kept diagonal: ``eu``/``el`` (B, n) are 1 where a bound is
+    finite (0 rows, ``0 z <= 1``, elsewhere), so a bound costs a diagonal term in the KKT
+    matrix instead of a row of a dense ``G``."""
+
+    def __init__(self, G: Tensor, eu: Tensor, el: Tensor) -> None:
+        self.G, self.eu, self.el = G, eu, el
+        self.mg, self.n = G.shape[1], G.shape[2]
+        self.bounded = bool(eu.any() or el.any())
+        self.m = self.mg + (2 * self.n if self.bounded else 0)
+
+    def mv(self, z: Tensor) -> Tensor:
+        parts = [(self.G @ z.unsqueeze(-1)).squeeze(-1)]
+        if self.bounded:
+            parts += [self.eu * z, -self.el * z]
+        return torch.cat(parts, -1)
+
+    def tmv(self, v: Tensor) -> Tensor:
+        out = (self.G.mT @ v[:, : self.mg].unsqueeze(-1)).squeeze(-1)
+        if self.bounded:
+            n, mg = self.n, self.mg
+            out = out + self.eu * v[:, mg : mg + n] - self.el * v[:, mg + n :]
+        return out
+
+    def gwg(self, W: Tensor) -> Tensor:
+        out = self.G.mT @ (W[:, : self.mg].unsqueeze(-1) * self.G)
+        if self.bounded:
+            n, mg = self.n, self.mg
+            d = self.eu * W[:, mg : mg + n] + self.el * W[:, mg + n :]
+            out = out + torch.diag_embed(d)
+        return out
+
+    def dense(self) -> Tensor:
+        if not self.bounded:
+            return self.G
+        return torch.cat([self.G, torch.diag_embed(self.eu), -torch.diag_embed(self.el)], 1)
+
+
+def _direction(rc, rd, re, ri, s, mu, LU, piv, ineq, n, mi):
     """One Newton direction of the interior point for complementarity target ``rc``."""
-    rhs1 = -rd - (Gt @ ((rc + mu * ri) / s).unsqueeze(-1)).squeeze(-1) if mi else -rd
+    rhs1 = -rd - ineq.tmv((rc + mu * ri) / s) if mi else -rd
     rhs = torch.cat([rhs1, -re], -1).unsqueeze(-1)
     sol = torch.linalg.lu_solve(LU, piv, rhs).squeeze(-1)
     dz, dl = sol[:, :n], sol[:, n:]
     if mi:
-        ds = -ri - (G @ dz.unsqueeze(-1)).squeeze(-1)
+        ds = -ri - ineq.mv(dz)
         dm = (rc - mu * ds) / s
     else:
         ds = dm = rd.new_zeros(rd.shape[0], 0)
@@ -293,18 +332,18 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
     return x, y[: B * me], y[B * me : B * (me + mi)], ok, int(res.iterations)
 
 
-def _ip(H, f, A, b, G, h, tol, max_iter):
+def _ip(H, f, A, b, ineq, h, tol, max_iter):
     """Batched Mehrotra predictor-corrector. Returns z, lam, mu, s, status, iterations."""
     B, n = f.shape
-    me, mi = A.shape[1], G.shape[1]
+    me, mi = A.shape[1], ineq.m
     dt, dev = f.dtype, f.device
-    At, Gt = A.mT, G.mT
+    At = A.mT
     z = f.new_zeros(B, n)
     lam = f.new_zeros(B, me)
     s = f.new_ones(B, mi)
     mu = f.new_ones(B, mi)
     if mi:
-        s = (h - (G @ z.unsqueeze(-1)).squeeze(-1)).clamp_min(1.0)
+        s = (h - ineq.mv(z)).clamp_min(1.0)
     scale_d = 1 + f.abs().amax(-1)
     scale_e = 1 + b.abs().amax(-1) if me else f.new_ones(B)
     scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
@@ -322,8 +361,8 @@ def _ip(H, f, A, b, G, h, tol, max_iter):
         else:
             re = f.new_zeros(B, 0)
         if mi:
-            rd = rd + (Gt @ mu.unsqueeze(-1)).squeeze(-1)
-            ri = (G @ z.unsqueeze(-1)).squeeze(-1) + s - h
+            rd = rd + ineq.tmv(mu)
+            ri = ineq.mv(z) + s - h
             gap = (s * mu).mean(-1)
         else:
             ri = f.new_zeros(B, 0)
@@ -338,7 +377,7 @@ def _ip(H, f, A, b, G, h, tol, max_iter):
         if bool(done.all()):
             break
         W = mu / s if mi else None
-        K11 = H + (Gt @ (W.unsqueeze(-1) * G)) if mi else H
+        K11 = H + ineq.gwg(W) if mi else H
         KKT = torch.cat(
             [torch.cat([K11, At], -1), torch.cat([A, f.new_zeros(B, me, me)], -1)], -2
         ) + torch.diag(reg)
@@ -346,7 +385,7 @@ def _ip(H, f, A, b, G, h, tol, max_iter):
         LU, piv, _ = torch.linalg.lu_factor_ex(KKT)
 
         def direction(rc, rd=rd, re=re, ri=ri, s=s, mu=mu, LU=LU, piv=piv):
-            return _direction(rc, rd, re, ri, s, mu, LU, piv, G, Gt, n, mi)
+            return _direction(rc, rd, re, ri, s, mu, LU, piv, ineq, n, mi)
 
         if mi:
             dz, dl, ds, dm = direction(-s * mu)
@@ -375,19 +414,26 @@ def _ip(H, f, A, b, G, h, tol, max_iter):
 
 class _QPFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, H, f, A, b, G, h, tol, max_iter):
+    def forward(ctx, H, f, A, b, G, h, lb, ub, tol, max_iter):
         Hs = 0.5 * (H + H.mT)
-        z, lam, mu, s, status, it = _ip(Hs, f, A, b, G, h, tol, max_iter)
-        ctx.save_for_backward(Hs, A, G, z, lam, mu, s)
+        eu, el = torch.isfinite(ub), torch.isfinite(lb)
+        ineq = _Ineq(G, eu.to(f.dtype), el.to(f.dtype))
+        h_all = h
+        if ineq.bounded:
+            one = torch.ones_like(f)
+            h_all = torch.cat([h, torch.where(eu, ub, one), torch.where(el, -lb, one)], 1)
+        z, lam, mu, s, status, it = _ip(Hs, f, A, b, ineq, h_all, tol, max_iter)
+        ctx.save_for_backward(Hs, A, ineq.dense(), z, lam, mu, s, eu, el)
+        ctx.mg = G.shape[1]
         iters = torch.tensor(it)
         ctx.mark_non_differentiable(status, iters)
-        return z, lam, mu, status, iters
+        return z, lam, mu[:, : G.shape[1]], status, iters
 
     @staticmethod
     def backward(ctx, gz, glam, gmu, _gst, _git):
-        Hs, A, G, z, lam, mu, s = ctx.saved_tensors
+        Hs, A, G, z, lam, mu, s, eu, el = ctx.saved_tensors
         B, n = z.shape
-        me, mi = A.shape[1], G.shape[1]
+        me, mi, mg = A.shape[1], G.shape[1], ctx.mg
         act = mu > s  # strict complementarity: active rows have mu > 0 = slack
         actf = act.to(z.dtype)
         # K = dF/d(z, lam, mu) of F = [Hz + f + A'lam + G'mu; Az - b; act(Gz - h) + (1-act) mu]
@@ -398,11 +444,14 @@ class _QPFunction(torch.autograd.Function):
         K[:, n : n + me, :n] = A
         K[:, n + me :, :n] = actf.unsqueeze(-1) * G
         K[:, n + me :, n + me :] = torch.diag_embed(1.0 - actf)
+        gm = z.new_zeros(B, mi)
+        if gmu is not None:
+            gm[:, :mg] = gmu
         g = torch.cat(
             [
                 gz if gz is not None else z.new_zeros(B, n),
                 glam if glam is not None else z.new_zeros(B, me),
-                gmu if gmu is not None else z.new_zeros(B, mi),
+                gm,
             ],
             -1,
         )
@@ -411,8 +460,14 @@ class _QPFunction(torch.autograd.Function):
         zm = zm * actf
         gH = 0.5 * (zz.unsqueeze(-1) * z.unsqueeze(-2) + z.unsqueeze(-1) * zz.unsqueeze(-2))
         gA = lam.unsqueeze(-1) * zz.unsqueeze(-2) + zl.unsqueeze(-1) * z.unsqueeze(-2)
-        gG = mu.unsqueeze(-1) * zz.unsqueeze(-2) + zm.unsqueeze(-1) * z.unsqueeze(-2)
-        return gH, zz, gA, -zl, gG, -zm, None, None
+        gG = mu[:, :mg].unsqueeze(-1) * zz.unsqueeze(-2) + zm[:, :mg].unsqueeze(-1) * z.unsqueeze(
+            -2
+        )
+        g_ub = g_lb = None
+        if mi > mg:  # the simple bounds' rows: h_u = ub, h_l = -lb
+            g_ub = torch.where(eu, -zm[:, mg : mg + n], torch.zeros_like(z))
+            g_lb = torch.where(el, zm[:, mg + n :], torch.zeros_like(z))
+        return gH, zz, gA, -zl, gG, -zm[:, :mg], g_lb, g_ub, None, None
 
 
 def qp_solve(
@@ -422,14 +477,19 @@ def qp_solve(
     b: Tensor,
     G: Tensor,
     h: Tensor,
+    lb: Tensor | None = None,
+    ub: Tensor | None = None,
     tol: float | None = None,
     max_iter: int = 60,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Solve ``min 1/2 z'Hz + f'z s.t. A z = b, G z <= h`` for a batch, differentiably.
+    """Solve ``min 1/2 z'Hz + f'z s.t. A z = b, G z <= h, lb <= z <= ub`` for a batch,
+    differentiably.
 
     Args:
         H: ``(B, n, n)`` (its symmetric part is used); f: ``(B, n)``;
-        A: ``(B, me, n)``; b: ``(B, me)``; G: ``(B, mi, n)``; h: ``(B, mi)``.
+        A: ``(B, me, n)``; b: ``(B, me)``; G: ``(B, mi, n)``; h: ``(B, mi)``;
+        lb, ub: ``(B, n)`` simple bounds (``-inf``/``inf`` where absent; None: none),
+            kept diagonal in the KKT matrix.
         tol: residual and complementarity tolerance (1e-10 in float64, 1e-5 in float32).
         max_iter: interior-point iteration limit.
 
@@ -448,23 +508,26 @@ def qp_solve(
         raise ValueError(f"b must be ({B}, {A.shape[1]}); got {tuple(b.shape)}")
     if h.shape != (B, G.shape[1]):
         raise ValueError(f"h must be ({B}, {G.shape[1]}); got {tuple(h.shape)}")
-    tol = _default_tol(f.dtype) if tol is None else tol
-    z, lam, mu, status, _ = _QPFunction.apply(H, f, A, b, G, h, tol, max_iter)
+    z, lam, mu, status, _ = _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter)
     return z, lam, mu, status
 
 
-def _qp_solve_iters(H, f, A, b, G, h, tol, max_iter):
+def _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter):
     tol = _default_tol(f.dtype) if tol is None else tol
-    return _QPFunction.apply(H, f, A, b, G, h, tol, max_iter)
+    lb = torch.full_like(f, -float("inf")) if lb is None else lb.to(f).expand_as(f)
+    ub = torch.full_like(f, float("inf")) if ub is None else ub.to(f).expand_as(f)
+    return _QPFunction.apply(H, f, A, b, G, h, lb, ub, tol, max_iter)
 
 
 def solve_dense(qp: SparseQP | DenseQP, tol: float | None = None, max_iter: int = 60) -> QPSolution:
-    """Solve a batch with the dense interior-point method (:func:`qp_solve`); bounds are
-    folded into ``G z <= h`` and their multipliers dropped from ``mu``."""
+    """Solve a batch with the dense interior-point method (:func:`qp_solve`; the simple
+    bounds stay diagonal, their multipliers are not returned)."""
     t0 = time.perf_counter()
-    mi = qp.mi if isinstance(qp, SparseQP) else qp.G.shape[1]
-    d = qp.dense() if isinstance(qp, SparseQP) else qp
-    z, lam, mu, status, iters = _qp_solve_iters(d.H, d.f, d.A, d.b, d.G, d.h, tol, max_iter)
+    sparse = isinstance(qp, SparseQP)
+    mi = qp.mi if sparse else qp.G.shape[1]
+    d = qp.dense(bounds=False) if sparse else qp
+    lb, ub = (qp.lb, qp.ub) if sparse else (None, None)
+    z, lam, mu, status, iters = _qp_solve_iters(d.H, d.f, d.A, d.b, d.G, d.h, lb, ub, tol, max_iter)
     Hs = 0.5 * (d.H + d.H.mT)
     value = 0.5 * (z * (Hs @ z.unsqueeze(-1)).squeeze(-1)).sum(-1) + (d.f * z).sum(-1) + d.c
     return QPSolution(
