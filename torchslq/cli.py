@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 SOLVERS = ("slq", "ilqr", "ddp")
-REPRODUCTIONS = ("sideris-table1", "sideris-hopper", "gopronto-fig5")
+REPRODUCTIONS = ("sideris-table1", "sideris-hopper", "gopronto-fig5", "lqdo-small")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -141,6 +141,12 @@ def _reproduce(name: str, args: argparse.Namespace) -> int:
             "the repository's reproductions/ folder; run this command from a checkout of "
             "the repository (its root directory)"
         )
+    if name == "lqdo-small":  # Herber & Sundarrajan 2020, the small rows of Tables 1-3
+        from reproductions import lqdo
+
+        rows = lqdo.table1(("TR20", "PS10"), ipopt=False) + lqdo.table3(("PS10",), ipopt=False)
+        print(lqdo.format_rows(rows, lqdo.TABLE_COLUMNS))
+        return 0
     if name == "gopronto-fig5":
         from reproductions import gopronto
 
