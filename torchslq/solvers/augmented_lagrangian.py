@@ -6,8 +6,9 @@ The outer iteration (one :func:`~torchslq.solvers.core.iterate` step per element
    trajectory (the inner solve, warm started; control bounds stay in its box QP);
 2. update the multipliers ``λ <- λ̂`` (:func:`~torchslq.constraints.multiplier_estimate`);
 3. raise the penalty ``ρ <- min(φ ρ, ρ_max)`` of an element whose largest violation did
-   not fall below a quarter of the previous one (Conn, Gould & Toint's rule; ALTRO and
-   trajax's ``constrained_ilqr`` raise it every iteration).
+   not fall below a quarter of the previous one (Conn, Gould & Toint's rule, the default)
+   or, with ``penalty_update="always"``, of every element still infeasible (ALTRO's and
+   trajax's ``constrained_ilqr``'s schedule).
 
 Every element has its own ``λ``, ``ρ``, outer iteration count and status: it is
 ``converged`` when its largest violation is at most ``constraint_tol`` and the inner
@@ -95,6 +96,9 @@ class AugmentedLagrangian:
         penalty_factor, penalty_max: the penalty schedule.
         per_element_data: the problem has per-element tensors, so subproblems are
             solved on the whole batch (finished elements' results are discarded).
+        penalty_update: ``"progress"`` (raise ``ρ`` where the violation did not shrink
+            fourfold) or ``"always"`` (wherever it is above ``constraint_tol``: ALTRO's
+            and trajax's schedule).
         curvature: the subproblems' quadratic model includes the rows' curvature
             weighted by their multipliers (``constraint_hessian="exact"``).
     """
@@ -109,6 +113,7 @@ class AugmentedLagrangian:
     penalty_max: float
     per_element_data: bool = False
     curvature: bool = False
+    penalty_update: str = "progress"
 
     def _violation(self, x: Tensor, u: Tensor) -> Tensor:
         return max_violation(self.constraints.values(x, u), self.stage_eq, self.terminal_eq)
@@ -147,7 +152,9 @@ class AugmentedLagrangian:
         rho = sub.rho
         lam = multiplier_estimate(v.stage, sub.lam, rho[:, None, None], self.stage_eq)
         lam_T = multiplier_estimate(v.terminal, sub.lam_T, rho[:, None], self.terminal_eq)
-        slow = (viol > self.constraint_tol) & ~(viol <= PROGRESS_RATIO * sub.violation)
+        slow = viol > self.constraint_tol
+        if self.penalty_update == "progress":
+            slow = slow & ~(viol <= PROGRESS_RATIO * sub.violation)
         new_rho = torch.where(slow, (rho * self.penalty_factor).clamp_max(self.penalty_max), rho)
         new = replace(
             sub,
@@ -229,6 +236,7 @@ def solve_constrained(
         penalty_max=o.penalty_max,
         per_element_data=per_element,
         curvature=o.constraint_hessian == "exact",
+        penalty_update=o.penalty_update,
     )
     record = o.record(solver.name)
     settings = LoopSettings(

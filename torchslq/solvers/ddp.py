@@ -72,6 +72,7 @@ class DDP(ILQR):
         penalty_max: float = 1e10,
         al_max_iter: int = 30,
         polish: bool = False,
+        penalty_update: str = "progress",
         constraint_hessian: str = "exact",
         second_order: str = "value",
         vhp_memory_limit: int | None = 256 * 2**20,

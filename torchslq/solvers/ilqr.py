@@ -55,7 +55,10 @@ class ILQR(DescentSolver):
         constraint_tol: the largest violation accepted (None: 1e-6 in float64, 1e-4
             otherwise).
         penalty_init, penalty_factor, penalty_max: the penalty ``ρ`` at the start, its
-            growth factor (when the violation did not shrink fourfold) and its limit.
+            growth factor and its limit.
+        penalty_update: ``"progress"`` (raise ``ρ`` where the violation did not shrink
+            fourfold; Conn, Gould & Toint) or ``"always"`` (wherever still infeasible;
+            ALTRO's and trajax's schedule).
         al_max_iter: the limit on multiplier updates (outer iterations).
         polish: finish with Newton steps on the KKT conditions of the active set
             (:mod:`torchslq.constraints.polish`): quadratic instead of linear convergence
@@ -99,6 +102,7 @@ class ILQR(DescentSolver):
         penalty_max: float = 1e10,
         al_max_iter: int = 30,
         polish: bool = False,
+        penalty_update: str = "progress",
         constraint_hessian: str = "gauss_newton",
         rtol: float = 0.0,
         stop: str = "grad",

@@ -192,6 +192,7 @@ class ILQROptions(DescentOptions):
     al_max_iter: int = 30
     polish: bool = False
     constraint_hessian: str = "gauss_newton"
+    penalty_update: str = "progress"
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -213,6 +214,7 @@ class ILQROptions(DescentOptions):
         if not isinstance(self.polish, bool):
             raise TypeError(f"polish must be a bool, got {self.polish!r}")
         check_choice("constraint_hessian", self.constraint_hessian, ("gauss_newton", "exact"))
+        check_choice("penalty_update", self.penalty_update, ("progress", "always"))
         if self.rollout != "closed_loop" or self.line_search != "armijo":
             raise ValueError(
                 "ILQR/DDP use rollout='closed_loop' and line_search='armijo' "
