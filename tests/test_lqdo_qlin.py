@@ -50,3 +50,12 @@ def test_bounded_lq_one_iteration_and_batch_equals_single():
         torch.testing.assert_close(res.z[i], ref.z[0], rtol=0, atol=1e-7)
     single = Quasilinearization(backend="clarabel").solve(tr, z0[1])
     torch.testing.assert_close(single.z[0], res.z[1], rtol=0, atol=1e-6)
+
+
+def test_float32_transcription_and_dense_qlin():
+    from torchslq.lqdo.cases import container_crane, crane_initial_guess
+
+    tr = transcribe(container_crane(), "PS", nodes=10, dtype=torch.float32)
+    res = Quasilinearization(backend="dense").solve(tr, crane_initial_guess(tr))
+    assert res.z.dtype == torch.float32 and res.status.tolist() == [0]
+    assert round(float(res.objective), 4) == 0.0376  # Table 1, PS10 (float64 test: exact)
