@@ -70,6 +70,7 @@ class ContinuousILQROptions:
     cost_rtol: float = 0.0
     stall_iters: int = 10
     max_steps: int = 100_000
+    trials_per_pass: int = 4
     progress: bool = True
 
     def __post_init__(self) -> None:
@@ -87,6 +88,7 @@ class ContinuousILQROptions:
         check_real("cost_rtol", self.cost_rtol, 0.0, lo_closed=True)
         check_int("stall_iters", self.stall_iters, 0)
         check_int("max_steps", self.max_steps, 1)
+        check_int("trials_per_pass", self.trials_per_pass, 1)
         if not isinstance(self.progress, bool):
             raise TypeError(f"progress must be a bool, got {self.progress!r}")
 
@@ -234,26 +236,51 @@ class ContinuousILQRRule:
         alpha = torch.where(running, torch.ones_like(J0), torch.zeros_like(J0))
         trials = torch.zeros_like(J0, dtype=torch.int64)
         nom = state.nominal
-        while bool(searching.any()):  # one host sync per trial
-            a = alpha.clone()
-            # only the rows still searching are integrated (the others ride along)
+        Bsz = J0.shape[0]
+        # after a first pass with alpha = 1, the next candidates are tried k at a time as
+        # extra rows of one integration (the passes are dispatch-bound: k rows cost about
+        # one); only for batch-shared problem data, whose rows can be repeated
+        k_more = o.trials_per_pass if problem.per_element_tensor(Bsz) is None else 1
+        first = True
+        while bool(searching.any()):  # one host sync per pass
+            k = 1 if first else k_more
+            first = False
+            ar = torch.arange(Bsz, device=J0.device)
+            rep = ar.repeat(k)
+            pw = o.rho ** torch.arange(k, dtype=J0.dtype, device=J0.device)
+            a = (alpha[None, :] * pw[:, None]).reshape(-1)  # (k B,): candidate j of row b
+            pol = policy if k == 1 else policy.take(rep)
+            x0 = self.x0 if k == 1 else self.x0.index_select(0, rep)
+            cand = a >= o.alpha_min
             trial = forward_pass(
                 problem,
-                self.x0,
-                lambda t, x, a=a: policy(t, x, a),
+                x0,
+                lambda t, x, a=a, pol=pol: pol(t, x, a),
                 self.layout,
                 rtol=o.rtol,
                 atol=o.atol,
                 max_steps=o.max_steps,
-                active=searching,
+                active=searching.repeat(k) & cand,  # the other rows ride along
             )
-            trials = trials + searching.to(torch.int64)
-            dV = -(a - 0.5 * a * a) * bwd.eta
-            ok = searching & trial.ok & torch.isfinite(trial.J) & (trial.J - J0 < o.beta * dV)
-            nom = merge_nominal(ok, trial, nom)
-            accepted = accepted | ok
-            searching = searching & ~ok
-            alpha = torch.where(searching, alpha * o.rho, alpha)
+            dV = -(a - 0.5 * a * a) * bwd.eta.repeat(k)
+            ok = (
+                searching.repeat(k)
+                & cand
+                & trial.ok
+                & torch.isfinite(trial.J)
+                & (trial.J - J0.repeat(k) < o.beta * dV)
+            ).reshape(k, Bsz)
+            # per row the first (largest) candidate that passes
+            any_ok = ok.any(0)
+            j = torch.where(any_ok, ok.to(torch.int8).argmax(0), 0)
+            tried = torch.where(any_ok, j + 1, (cand.reshape(k, Bsz)).sum(0))
+            trials = trials + torch.where(searching, tried, 0)
+            chosen = trial if k == 1 else trial.take(j * Bsz + ar)
+            nom = merge_nominal(any_ok, chosen, nom)
+            accepted = accepted | any_ok
+            alpha = torch.where(any_ok, a.reshape(k, Bsz).gather(0, j[None])[0], alpha)
+            searching = searching & ~any_ok
+            alpha = torch.where(searching, alpha * o.rho**k, alpha)
             searching = searching & (alpha >= o.alpha_min)
         end = torch.where(
             running & ~accepted, int(Status.LINE_SEARCH_FAILED), int(Status.RUNNING)
@@ -341,6 +368,10 @@ class ContinuousILQR(Solver):
         cost_rtol: also stop when an accepted step changes the cost by at most
             ``cost_rtol |J|`` (0: off); stall_iters: the loop's round-off stall rule.
         max_steps: limit on each integration's steps.
+        trials_per_pass: after a first forward pass with ``alpha = 1``, the line search
+            integrates this many candidates ``alpha rho^j`` at once as extra rows (same
+            accepted step as one at a time; for problems without per-element tensors,
+            otherwise one at a time).
         progress: show a progress bar.
 
     ``solve(problem, x0, u_init=None, logger=None)`` returns a
@@ -365,6 +396,7 @@ class ContinuousILQR(Solver):
         cost_rtol: float = 0.0,
         stall_iters: int = 10,
         max_steps: int = 100_000,
+        trials_per_pass: int = 4,
         progress: bool = True,
         **unknown: Any,
     ):
