@@ -14,7 +14,7 @@ from pathlib import Path
 import torch
 
 SOLVERS = ("slq", "ilqr", "ddp")
-REPRODUCTIONS = ("sideris-table1", "sideris-hopper", "gopronto-fig5", "lqdo-small")
+REPRODUCTIONS = ("sideris-table1", "sideris-hopper", "gopronto-fig5", "lqdo-small", "continuous-ilqr")
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
@@ -146,6 +146,11 @@ def _reproduce(name: str, args: argparse.Namespace) -> int:
 
         rows = lqdo.table1(("TR20", "PS10"), ipopt=False) + lqdo.table3(("PS10",), ipopt=False)
         print(lqdo.format_rows(rows, lqdo.TABLE_COLUMNS))
+        return 0
+    if name == "continuous-ilqr":
+        from reproductions import continuous_ilqr
+
+        print(continuous_ilqr.format_rows(continuous_ilqr.reproduce(rtol=1e-4)[0]))
         return 0
     if name == "gopronto-fig5":
         from reproductions import gopronto
