@@ -175,7 +175,8 @@ def test_ddp_and_float32_with_constraints():
         constraints=lq_constraints(), tol=1e-10, penalty_update="always", progress=False
     ).solve(problem, X0)
     assert (always.status == Status.CONVERGED).all()
-    torch.testing.assert_close(always.u, ref.u, atol=1e-6, rtol=0)
+    # both stop at a violation of 1e-6: their controls agree to a few times that
+    torch.testing.assert_close(always.u, ref.u, atol=1e-5, rtol=0)
     assert (always.history["penalty"][:, -1] >= ref.history["penalty"][:, -1]).all()
     p32 = lq_problem(torch.float32)
     r32 = ts.ILQR(constraints=lq_constraints(), tol=1e-4, progress=False).solve(p32, X0.float())
