@@ -295,3 +295,20 @@ def test_options_are_validated():
         lq_problem(P_CARE, -1.0)
     s = ContinuousILQR(rtol=1e-5)
     assert s.options.rtol == 1e-5 and s.with_options(rtol=1e-7).options.rtol == 1e-7
+
+
+def test_tensorboard_log_has_the_step_counts_of_the_history(tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    x0 = torch.tensor([[1.0, 0.0], [-0.5, 1.0]], dtype=D)
+    with ts.TensorBoardLogger(tmp_path) as logger:
+        res = ContinuousILQR(progress=False).solve(lq_problem(P_CARE, 2.0), x0, logger=logger)
+    acc = EventAccumulator(str(tmp_path), size_guidance={"scalars": 0})
+    acc.Reload()
+    for key in ("n_bwd", "n_fwd", "h_bwd_min", "h_fwd_max"):
+        ev = acc.Scalars(f"continuous/{key}/max")
+        want = res.history[key].double().amax(0)
+        np.testing.assert_allclose([e.value for e in ev], want.numpy(), rtol=1e-6)
+    assert [e.value for e in acc.Scalars("cost/mean")] == pytest.approx(
+        res.history["cost"].mean(0).tolist(), rel=1e-6
+    )

@@ -480,7 +480,9 @@ class ContinuousILQR(Solver):
         )
         if logger is not None:
             _log_history(logger, hist)
-            logger.log_result(result, problem)
+            # the logger's trajectory figure draws u as controls of the steps between the
+            # grid points: give it the values at the steps' starts
+            logger.log_result(replace(result, u=result.u[:, :-1]), problem)
         return result.squeeze_batch() if unbatched else result
 
 
