@@ -295,21 +295,16 @@ def riccati_rhs(
     S = P @ P.mT
     fx, fu = c["fx"], c["fu"]
     lzz = c["lzz"]
+    if ddp:
+        # the exact second-order terms s . f_zz, and (11b) applied to the whole second-order
+        # block: with them Q_zz may be indefinite, and S = P P' could not follow
+        lzz = floor_eigenvalues(lzz + (s[..., :, None, None] * c["fzz"]).sum(-3), floor)
     lxx, luu, lux = lzz[..., :n, :n], lzz[..., n:, n:], lzz[..., n:, :n]
     Qu = c["lu"] + (fu.mT @ s.unsqueeze(-1)).squeeze(-1)
     Qux = lux + fu.mT @ S
     SA = S @ fx
     Qxx = lxx + SA + SA.mT
     Quu = luu
-    if ddp:  # the exact second-order terms s . f_zz
-        sf = (s[..., :, None, None] * c["fzz"]).sum(-3)
-        Qxx = Qxx + sf[..., :n, :n]
-        Qux = Qux + sf[..., n:, :n]
-        Quu = (
-            floor_eigenvalues(Quu + sf[..., n:, n:], floor)
-            if m > 1
-            else (Quu + sf[..., n:, n:]).clamp_min(floor)
-        )
     rhs_u = torch.cat([Qu.unsqueeze(-1), Qux], -1)  # (.., m, 1 + n)
     dK = torch.linalg.solve(Quu, rhs_u)
     d, K = dK[..., 0], dK[..., 1:]

@@ -194,10 +194,7 @@ class ContinuousILQRRule:
         o = self.o
         finite = bwd.ok & torch.isfinite(bwd.eta) & torch.isfinite(bwd.grad_norm)
         fail = torch.where(finite, int(Status.RUNNING), int(Status.NON_FINITE))
-        # converged: the gradient test, or a predicted decrease -Delta V(1) = eta / 2 below
-        # the resolution of the integrated cost (no line search could verify it)
-        resolution = o.rtol * state.J.abs().clamp_min(1.0)
-        done = finite & ((bwd.grad_norm <= o.tol) | (0.5 * bwd.eta <= resolution))
+        done = finite & (bwd.grad_norm <= o.tol)
         nan = torch.full_like(bwd.h_min, float("nan"))
         hist = {  # NaN / 0 where no backward pass ran (finished rows)
             "n_bwd": bwd.n_steps,
@@ -241,6 +238,10 @@ class ContinuousILQRRule:
         # extra rows of one integration (the passes are dispatch-bound: k rows cost about
         # one); only for batch-shared problem data, whose rows can be repeated
         k_more = o.trials_per_pass if problem.per_element_tensor(Bsz) is None else 1
+        # a predicted decrease below the resolution of the integrated cost: if the full
+        # step does not pass (15), no smaller one can be told from integration noise
+        noise = searching & (0.5 * bwd.eta <= o.rtol * J0.abs().clamp_min(1.0))
+        at_noise = torch.zeros_like(searching)
         first = True
         while bool(searching.any()):  # one host sync per pass
             k = 1 if first else k_more
@@ -280,11 +281,15 @@ class ContinuousILQRRule:
             accepted = accepted | any_ok
             alpha = torch.where(any_ok, a.reshape(k, Bsz).gather(0, j[None])[0], alpha)
             searching = searching & ~any_ok
+            if k == 1:
+                at_noise = searching & noise
+                searching = searching & ~noise
             alpha = torch.where(searching, alpha * o.rho**k, alpha)
             searching = searching & (alpha >= o.alpha_min)
         end = torch.where(
             running & ~accepted, int(Status.LINE_SEARCH_FAILED), int(Status.RUNNING)
         ).to(torch.int64)
+        end = end.masked_fill(at_noise, int(Status.CONVERGED))
         st = replace(_state_from(nom, state.policy, trials), fresh=~accepted)
         return Advance(state=st, accept=accepted, step=torch.where(accepted, alpha, 0.0), end=end)
 
@@ -353,10 +358,12 @@ class ContinuousILQR(Solver):
     Args:
         max_iter: iteration limit.
         tol: stop when ``sqrt(int |Q_u(t)|^2 dt) <= tol`` (``Q_u = l_u + f_u' s``, the
-            gradient of the cost with respect to the control function), or when the
-            predicted decrease ``-Delta V(1) = eta / 2`` is at most ``rtol max(|J|, 1)``:
-            below the accuracy of the integrated cost no line search can verify a
-            decrease (the solution is then as accurate as the integration allows).
+            gradient of the cost with respect to the control function). Also
+            ``converged``: an element whose predicted decrease ``-Delta V(1) = eta / 2``
+            is at most ``rtol max(|J|, 1)`` and whose full step fails (15): below the
+            accuracy of the integrated cost no line search can verify a decrease (the
+            solution is as accurate as the integration allows; the paper's algorithm
+            ends there with a failed line search).
         rtol, atol: the integrators' error tolerances (both passes).
         ddp: add the exact second-order dynamics terms ``s · f_zz`` to ``Q_xx, Q_ux,
             Q_uu`` (the full DDP variant of Section III-A).
