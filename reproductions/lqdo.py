@@ -473,7 +473,7 @@ def format_rows(rows: Sequence[dict], columns: Sequence[str] | None = None) -> s
     """A markdown table of the rows."""
     if not rows:
         return ""
-    cols = list(columns or rows[0].keys())
+    cols = list(columns) if columns else list(dict.fromkeys(k for r in rows for k in r))
     out = ["| " + " | ".join(cols) + " |", "|" + "---|" * len(cols)]
     for r in rows:
         out.append("| " + " | ".join(_fmt(r.get(c)) for c in cols) + " |")
