@@ -15,7 +15,7 @@ is kept, per element, only where it lowers the KKT error (largest violation over
 ``constraint_tol``, projected Lagrangian gradient over ``tol``, negative inequality
 multipliers over ``tol``); an element whose active set was wrong keeps its input.
 
-Cost: one dense LU per element and step (see :mod:`torchslq.mpc.constrained`).
+Cost: one dense LDL' factorisation per element and step (see :mod:`torchslq.mpc.constrained`).
 """
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ from torch import Tensor
 
 from ..dynamics.linearize import linearize
 from ..dynamics.rollout import costate_gradient, rollout
-from .kkt import lagrangian_kkt
+from .kkt import lagrangian_kkt, symmetric_factor
 from .spec import ConstraintSet, max_violation
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -40,6 +40,16 @@ def _at_bounds(u: Tensor, lo: Tensor | None, hi: Tensor | None) -> Tensor:
     if lo is None:
         return torch.zeros_like(u, dtype=torch.bool)
     return (u <= lo) | (u >= hi)
+
+
+def _solve(K: Tensor, rhs: Tensor) -> tuple[Tensor, Tensor]:
+    """``(K^{-1} rhs (B, N), solved (B,))`` for symmetric ``K`` (Bunch-Kaufman LDL'):
+    elements whose ``K`` is singular or not finite get zeros."""
+    LD, piv, finite = symmetric_factor(K)
+    sol = torch.linalg.ldl_solve(LD, piv, torch.where(finite.view(-1, 1), rhs, 0.0).unsqueeze(-1))
+    sol = sol[..., 0]
+    ok = finite & torch.isfinite(sol).all(1)
+    return torch.where(ok.view(-1, 1), sol, 0.0), ok
 
 
 def kkt_error(
@@ -144,9 +154,7 @@ def polish(
             R[:, u_rows] = torch.where(act_u, 0.0, pt.grad_u).reshape(Bsz, -1)
             R[:, c_rows] = torch.where(act_s, pt.values.stage, 0.0).reshape(Bsz, -1)
             R[:, t_rows] = torch.where(act_T, pt.values.terminal, 0.0)
-            step, info = torch.linalg.solve_ex(pt.K, -R.unsqueeze(-1))
-            step = step[..., 0]
-            solved = (info == 0) & torch.isfinite(step).all(1)
+            step, solved = _solve(pt.K, -R)
             step = torch.where(solved.view(-1, 1), step, 0.0)
             u_new = u + step[:, u_rows].reshape(Bsz, T, m)
             if lo is not None:

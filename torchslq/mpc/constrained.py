@@ -20,7 +20,7 @@ so the backward pass is one solve with the factorisation made in the forward pas
 one reverse pass through ``G`` and ``r`` evaluated with autograd recording.
 
 The KKT matrix is dense, one per element: ``(T+1) n + T m`` primal and ``(T+1) n + T p
-+ q + T m`` dual unknowns (about 560 for the cart-pole with T = 50): an LU of that size
++ q + T m`` dual unknowns (about 560 for the cart-pole with T = 50): an LDL' of that size
 per element costs milliseconds, so this path suits the batch sizes of training
 (the unconstrained layer uses the Riccati recursion instead). Inactive rows stay in the
 matrix as ``μ_i = 0`` (a unit diagonal), so every element has the same size.
@@ -34,7 +34,7 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from ..constraints.kkt import lagrangian_kkt
+from ..constraints.kkt import lagrangian_kkt, symmetric_factor
 from ..constraints.spec import ConstraintSet
 from ..status import Status
 
@@ -45,7 +45,7 @@ __all__ = ["constrained_implicit_solution"]
 
 
 class _ConstrainedKKTSensitivity(torch.autograd.Function):
-    """``(Gx, Gu, F, x0, Cs, CT) -> (x*, u*)``; backward by the stored LU of ``K``."""
+    """``(Gx, Gu, F, x0, Cs, CT) -> (x*, u*)``; backward by the stored LDL' of ``K``."""
 
     @staticmethod
     def forward(ctx, Gx, Gu, F, x0, Cs, CT, x_star, u_star, LU, piv, good):  # noqa: D401
@@ -72,7 +72,7 @@ class _ConstrainedKKTSensitivity(torch.autograd.Function):
         z = torch.cat([g[0][:, :T], g[1]], -1).reshape(Bsz, T * k)
         rhs[:, : T * k] = z
         rhs[:, T * k : N] = g[0][:, T]
-        w = torch.linalg.lu_solve(LU, piv, rhs.unsqueeze(-1))[..., 0]
+        w = torch.linalg.ldl_solve(LU, piv, rhs.unsqueeze(-1))[..., 0]
         w = torch.where(good.view(-1, 1), w, 0.0)
         wz = w[:, : T * k].reshape(Bsz, T, k)
         wx = torch.cat([wz[..., :n], w[:, T * k : N].unsqueeze(1)], 1)
@@ -135,12 +135,7 @@ def constrained_implicit_solution(
             problem, constraints, xl, ul, nu_s, nu_T, act_s, act_T, act_u, hessian
         )
         K, lam = point.K, point.lam
-        LU, piv, info = torch.linalg.lu_factor_ex(K)
-        ok = (info == 0) & torch.isfinite(LU).flatten(1).all(1)
-        if not bool(ok.all()):
-            eye = torch.eye(K.shape[-1], dtype=K.dtype, device=K.device)
-            K = torch.where(ok.view(-1, 1, 1), torch.nan_to_num(K), eye)
-            LU, piv, _ = torch.linalg.lu_factor_ex(K)
+        LU, piv, ok = symmetric_factor(K)
         good = finite & ok
         status = torch.full((Bsz,), int(Status.CONVERGED), dtype=torch.int64, device=xs.device)
         status = status.masked_fill(~ok, int(Status.NOT_POSITIVE_DEFINITE))

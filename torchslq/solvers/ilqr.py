@@ -64,7 +64,7 @@ class ILQR(DescentSolver):
             (:mod:`torchslq.constraints.polish`): quadratic instead of linear convergence
             at the end, and KKT conditions met to round-off; the loop then hands over at
             a violation of ``1e-4`` and resumes for an element the steps do not finish.
-            One dense LU per element and step (``(T (2n + m + p))^3``).
+            One dense LDL' factorisation per element and step (``(T (2n + m + p))^3``).
         constraint_hessian: the constraint terms' Hessian in the subproblems:
             ``"gauss_newton"`` (``ρ c_z' c_z`` on the active rows, positive semidefinite;
             iLQR's default, in the spirit of dropping the dynamics' curvature) or
