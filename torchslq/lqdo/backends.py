@@ -17,6 +17,7 @@ exact upper-level gradient.
 
 from __future__ import annotations
 
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -92,7 +93,8 @@ def solve_sparse(
         x, lam, mu = sol[:N], sol[N:], np.zeros(0)
         iters = 1
     elif solver == "clarabel":
-        x, lam, mu, ok, iters = _clarabel(qp, tol, max_iter)
+        with _CLARABEL_LOCK:
+            x, lam, mu, ok, iters = _clarabel(qp, tol, max_iter)
     else:
         try:
             import osqp
@@ -206,6 +208,7 @@ def _max_step(v, dv):
 
 
 _CLARABEL_CACHE: OrderedDict = OrderedDict()  # pattern key -> (solver, P/A structures)
+_CLARABEL_LOCK = threading.RLock()  # the cached solver objects are shared state
 
 
 def _csc_structure(rows, cols, ncols: int):
