@@ -189,7 +189,7 @@ def _direction(rc, rd, re, ri, s, mu, LU, piv, ineq, n, mi):
     """One Newton direction of the interior point for complementarity target ``rc``."""
     rhs1 = -rd - ineq.tmv((rc + mu * ri) / s) if mi else -rd
     rhs = torch.cat([rhs1, -re], -1).unsqueeze(-1)
-    sol = torch.linalg.lu_solve(LU, piv, rhs).squeeze(-1)
+    sol = torch.linalg.ldl_solve(LU, piv, rhs).squeeze(-1)
     dz, dl = sol[:, :n], sol[:, n:]
     if mi:
         ds = -ri - ineq.mv(dz)
@@ -385,7 +385,10 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
             [torch.cat([K11, At], -1), torch.cat([A, f.new_zeros(B, me, me)], -1)], -2
         ) + torch.diag(reg)
         KKT = torch.where(done[:, None, None], eye_reg.expand(B, -1, -1), KKT)
-        LU, piv, _ = torch.linalg.lu_factor_ex(KKT)
+        # the KKT matrix is symmetric (indefinite): Bunch-Kaufman LDL'. (Batched LU of
+        # larger matrices after torch.set_num_threads has returned invalid pivots with
+        # this torch/MKL build; LDL' is also half the work.)
+        LU, piv, _ = torch.linalg.ldl_factor_ex(KKT)
 
         def direction(rc, rd=rd, re=re, ri=ri, s=s, mu=mu, LU=LU, piv=piv):
             return _direction(rc, rd, re, ri, s, mu, LU, piv, ineq, n, mi)
@@ -443,7 +446,9 @@ class _QPFunction(torch.autograd.Function):
         K = z.new_zeros(B, n + me + mi, n + me + mi)
         K[:, :n, :n] = Hs
         K[:, :n, n : n + me] = A.mT
-        K[:, :n, n + me :] = G.mT
+        # inactive rows' multipliers do not enter the gradients (they are masked below),
+        # so their columns in the stationarity rows are dropped: K is symmetric
+        K[:, :n, n + me :] = G.mT * actf.unsqueeze(-2)
         K[:, n : n + me, :n] = A
         K[:, n + me :, :n] = actf.unsqueeze(-1) * G
         K[:, n + me :, n + me :] = torch.diag_embed(1.0 - actf)
@@ -458,7 +463,8 @@ class _QPFunction(torch.autograd.Function):
             ],
             -1,
         )
-        zeta = -torch.linalg.solve(K.mT, g.unsqueeze(-1)).squeeze(-1)
+        LD, piv, _ = torch.linalg.ldl_factor_ex(K)
+        zeta = -torch.linalg.ldl_solve(LD, piv, g.unsqueeze(-1)).squeeze(-1)
         zz, zl, zm = zeta[:, :n], zeta[:, n : n + me], zeta[:, n + me :]
         zm = zm * actf
         gH = 0.5 * (zz.unsqueeze(-1) * z.unsqueeze(-2) + z.unsqueeze(-1) * zz.unsqueeze(-2))
