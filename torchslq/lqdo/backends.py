@@ -352,7 +352,7 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
     scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     eye_reg = torch.eye(n + me, dtype=dt, device=dev)
-    # a tiny regularisation of the KKT diagonal (primal +, dual -) keeps LU stable when
+    # a tiny regularisation of the KKT diagonal (primal +, dual -) keeps LDL' stable when
     # H is singular on the constraints' null space only up to rounding
     reg = torch.cat([torch.full((n,), 1e-13), torch.full((me,), -1e-13)]).to(dt).to(dev)
     it = 0
