@@ -8,7 +8,7 @@
   (Mehrotra predictor-corrector) on dense KKT systems in torch, for many small QPs at
   once on the CPU or a GPU, differentiable in every problem tensor by implicit
   differentiation of the KKT conditions at the solution (OptNet, Amos & Kolter 2017):
-  the backward pass is one linear solve with the transposed KKT matrix of the active set.
+  the backward pass is one symmetric (LDL') solve with the KKT matrix of the active set.
 
 Both return a :class:`QPSolution` with the multipliers in the convention
 ``H z + f + A' lam + G' mu = 0`` (``mu >= 0``), which the two-level method uses for its
