@@ -3,12 +3,21 @@ KKT solve's) solution; a batch equals per-element solves."""
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from torchslq.lqdo import LQDOProblem, Quasilinearization, transcribe
 from torchslq.lqdo.backends import solve_dense
 
-torch.set_default_dtype(torch.float64)
+
+@pytest.fixture(autouse=True)
+def _float64_default():
+    """float64 by default in this module's tests (restored afterwards: the other test
+    modules in the same worker keep theirs)."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
 
 
 def lq(bounded: bool) -> LQDOProblem:

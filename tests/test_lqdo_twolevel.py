@@ -13,7 +13,15 @@ from torchslq.lqdo import transcribe
 from torchslq.lqdo.cases import codesign_closed_form, codesign_transfer, suspension
 from torchslq.lqdo.twolevel import TwoLevel
 
-torch.set_default_dtype(torch.float64)
+
+@pytest.fixture(autouse=True)
+def _float64_default():
+    """float64 by default in this module's tests (restored afterwards: the other test
+    modules in the same worker keep theirs)."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
 
 
 @pytest.mark.parametrize("backend", ["dense", "clarabel"])
