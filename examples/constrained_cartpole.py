@@ -24,7 +24,7 @@ The model is the zoo's :class:`torchslq.systems.CartPole` (the one
 a plain :class:`torchslq.ContinuousDynamics` (:class:`UserCartPole`: no analytic
 derivatives, no compiled hooks), which gives the same solution more slowly.
 
-    python examples/constrained_cartpole.py                   # B = 64
+    python examples/constrained_cartpole.py                   # B = 64, about 25 s (1 core)
     python examples/constrained_cartpole.py --batch 512       # the issue's B
     python examples/constrained_cartpole.py --model user --batch 16
 """
