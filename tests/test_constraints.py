@@ -112,10 +112,11 @@ def certified_qp_solution(x0: np.ndarray, active: np.ndarray):
 
 def test_lq_with_constraints_matches_dense_qp():
     problem = lq_problem()
-    solver = ts.ILQR(constraints=lq_constraints(), tol=1e-10, progress=False)
+    # the loop's solution is as exact as its violation: 1e-8 for a 1e-6 comparison
+    solver = ts.ILQR(constraints=lq_constraints(), tol=1e-10, constraint_tol=1e-8, progress=False)
     r = solver.solve(problem, X0)
     assert (r.status == Status.CONVERGED).all(), r.status_names()
-    assert (r.max_violation <= 1e-6).all()
+    assert (r.max_violation <= 1e-8).all()
     lam, lam_T = r.multipliers["stage"], r.multipliers["terminal"]
     assert lam.shape == (4, T, 3) and lam_T.shape == (4, 2)
     for b in range(X0.shape[0]):

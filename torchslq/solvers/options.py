@@ -187,7 +187,7 @@ class ILQROptions(DescentOptions):
     constraints: Any = None
     constraint_tol: float | None = None
     penalty_init: float = 1.0
-    penalty_factor: float = 10.0
+    penalty_factor: float = 100.0
     penalty_max: float = 1e10
     al_max_iter: int = 30
     polish: bool = False
