@@ -114,8 +114,8 @@ def make_solver(
         constraints=make_constraints(s_max),
         constraint_tol=constraint_tol,
         al_max_iter=al_max_iter,
-        # the penalty grows 100x when the violation does not shrink fourfold: here the
-        # default 10x takes 1.5-2.5x the inner iterations to the same solution
+        # the penalty grows 100x when the violation does not shrink fourfold (the
+        # default; 10x took 1.5-2.5x the inner iterations to the same solution here)
         penalty_factor=penalty_factor,
         progress=False,
         **options,

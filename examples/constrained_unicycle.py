@@ -104,8 +104,8 @@ def make_solver(
         u_max=torch.tensor([V_MAX, W_MAX]),
         constraints=make_constraints(),
         constraint_tol=constraint_tol,
-        # the penalty grows 100x when the violation does not shrink fourfold: here the
-        # default 10x takes 1.5-2.5x the inner iterations to the same solution
+        # the penalty grows 100x when the violation does not shrink fourfold (the
+        # default; 10x took 1.5-2.5x the inner iterations to the same solution here)
         penalty_factor=penalty_factor,
         progress=False,
         **options,
