@@ -14,7 +14,13 @@ from pathlib import Path
 import torch
 
 SOLVERS = ("slq", "ilqr", "ddp")
-REPRODUCTIONS = ("sideris-table1", "sideris-hopper", "gopronto-fig5", "lqdo-small", "continuous-ilqr")
+REPRODUCTIONS = (
+    "sideris-table1",
+    "sideris-hopper",
+    "gopronto-fig5",
+    "lqdo-small",
+    "continuous-ilqr",
+)
 DTYPES = {"float64": torch.float64, "float32": torch.float32}
 
 
