@@ -16,6 +16,17 @@ def single_thread():
     torch.set_num_threads(n)
 
 
+@pytest.fixture
+def float64_default():
+    """float64 as torch's default dtype for the test, restored afterwards (a module-level
+    ``set_default_dtype`` would leak into other modules' tests in the same worker).
+    Modules opt in with ``pytestmark = pytest.mark.usefixtures("float64_default")``."""
+    old = torch.get_default_dtype()
+    torch.set_default_dtype(torch.float64)
+    yield
+    torch.set_default_dtype(old)
+
+
 BACKENDS = ("compiled", "torch")
 
 

@@ -11,15 +11,7 @@ from torchslq import Status
 from torchslq.lqdo import Quasilinearization, transcribe
 from torchslq.lqdo.cases import codesign_transfer, container_crane, crane_initial_guess, van_der_pol
 
-
-@pytest.fixture(autouse=True)
-def _float64_default():
-    """float64 by default in this module's tests (restored afterwards: the other test
-    modules in the same worker keep theirs)."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 @pytest.mark.parametrize("method,N,v,iters", [("TR", 20, 0.0380, 3), ("PS", 10, 0.0376, 4)])

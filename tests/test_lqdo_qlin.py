@@ -9,15 +9,7 @@ import torch
 from torchslq.lqdo import LQDOProblem, Quasilinearization, transcribe
 from torchslq.lqdo.backends import solve_dense
 
-
-@pytest.fixture(autouse=True)
-def _float64_default():
-    """float64 by default in this module's tests (restored afterwards: the other test
-    modules in the same worker keep theirs)."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def lq(bounded: bool) -> LQDOProblem:

@@ -11,15 +11,7 @@ import torch
 from torchslq.lqdo import LQDOProblem, transcribe
 from torchslq.lqdo.backends import qp_solve, solve_dense, solve_sparse
 
-
-@pytest.fixture(autouse=True)
-def _float64_default():
-    """float64 by default in this module's tests (restored afterwards: the other test
-    modules in the same worker keep theirs)."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def known_qp(B=3, n=6, me=2, mi=5, n_act=2, seed=0, dtype=torch.float64, bounds=False):

@@ -10,15 +10,7 @@ import torch
 
 from torchslq.lqdo import LQDOProblem, detect_olq, lgl, transcribe
 
-
-@pytest.fixture(autouse=True)
-def _float64_default():
-    """float64 by default in this module's tests (restored afterwards: the other test
-    modules in the same worker keep theirs)."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 def poly_problem(coef, t0=0.5, tf=2.0, lagrange_deg=None):

@@ -13,15 +13,7 @@ from torchslq.lqdo import transcribe
 from torchslq.lqdo.cases import codesign_closed_form, codesign_transfer, suspension
 from torchslq.lqdo.twolevel import TwoLevel
 
-
-@pytest.fixture(autouse=True)
-def _float64_default():
-    """float64 by default in this module's tests (restored afterwards: the other test
-    modules in the same worker keep theirs)."""
-    old = torch.get_default_dtype()
-    torch.set_default_dtype(torch.float64)
-    yield
-    torch.set_default_dtype(old)
+pytestmark = pytest.mark.usefixtures("float64_default")
 
 
 @pytest.mark.parametrize("backend", ["dense", "clarabel"])
