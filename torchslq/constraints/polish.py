@@ -112,12 +112,13 @@ def polish(
     tol: float,
     constraint_tol: float,
     steps: int = 3,
-) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Up to ``steps`` Newton steps (module docstring) from ``(x (B,T+1,n), u (B,T,m))``
     with multipliers ``nu_s``, ``nu_T`` and control bounds ``lo``, ``hi`` ``(B,T,m)``
-    (or None). Returns ``(x, u, nu_s, nu_T, ok)``: the polished point (the input where
-    no step helped) and ``ok (B,)``, whether it meets ``constraint_tol`` and ``tol``
-    with nonnegative inequality multipliers."""
+    (or None). Returns ``(x, u, nu_s, nu_T, ok, violation, grad_norm)``: the polished point
+    (the input where no step helped), ``ok (B,)``, whether it meets ``constraint_tol``
+    and ``tol`` with nonnegative inequality multipliers, and its largest violation and
+    projected Lagrangian gradient norm ``(B,)`` (:func:`kkt_error`)."""
     Bsz, T, m = u.shape
     n = x.shape[-1]
     k = n + m
@@ -136,11 +137,10 @@ def polish(
             problem, constraints, stage_eq, terminal_eq, xx, uu, ns, nt, lo, hi
         )
         s = torch.maximum(torch.maximum(viol / constraint_tol, grad / tol), neg / tol)
-        return torch.nan_to_num(s, nan=float("inf")), (viol <= constraint_tol) & (grad <= tol) & (
-            neg <= tol
-        )
+        ok = (viol <= constraint_tol) & (grad <= tol) & (neg <= tol)
+        return torch.nan_to_num(s, nan=float("inf")), ok, viol, grad
 
-    best, ok = score(x, u, nu_s, nu_T)
+    best, ok, viol, grad = score(x, u, nu_s, nu_T)
     for _ in range(steps):
         if bool(ok.all()):
             break
@@ -162,13 +162,14 @@ def polish(
             x_new = rollout(problem.transition, x0, u_new)
             ns_new = torch.where(act_s, nu_s + step[:, c_rows].reshape(Bsz, T, p), 0.0)
             nt_new = torch.where(act_T, nu_T + step[:, t_rows], 0.0)
-        s_new, ok_new = score(x_new, u_new, ns_new, nt_new)
+        s_new, ok_new, viol_new, grad_new = score(x_new, u_new, ns_new, nt_new)
         better = solved & (s_new < best)
         b3 = better.view(-1, 1, 1)
         x, u = torch.where(b3, x_new, x), torch.where(b3, u_new, u)
         nu_s, nu_T = torch.where(b3, ns_new, nu_s), torch.where(better.view(-1, 1), nt_new, nu_T)
         best = torch.where(better, s_new, best)
         ok = torch.where(better, ok_new, ok)
+        viol, grad = torch.where(better, viol_new, viol), torch.where(better, grad_new, grad)
         if not bool(better.any()):
             break
-    return x, u, nu_s, nu_T, ok
+    return x, u, nu_s, nu_T, ok, viol, grad

@@ -140,6 +140,15 @@ class Constraints(nn.Module):
         sign, idx, off = self._bound_rows(x.shape[-1], x)
         return sign * (x.index_select(-1, idx) - off)
 
+    def _bound_jacobian(self, x: Tensor) -> Tensor | None:
+        """``(..., r, n)``: the bound rows' (constant) Jacobian at ``x (..., n)``."""
+        if self.x_min is None and self.x_max is None:
+            return None
+        sign, idx, _ = self._bound_rows(x.shape[-1], x)
+        rows = torch.zeros(idx.numel(), x.shape[-1], dtype=x.dtype, device=x.device)
+        rows[torch.arange(idx.numel(), device=x.device), idx] = sign
+        return rows.expand(*x.shape[:-1], *rows.shape)
+
     def stage_values(self, x: Tensor, u: Tensor, t: Tensor) -> Tensor | None:
         """``(..., T, p)`` at ``x (..., T, n)``, ``u (..., T, m)`` (None: no stage rows)."""
         parts = []
@@ -176,13 +185,10 @@ class Constraints(nn.Module):
                 cx, cu = _row_jacobians(lambda a, b: self._stage_fn(a, b, t), x, u)
             parts_x.append(cx)
             parts_u.append(cu)
-        if self.x_min is not None or self.x_max is not None:
-            sign, idx, _ = self._bound_rows(x.shape[-1], x)
-            rows = torch.zeros(idx.numel(), x.shape[-1], dtype=x.dtype, device=x.device)
-            rows[torch.arange(idx.numel(), device=x.device), idx] = sign
-            lead = x.shape[:-1]
-            parts_x.append(rows.expand(*lead, *rows.shape))
-            parts_u.append(x.new_zeros(*lead, idx.numel(), u.shape[-1]))
+        rows = self._bound_jacobian(x)
+        if rows is not None:
+            parts_x.append(rows)
+            parts_u.append(x.new_zeros(*rows.shape[:-1], u.shape[-1]))
         return _cat(parts_x, 2), _cat(parts_u, 2)
 
     def terminal_jacobian(self, x: Tensor) -> Tensor | None:
@@ -193,11 +199,9 @@ class Constraints(nn.Module):
                 parts.append(self._terminal_jac(x))
             else:
                 parts.append(_row_jacobians(lambda a: self._terminal_fn(a), x)[0])
-        if self.x_min is not None or self.x_max is not None:
-            sign, idx, _ = self._bound_rows(x.shape[-1], x)
-            rows = torch.zeros(idx.numel(), x.shape[-1], dtype=x.dtype, device=x.device)
-            rows[torch.arange(idx.numel(), device=x.device), idx] = sign
-            parts.append(rows.expand(*x.shape[:-1], *rows.shape))
+        rows = self._bound_jacobian(x)
+        if rows is not None:
+            parts.append(rows)
         if not parts:
             return None
         return _cat(parts, 2)

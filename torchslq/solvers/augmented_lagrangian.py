@@ -28,14 +28,14 @@ import torch
 from torch import Tensor
 
 from ..constraints.augmented import AugmentedLagrangianCost, multiplier_estimate
-from ..constraints.polish import kkt_error, polish
+from ..constraints.polish import polish
 from ..constraints.spec import ConstraintSet, max_violation
 from ..costs.quadratic import compiled_cost_evaluation
 from ..dynamics.rollout import rollout
 from ..problem import Problem
 from ..status import Status
 from .base import checked_x_init
-from .core import Advance, ElementState, LoopSettings, Measure, iterate
+from .core import Advance, ElementState, LoopSettings, Measure, _put, iterate
 from .options import loggable
 from .result import SolverResult
 
@@ -294,7 +294,7 @@ def solve_constrained(
         max_violation=s.violation,
         outer_iterations=outer,
     )
-    result = solver.finish(result, inner.prepare(problem, x0, u, None)[2])
+    result = solver.finish(result, extra)
     if logger is not None:
         logger.log_result(result, problem)
     return result.squeeze_batch() if unbatched else result
@@ -354,17 +354,13 @@ def _polish_and_resume(
         return s, status, grad_norm, outer
     sub = s.take(idx)
     take = (lambda t: t) if idx is None else (lambda t: None if t is None else t[idx])
-    x, u, lam, lam_T, ok = polish(
+    x, u, lam, lam_T, ok, viol, gnorm = polish(
         problem, rule.constraints, rule.stage_eq, rule.terminal_eq, sub.x, sub.u, sub.lam,
         sub.lam_T, take(lo), take(hi), tol=rule.tol, constraint_tol=rule.constraint_tol,
     )  # fmt: skip
     if idx is None:
         ok = ok & cand
     keep = ok.view(-1, 1, 1)
-    viol, gnorm, _ = kkt_error(
-        problem, rule.constraints, rule.stage_eq, rule.terminal_eq, x, u, lam, lam_T,
-        take(lo), take(hi),
-    )  # fmt: skip
     polished = replace(
         sub,
         x=torch.where(keep, x, sub.x),
@@ -391,7 +387,3 @@ def _polish_and_resume(
     grad_norm = grad_norm.index_copy(0, redo, out.grad_norm)
     outer = outer.index_copy(0, redo, outer[redo] + out.iterations)
     return s, status, grad_norm, outer
-
-
-def _put(full: Tensor, idx: Tensor | None, part: Tensor) -> Tensor:
-    return part if idx is None else full.index_copy(0, idx, part)
