@@ -56,16 +56,68 @@ def test_compact_with_a_failing_element():
     _same(full, comp)
 
 
-def test_compact_refuses_per_element_problem_tensors():
-    beta = torch.tensor([[0.1], [0.5]], dtype=torch.float64)
-    cost = ts.QuadraticCost(torch.eye(2, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
-    problem = ts.Problem(DragVehicle(beta=beta), cost, 10)
-    with pytest.raises(ValueError, match="compact"):
-        ts.SLQ(compact=True, progress=False).solve(problem, torch.zeros(2, 2, dtype=torch.float64))
-    with pytest.raises(ValueError, match="compact"):
-        ts.GradientMethod(compact=True, progress=False).solve(
-            problem, torch.zeros(2, 2, dtype=torch.float64)
-        )
+def _goal_per_element_problem(B: int, width: int | None = None):
+    """Cart-pole-free small problem with per-element data: a (B, 1) drag per element and
+    a (B, T+1, n) goal per element; with ``width`` the model is a learned MLP instead."""
+    torch.manual_seed(0)
+    T, n = 15, 2
+    x_ref = torch.zeros(B, T + 1, n, dtype=torch.float64)
+    x_ref[:, :, 0] = torch.linspace(0.5, 2.0, B, dtype=torch.float64)[:, None]
+    cost = ts.QuadraticCost(
+        torch.eye(n, dtype=torch.float64), 0.1 * torch.eye(1, dtype=torch.float64), x_ref=x_ref
+    )
+    if width is None:
+        beta = torch.linspace(0.1, 0.9, B, dtype=torch.float64)[:, None]
+        model = DragVehicle(beta=beta)
+    else:
+        net = torch.nn.Sequential(
+            torch.nn.Linear(3, width), torch.nn.Tanh(), torch.nn.Linear(width, 2)
+        ).double()
+        with torch.no_grad():
+            for p in net.parameters():
+                p.mul_(0.3)
+        model = ts.LearnedDynamics(net, 2, 1)
+    x0 = 0.3 * torch.randn(B, n, dtype=torch.float64)
+    return ts.Problem(model, cost, T), x0
+
+
+@pytest.mark.parametrize("width", [None, 8])
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda **kw: ts.SLQ(max_iter=60, progress=False, **kw),
+        lambda **kw: ts.ILQR(max_iter=60, progress=False, **kw),
+        lambda **kw: ts.DDP(max_iter=40, progress=False, **kw),
+    ],
+)
+def test_compact_with_per_element_problem_data(make, width):
+    """A goal per element (B, T+1, n) and a drag per element (B, 1) follow the running
+    subset; a learned model whose layer is as wide as the batch (8) is not taken for
+    per-element data. Each element equals its own solve as a batch of one."""
+    B = 8
+    problem, x0 = _goal_per_element_problem(B, width)
+    assert problem.per_element_tensor(B) == ("cost.x_ref" if width else "dynamics.beta")
+    comp = make(compact=True).solve(problem, x0)
+    full = make().solve(problem, x0)
+    assert len(set(full.iterations.tolist())) > 1  # the working set shrinks
+    assert comp.status_names() == full.status_names()
+    torch.testing.assert_close(comp.u, full.u, rtol=0, atol=1e-10)
+    for i in (0, 5):
+        one = make().solve(problem.take(torch.tensor([i]), B), x0[i : i + 1])
+        torch.testing.assert_close(comp.u[i : i + 1], one.u, rtol=0, atol=1e-6)
+        torch.testing.assert_close(comp.cost[i : i + 1], one.cost, rtol=1e-10, atol=0)
+
+
+def test_problem_take_indexes_only_per_element_tensors():
+    B = 4
+    problem, _ = _goal_per_element_problem(B, width=B)
+    idx = torch.tensor([3, 1])
+    sub = problem.take(idx, B)
+    assert torch.equal(sub.cost.x_ref, problem.cost.x_ref[idx])
+    assert sub.dynamics.net is problem.dynamics.net  # the network's weights are shared
+    assert problem.cost.x_ref.shape[0] == B  # the original is unchanged
+    shared, _ = _goal_per_element_problem(1)
+    assert shared.take(torch.tensor([0]), 1) is shared
 
 
 @pytest.mark.parametrize("module", ["ilqr", "slq"])

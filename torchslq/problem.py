@@ -10,6 +10,7 @@ from torch import Tensor, nn
 from .dynamics.base import ContinuousDynamics, state_control_dims
 from .dynamics.linearize import as_transition
 from .dynamics.rollout import rollout
+from .per_element import per_element_names, take_per_element
 
 __all__ = ["Problem"]
 
@@ -66,16 +67,18 @@ class Problem(nn.Module):
         return self.cost(self.rollout(x0, u), u)
 
     def per_element_tensor(self, batch_size: int) -> str | None:
-        """Name of a registered tensor holding per-element data for a batch of
-        ``batch_size`` (2-D or more, leading with the batch size: ``(B, 1)``,
-        ``(B, T, n, n)``, ...), or None when all problem data are batch-shared (so the
-        problem can be solved on any sub-batch, e.g. by ``compact=True``)."""
-        if batch_size <= 1:
-            return None
-        for name, t in list(self.named_parameters()) + list(self.named_buffers()):
-            if t.ndim >= 2 and t.shape[0] == batch_size and tuple(t.shape) != (batch_size,) * 2:
-                return name
-        return None
+        """Name of the first registered tensor holding per-element data for a batch of
+        ``batch_size`` (``(B, 1)``, ``(B, T+1, n)``, ...; the rule is in
+        :mod:`torchslq.per_element`), or None when all problem data are batch-shared."""
+        names = per_element_names(self, batch_size)
+        return names[0] if names else None
+
+    def take(self, idx: Tensor, batch_size: int) -> Problem:
+        """The problem for the sub-batch ``idx`` of a batch of ``batch_size``: each
+        per-element tensor indexed with ``idx`` (a shallow copy; ``self`` itself when
+        the data are batch-shared). Solvers use it to work on the running elements only
+        (``compact=True``)."""
+        return take_per_element(self, idx, batch_size)
 
     def check_inputs(self, x0: Tensor, u_init: Tensor | None) -> tuple[Tensor, Tensor, bool]:
         """Validate and batch ``x0`` ``(B, n)`` or ``(n,)`` and ``u_init``; returns

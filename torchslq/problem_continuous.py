@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from .dynamics.base import state_control_dims
+from .per_element import per_element_names
 
 __all__ = ["ContinuousProblem"]
 
@@ -73,12 +74,8 @@ class ContinuousProblem(nn.Module):
     def per_element_tensor(self, batch_size: int) -> str | None:
         """Name of a registered tensor leading with ``batch_size`` (per-element data), or
         None (as :meth:`torchslq.Problem.per_element_tensor`)."""
-        if batch_size <= 1:
-            return None
-        for name, t in list(self.named_parameters()) + list(self.named_buffers()):
-            if t.ndim >= 2 and t.shape[0] == batch_size and tuple(t.shape) != (batch_size,) * 2:
-                return name
-        return None
+        names = per_element_names(self, batch_size)
+        return names[0] if names else None
 
     def check_x0(self, x0: Tensor) -> tuple[Tensor, bool]:
         """``x0`` as ``(B, n)`` and whether it was unbatched ``(n,)``."""

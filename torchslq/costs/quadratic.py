@@ -101,7 +101,7 @@ class QuadraticCost(nn.Module):
         if Qf is not None:
             _check_symmetric("Qf", Qf, psd=True)
         self.state_dim, self.control_dim = n, m
-        self._diagonal_cache: dict[str, tuple] = {}  # name -> ((id, version), diagonal?)
+        self._diagonal_cache: dict[str, tuple] = {}  # name -> (tensor, version, diagonal?)
         _register(self, "Q", Q)
         _register(self, "R", R)
         _register(self, "Qf", Qf)
@@ -196,15 +196,30 @@ class QuadraticCost(nn.Module):
 
     def _diagonal(self, name: str) -> bool:
         """Whether weight ``name`` is diagonal; one host sync per new value (cached on
-        the tensor's identity and version, so in-place parameter updates re-check)."""
+        the tensor itself and its version, so in-place parameter updates re-check; the
+        cache holds the tensor, so its identity cannot pass to another one)."""
         W = getattr(self, name)
-        key = (id(W), W._version)
         cache = self._diagonal_cache
-        if cache.get(name, (None, None))[0] != key:
+        held = cache.get(name)
+        if held is None or held[0] is not W or held[1] != W._version:
             Wd = W.detach()
             off = Wd - torch.diag_embed(Wd.diagonal(dim1=-2, dim2=-1))
-            cache[name] = (key, not bool(off.any()))
-        return cache[name][1]
+            cache[name] = (W, W._version, not bool(off.any()))
+        return cache[name][2]
+
+    def per_element_names(self, batch_size: int) -> list[str]:
+        """The weights and targets given per batch element (``(B, T, n, n)`` ``Q``,
+        ``(B, T+1, n)`` ``x_ref``, ...) for a batch of ``batch_size``; see
+        :mod:`torchslq.per_element`."""
+        full = {"Q": 4, "R": 4, "Qf": 3, "x_ref": 3, "u_ref": 3}
+        return [
+            name
+            for name, ndim in full.items()
+            if (t := getattr(self, name)) is not None
+            and t.ndim == ndim
+            and t.shape[0] == batch_size
+            and batch_size > 1
+        ]
 
     def quadratize(self, x: Tensor, u: Tensor) -> CostExpansion:
         """Exact second-order expansion (the cost is quadratic): gradients

@@ -43,6 +43,11 @@ class LearnedDynamics(Dynamics):
         self.control_dim = int(control_dim)
         self.residual = residual
 
+    def per_element_names(self, batch_size: int) -> list[str]:
+        """None: a network's weights are shared by the batch whatever their shape (a
+        layer as wide as the batch is still one layer); see :mod:`torchslq.per_element`."""
+        return []
+
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         out = self.net(torch.cat([x, u], dim=-1))
         return x + out if self.residual else out

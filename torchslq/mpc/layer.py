@@ -104,11 +104,10 @@ class MPC(nn.Module):
             converge: ``"warn"``, ``"raise"`` or ``"zero"``.
         unroll_iters: iterations for ``backward="unroll"`` (default: the solver's
             ``max_iter``).
-        compact: ``"auto"`` (default): when the problem data are batch-shared, the
-            forward solve iterates only on the elements still running (the solver's
-            ``compact=True``; same results, the batch does not wait for its slowest
-            member); ``True``/``False``: always / never (``True`` fails for per-element
-            problem tensors).
+        compact: ``"auto"`` (default) or ``True``: the forward solve iterates only on
+            the elements still running (the solver's ``compact=True``; same results, the
+            batch does not wait for its slowest member; per-element problem data such
+            as a goal per element follow the running subset); ``False``: never.
         constraints: optional :class:`torchslq.Constraints` (or a list): state, path and
             terminal constraints, solved by the solver's augmented-Lagrangian loop
             (needs :class:`torchslq.ILQR`/:class:`torchslq.DDP`). The backward pass holds
@@ -332,10 +331,7 @@ class MPC(nn.Module):
         if self._default_solver:
             changes["tol"] = DEFAULT_TOL.get(dtype, DEFAULT_TOL[torch.float32])
         if self._supports_compact():
-            compact = self.compact
-            if compact == "auto":
-                compact = self.problem.per_element_tensor(batch_size) is None
-            changes["compact"] = compact
+            changes["compact"] = self.compact in (True, "auto")
         if not changes:
             return self.solver
         key = tuple(sorted(changes.items()))

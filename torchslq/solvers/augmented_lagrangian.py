@@ -35,7 +35,7 @@ from ..dynamics.rollout import rollout
 from ..problem import Problem
 from ..status import Status
 from .base import checked_x_init
-from .core import Advance, ElementState, LoopSettings, Measure, _put, iterate
+from .core import Advance, ElementState, LoopSettings, Measure, iterate
 from .options import loggable
 from .result import SolverResult
 
@@ -94,8 +94,6 @@ class AugmentedLagrangian:
         tol: the inner gradient tolerance (the Lagrangian's stationarity).
         constraint_tol: the largest violation accepted.
         penalty_factor, penalty_max: the penalty schedule.
-        per_element_data: the problem has per-element tensors, so subproblems are
-            solved on the whole batch (finished elements' results are discarded).
         penalty_update: ``"progress"`` (raise ``ρ`` where the violation did not shrink
             fourfold) or ``"always"`` (wherever it is above ``constraint_tol``: ALTRO's
             and trajax's schedule).
@@ -111,7 +109,6 @@ class AugmentedLagrangian:
     constraint_tol: float
     penalty_factor: float
     penalty_max: float
-    per_element_data: bool = False
     curvature: bool = False
     penalty_update: str = "progress"
 
@@ -136,8 +133,9 @@ class AugmentedLagrangian:
         )
 
     def advance(self, problem: Problem, state: ALState, m: Measure, running: Tensor):
-        idx = None if self.per_element_data else running.nonzero().squeeze(1)
+        idx = running.nonzero().squeeze(1)
         sub = state.take(idx)
+        problem = problem.take(idx, state.J.shape[0])  # per-element data follow the subset
         al_cost = AugmentedLagrangianCost(
             problem.cost, self.constraints, sub.lam, sub.lam_T, sub.rho,
             self.stage_eq, self.terminal_eq, curvature=self.curvature,
@@ -181,18 +179,8 @@ class AugmentedLagrangian:
         infeasible = (rho >= self.penalty_max) & (viol > self.constraint_tol)
         end = torch.full_like(r.status, int(Status.RUNNING))
         end = end.masked_fill(infeasible, int(Status.INFEASIBLE))
-        if idx is None:
-            # the whole batch was solved: keep the finished elements as they were
-            keep = running
-
-            def pick(a: Tensor, b: Tensor) -> Tensor:
-                return torch.where(keep.view(-1, *([1] * (a.ndim - 1))), a, b)
-
-            new = replace(new, **{k: pick(v, getattr(sub, k)) for k, v in new._batched()})
-            end = torch.where(running, end, torch.full_like(end, int(Status.RUNNING)))
         state = state.put(idx, new)
-        if idx is not None:
-            end = torch.full_like(state.inner_status, int(Status.RUNNING)).index_copy(0, idx, end)
+        end = torch.full_like(state.inner_status, int(Status.RUNNING)).index_copy(0, idx, end)
         accept = running.clone()
         return Advance(state=state, accept=accept, step=torch.ones_like(state.J), end=end)
 
@@ -220,11 +208,9 @@ def solve_constrained(
     inner = solver.with_options(constraints=None, progress=False, compact=False)
     u, x_init, extra = inner.prepare(problem, x0, u, x_init)  # clamp into the control bounds
     lo, hi = extra.get("lo"), extra.get("hi")
-    per_element = problem.per_element_tensor(Bsz) is not None
-    # with polishing (and sub-batches possible) the loop stops at a looser violation and
-    # Newton steps on the active set finish; elements they fail resume the loop
-    resume = o.polish and not per_element
-    loop_ctol = max(ctol, POLISH_FROM) if resume else ctol
+    # with polishing the loop stops at a looser violation and Newton steps on the active
+    # set finish; elements they fail resume the loop
+    loop_ctol = max(ctol, POLISH_FROM) if o.polish else ctol
     rule = AugmentedLagrangian(
         inner=inner,
         constraints=cset,
@@ -234,7 +220,6 @@ def solve_constrained(
         constraint_tol=loop_ctol,
         penalty_factor=o.penalty_factor,
         penalty_max=o.penalty_max,
-        per_element_data=per_element,
         curvature=o.constraint_hessian == "exact",
         penalty_update=o.penalty_update,
     )
@@ -243,7 +228,7 @@ def solve_constrained(
         max_iter=o.al_max_iter,
         rtol=0.0,
         stall_iters=0,
-        compact=not per_element,
+        compact=True,
         progress=o.progress,
         name=solver.name,
     )
@@ -276,7 +261,7 @@ def solve_constrained(
         if o.polish:
             s, status, grad_norm, outer = _polish_and_resume(
                 problem, replace(rule, constraint_tol=ctol), settings, s, status, grad_norm,
-                outer, lo, hi, resume,
+                outer, lo, hi,
             )  # fmt: skip
     result = SolverResult(
         x=s.x,
@@ -343,45 +328,43 @@ def _polish_and_resume(
     outer: Tensor,
     lo: Tensor | None,
     hi: Tensor | None,
-    resume: bool,
 ) -> tuple[ALState, Tensor, Tensor, Tensor]:
     """Polish the converged elements (:func:`~torchslq.constraints.polish.polish`) to
-    ``rule``'s tolerances; with ``resume``, the elements it fails go back to the loop
-    (their multipliers and penalties as they were), the others keep the polished point."""
-    cand = status == Status.CONVERGED
-    idx = None if not resume else cand.nonzero().squeeze(1)
-    if idx is not None and idx.numel() == 0:
+    ``rule``'s tolerances; the elements it fails go back to the loop (their multipliers
+    and penalties as they were), the others keep the polished point."""
+    Bsz = s.J.shape[0]
+    idx = (status == Status.CONVERGED).nonzero().squeeze(1)
+    if idx.numel() == 0:
         return s, status, grad_norm, outer
     sub = s.take(idx)
-    take = (lambda t: t) if idx is None else (lambda t: None if t is None else t[idx])
+
+    def take(t: Tensor | None) -> Tensor | None:  # the bounds lead with the batch
+        return None if t is None else t[idx]
+
+    sub_problem = problem.take(idx, Bsz)
     x, u, lam, lam_T, ok, viol, gnorm = polish(
-        problem, rule.constraints, rule.stage_eq, rule.terminal_eq, sub.x, sub.u, sub.lam,
+        sub_problem, rule.constraints, rule.stage_eq, rule.terminal_eq, sub.x, sub.u, sub.lam,
         sub.lam_T, take(lo), take(hi), tol=rule.tol, constraint_tol=rule.constraint_tol,
     )  # fmt: skip
-    if idx is None:
-        ok = ok & cand
     keep = ok.view(-1, 1, 1)
     polished = replace(
         sub,
         x=torch.where(keep, x, sub.x),
         u=torch.where(keep, u, sub.u),
-        J=torch.where(ok, problem.cost(x, u), sub.J),
+        J=torch.where(ok, sub_problem.cost(x, u), sub.J),
         lam=torch.where(keep, lam, sub.lam),
         lam_T=torch.where(ok.view(-1, 1), lam_T, sub.lam_T),
         violation=torch.where(ok, viol, sub.violation),
         inner_grad=torch.where(ok, gnorm, sub.inner_grad),
     )
     s = s.put(idx, polished)
-    gsub = grad_norm if idx is None else grad_norm[idx]
-    grad_norm = _put(grad_norm, idx, torch.where(ok, gnorm, gsub))
-    if not resume:
-        return s, status, grad_norm, outer
+    grad_norm = grad_norm.index_copy(0, idx, torch.where(ok, gnorm, grad_norm[idx]))
     redo = idx[~ok]
     if redo.numel() == 0:
         return s, status, grad_norm, outer
     # the elements the Newton steps could not finish: the loop at the strict tolerances
     again = replace(s.take(redo), inner_tol=torch.full_like(s.J[redo], rule.tol))
-    out = iterate(rule, problem, again, replace(settings, progress=False))
+    out = iterate(rule, problem.take(redo, Bsz), again, replace(settings, progress=False))
     s = s.put(redo, out.state)
     status = status.index_copy(0, redo, out.status)
     grad_norm = grad_norm.index_copy(0, redo, out.grad_norm)

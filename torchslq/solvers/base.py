@@ -46,18 +46,6 @@ def checked_x_init(x_init: Tensor, x0: Tensor, T: int) -> Tensor:
     return x.detach().clone()
 
 
-def check_compact(problem: Problem, batch_size: int) -> None:
-    """``compact=True`` solves sub-batches: refuse problems with per-element tensors."""
-    name = problem.per_element_tensor(batch_size)
-    if name is not None:
-        tensors = dict(problem.named_parameters()) | dict(problem.named_buffers())
-        shape = tuple(tensors[name].shape)
-        raise ValueError(
-            f"compact=True needs batch-shared problem data, but {name!r} has shape "
-            f"{shape} (batch size {batch_size}); use compact=False"
-        )
-
-
 class Solver:
     """Base of the public solvers: an immutable options object and capabilities.
 
@@ -188,8 +176,6 @@ class DescentSolver(Solver):
         x0, u, unbatched = problem.check_inputs(x0, u_init)
         if x_init is not None:
             x_init = checked_x_init(x_init, x0, problem.horizon)
-        if o.compact:
-            check_compact(problem, x0.shape[0])
         u, x_init, extra = self.prepare(problem, x0, u, x_init)
         record = o.record(self.name)
         # every cost of the loop is evaluated without autograd, so quadratic costs may use

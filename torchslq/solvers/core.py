@@ -245,7 +245,9 @@ def iterate(
             times.append(time.perf_counter() - t_start)
             break
         sub, run = state.take(idx), _take(running, idx)
-        sub, m = rule.measure(problem, sub, run, it)
+        # per-element problem data (a goal per element, (B, 1) masses) follow the subset
+        prob = problem if idx is None else problem.take(idx, Bsz)
+        sub, m = rule.measure(prob, sub, run, it)
         grad_norm = _put(grad_norm, idx, torch.where(run, m.grad_norm, _take(grad_norm, idx)))
         # the rule reports its cost and extra quantities for its whole working set
         cost = _put(cost, idx, m.cost)
@@ -271,7 +273,7 @@ def iterate(
             state = state.put(idx, sub)
             break
         J_old = sub.J
-        adv = rule.advance(problem, sub, m, run)
+        adv = rule.advance(prob, sub, m, run)
         accept = run & adv.accept
         st = torch.where(run & (adv.end != int(Status.RUNNING)), adv.end, st)
         J_new = adv.state.J

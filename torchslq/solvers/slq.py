@@ -60,9 +60,10 @@ class SLQ(DescentSolver):
             (None): ``(1, 3)`` on the CPU, ``(4, None)`` on other devices.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: show a tqdm bar when a solve takes longer than a second.
-        compact: compute each iteration only on the elements still running. Only for
-            problems without per-element tensors (``solve`` refuses a problem with a
-            registered tensor (2-D or more) leading with the batch size). Off by default.
+        compact: compute each iteration only on the elements still running; per-element
+            problem data (a goal per element, a ``(B, 1)`` mass) are indexed with the
+            running subset (:meth:`torchslq.Problem.take`, rules in
+            :mod:`torchslq.per_element`). Same results; off by default.
     """
 
     name: ClassVar[str] = "slq"
