@@ -184,6 +184,26 @@ def test_sharded_solve_one_process_and_manifest_mismatch(tmp_path):
         load_sharded(tmp_path)
 
 
+def test_sharded_solve_cuts_per_element_problem_data_like_x0(tmp_path):
+    """A goal per row (``x_ref (N, T+1, n)``) is cut into shards with ``x0``: the
+    assembled result equals the one-batch solve (no sub-batching there)."""
+    import torchslq as ts
+
+    problem, x0, solver = _task()
+    n = problem.state_dim
+    x_ref = torch.zeros(N, T_SOLVE + 1, n, dtype=x0.dtype)
+    x_ref[:, :, 0] = torch.linspace(2.5, 3.5, N, dtype=x0.dtype)[:, None]
+    c = problem.cost
+    cost = ts.QuadraticCost(c.Q, c.R, c.Qf, x_ref=x_ref)
+    goals = ts.Problem(problem.dynamics, cost, problem.horizon)
+    solve_sharded(solver, goals, x0, tmp_path, shard_size=4)
+    res, ref = load_sharded(tmp_path), solver.solve(goals, x0)
+    _compare(res, ref)
+    # the goals matter (a misaligned cut could not match the one-batch solve)
+    shared = solver.solve(problem, x0)
+    assert float((res.u - shared.u).abs().amax()) > 1e-2
+
+
 def test_cli_sharded_solve_with_two_workers(tmp_path, capsys):
     from torchslq.cli import main
 

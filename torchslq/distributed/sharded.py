@@ -170,8 +170,9 @@ def solve_sharded(
     Args:
         solver: any torchslq solver (``solve(problem, x0, u_init)`` returning a
             :class:`~torchslq.SolverResult`).
-        problem: a :class:`~torchslq.Problem` whose data are shared by the batch (a
-            per-element tensor would not line up with a shard's rows).
+        problem: a :class:`~torchslq.Problem`; per-element data (tensors leading with
+            ``N``, e.g. a goal per row; :mod:`torchslq.per_element`) are cut into
+            shards like ``x0``.
         x0: ``(N, n)`` initial states, the same on every process.
         out_dir: output folder (created).
         shard_size: rows per shard (the batch of one solve).
@@ -193,15 +194,7 @@ def solve_sharded(
             f"got {getattr(u_init, 'shape', u_init)}"
         )
     bounds = shard_bounds(int(x0.shape[0]), shard_size)
-    per_element = getattr(problem, "per_element_tensor", lambda b: None)(shard_size)
-    per_element = per_element or getattr(problem, "per_element_tensor", lambda b: None)(
-        int(x0.shape[0])
-    )
-    if per_element is not None:
-        raise ValueError(
-            f"problem has per-element data ({per_element!r} leads with the batch size): "
-            "solve_sharded needs problem data shared by the batch"
-        )
+    N = int(x0.shape[0])
     group = dist.is_available() and dist.is_initialized()
     g_rank, g_world = (dist.get_rank(), dist.get_world_size()) if group else (0, 1)
     rank = g_rank if rank is None else rank
@@ -238,7 +231,10 @@ def solve_sharded(
     for i in mine:
         start, stop = bounds[i]
         u = None if u_init is None else u_init[start:stop]
-        result = solver.solve(problem, x0[start:stop], u)
+        rows = torch.arange(start, stop, device=x0.device)
+        # per-element problem data (a goal per row) are cut like x0
+        shard_problem = problem.take(rows, N) if hasattr(problem, "take") else problem
+        result = solver.solve(shard_problem, x0[start:stop], u)
         _write_atomic(out, shard_path(out, i), result.save)
     if group:
         dist.barrier()
