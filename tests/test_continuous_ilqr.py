@@ -232,10 +232,11 @@ def test_failure_is_per_element():
         control_dim=1,
     )
     problem = ContinuousProblem(Blowup(), cost, 0.0, 1.0)
-    x0 = torch.tensor([[0.5], [3.0], [-0.5]], dtype=D)
+    # and a NaN initial state is its element's status too (not an error for the batch)
+    x0 = torch.tensor([[0.5], [3.0], [-0.5], [float("nan")]], dtype=D)
     solver = ContinuousILQR(tol=1e-7, rtol=1e-5, atol=1e-7, progress=False, max_steps=500)
     res = solver.solve(problem, x0)
-    assert res.status_names() == ["converged", "non_finite", "converged"]
+    assert res.status_names() == ["converged", "non_finite", "converged", "non_finite"]
     good = solver.solve(problem, x0[[0, 2]])
     torch.testing.assert_close(res.cost[[0, 2]], good.cost, rtol=1e-6, atol=0)
 

@@ -216,3 +216,143 @@ def test_a_nan_jacobian_is_non_finite_under_every_solver(make):
     problem = ts.Problem(_NanJacobian(), _cost(), 10)
     x0 = torch.tensor([[0.5, 0.0], [2.5, 0.0]], dtype=F64)
     assert make(progress=False).solve(problem, x0).status_names() == ["converged", "non_finite"]
+
+
+# ------------------------------------------------------------------ one granularity rule
+# A fault confined to some batch elements gives those elements a status and the batch
+# goes on; a fault in data shared by the whole batch (or a malformed argument) is an
+# error naming the argument.
+
+_SOLVERS = [
+    lambda: ts.SLQ(max_iter=40, progress=False),
+    lambda: ts.ILQR(max_iter=40, progress=False),
+    lambda: ts.DDP(max_iter=40, progress=False, compact=True),
+    lambda: ts.GradientMethod(max_iter=5, progress=False),
+    lambda: ts.GoPRONTO(max_iter=5, progress=False),
+    lambda: ts.ILQR(max_iter=40, progress=False, constraints=ts.Constraints(x_max=20.0)),
+]
+
+
+@pytest.mark.parametrize("make", _SOLVERS)
+def test_a_nan_in_one_row_of_x0_is_that_elements_status(make):
+    """It used to reject the whole batch (while a NaN in u_init was a status)."""
+    problem, x0 = pendulum_swingup(batch=4, horizon=15, seed=1)
+    bad = x0.clone()
+    bad[1, 0] = float("nan")
+    res = make().solve(problem, bad)
+    assert res.status_names()[1] == "non_finite"
+    ref = make().solve(problem, x0[[0, 2, 3]])
+    assert [res.status_names()[i] for i in (0, 2, 3)] == ref.status_names()
+    torch.testing.assert_close(res.u[[0, 2, 3]], ref.u, rtol=0, atol=0)
+
+
+def test_a_per_element_weight_that_is_not_positive_definite_is_that_elements_status():
+    """A per-element R (B, T, m, m) not positive definite in one element, a NaN in
+    another element's Q: those two get not_positive_definite / non_finite and the others
+    equal the solve of the shared weights. A shared R that is not PD is still an error."""
+    problem, x0 = pendulum_swingup(batch=4, horizon=15, seed=1)
+    c, B, T = problem.cost, 4, 15
+    n, m = problem.state_dim, problem.control_dim
+    R = c.R.expand(B, T, m, m).clone()
+    R[2, 5] = -1.0
+    Q = c.Q.expand(B, T, n, n).clone()
+    Q[3, 0, 0, 0] = float("nan")
+    faulty = ts.Problem(problem.dynamics, ts.QuadraticCost(Q, R, c.Qf, c.x_ref, c.u_ref), T)
+    for make in (
+        lambda: ts.ILQR(max_iter=40, progress=False),
+        lambda: ts.SLQ(max_iter=40, progress=False),
+    ):
+        res = make().solve(faulty, x0)
+        ref = make().solve(problem, x0[:2])
+        assert res.status_names()[2:] == ["not_positive_definite", "non_finite"]
+        assert res.status_names()[:2] == ref.status_names()
+        torch.testing.assert_close(res.u[:2], ref.u, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="R must be positive definite"):
+        ts.QuadraticCost(c.Q, -c.R)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_lqr_solve_faults_in_one_element_are_statuses_and_shared_faults_errors(compiled):
+    """A NaN in one element's A and an indefinite R in another's: statuses non_finite /
+    not_positive_definite, zero gradient for them, and the shared Q's gradient equals the
+    good elements solved alone. The same faults in shared data are ValueErrors naming
+    the argument."""
+    from torchslq.lq import set_compiled
+
+    g = torch.Generator().manual_seed(5)
+    Bsz, T, n, m = 4, 6, 3, 2
+    A = torch.eye(n, dtype=F64) + 0.1 * torch.randn(Bsz, T, n, n, generator=g, dtype=F64)
+    Bm = 0.5 * torch.randn(Bsz, T, n, m, generator=g, dtype=F64)
+    R = torch.eye(m, dtype=F64).expand(Bsz, T, m, m).clone()
+    x0 = torch.randn(Bsz, n, generator=g, dtype=F64)
+    A[1, 3, 0, 0] = float("nan")
+    R[2, 1] = torch.diag(torch.tensor([1.0, -1.0], dtype=F64))
+    good = torch.tensor([0, 3])
+    set_compiled(compiled)
+    try:
+        Q = torch.eye(n, dtype=F64).requires_grad_(True)
+        sol = ts.lqr_solve(A, Bm, Q, R, x0)
+        assert ts.status_names(sol.status) == [
+            "converged", "non_finite", "not_positive_definite", "converged",
+        ]  # fmt: skip
+        sol.cost[good].sum().backward()
+        Q_ref = torch.eye(n, dtype=F64).requires_grad_(True)
+        ref = ts.lqr_solve(A[good], Bm[good], Q_ref, R[good], x0[good])
+        ref.cost.sum().backward()
+        torch.testing.assert_close(sol.u[good], ref.u, rtol=1e-12, atol=1e-14)
+        torch.testing.assert_close(Q.grad, Q_ref.grad, rtol=1e-10, atol=1e-12)
+        with pytest.raises(ValueError, match=r"^A contains nan or inf \(in data shared"):
+            ts.lqr_solve(A[1], Bm, Q, R, x0)
+        with pytest.raises(ValueError, match=r"^R must be symmetric positive definite \(in data"):
+            ts.lqr_solve(A[0], Bm, Q, R[2, 1], x0)
+    finally:
+        set_compiled(True)
+
+
+@pytest.mark.parametrize("compiled", [True, False])
+def test_an_overflowing_lq_problem_is_non_finite_not_not_positive_definite(compiled):
+    """A = 1e200 (finite data, whose recursion overflows) is non_finite; a Quu that is
+    not positive definite with finite numbers stays not_positive_definite. Checked
+    independently: element 2's last-stage Quu = R + B'Q_T B is indefinite."""
+    from torchslq.lq import set_compiled
+
+    g = torch.Generator().manual_seed(1)
+    Bsz, T, n, m = 3, 5, 2, 1
+    A = torch.eye(n, dtype=F64).expand(Bsz, T, n, n).clone()
+    Bm = torch.randn(Bsz, T, n, m, generator=g, dtype=F64)
+    Q = torch.eye(n, dtype=F64).expand(Bsz, T + 1, n, n).clone()
+    A[1] *= 1e200
+    Q[2, T] = -100.0 * torch.eye(n, dtype=F64)
+    Bl = Bm[2, T - 1]
+    assert float(1.0 + Bl.T @ Q[2, T] @ Bl) < 0
+    set_compiled(compiled)
+    try:
+        sol = ts.lqr_solve(A, Bm, Q, torch.eye(m, dtype=F64), torch.ones(Bsz, n, dtype=F64))
+    finally:
+        set_compiled(True)
+    assert ts.status_names(sol.status) == ["converged", "non_finite", "not_positive_definite"]
+
+
+def test_mpc_unroll_with_a_failed_element_gives_it_zero_gradient():
+    """backward="unroll": a NaN row of x0 gets a zero gradient (it was NaN) and the shared
+    R's gradient equals the batch without that row."""
+    problem, x0 = pendulum_swingup(batch=3, horizon=10, seed=2)
+    c = problem.cost
+    bad = x0.clone()
+    bad[1, 0] = float("nan")
+    grads = []
+    for x, loss_rows in ((bad.clone().requires_grad_(True), [0, 2]), (x0[[0, 2]], [0, 1])):
+        R = torch.nn.Parameter(c.R.clone())
+        layer = ts.MPC(
+            problem.dynamics, ts.QuadraticCost(c.Q, R, c.Qf, c.x_ref, c.u_ref), 10,
+            ts.ILQR(max_iter=30, progress=False), backward="unroll", unconverged="zero",
+            warm_start=False,
+        )  # fmt: skip
+        out = layer(x)
+        out.u[loss_rows].sum().backward()
+        grads.append(R.grad)
+        if x.requires_grad:
+            assert out.status.tolist()[1] == int(ts.Status.NON_FINITE)
+            assert torch.equal(x.grad[1], torch.zeros_like(x.grad[1]))
+            assert torch.isfinite(x.grad).all()
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-12, atol=0)

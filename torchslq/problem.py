@@ -73,6 +73,14 @@ class Problem(nn.Module):
         names = per_element_names(self, batch_size)
         return names[0] if names else None
 
+    def element_faults(self, batch_size: int) -> Tensor | None:
+        """``(batch_size,)`` int64 status codes of elements whose data are invalid (the
+        cost's ``element_faults``, e.g. a per-element ``R`` that is not positive
+        definite: ``NOT_POSITIVE_DEFINITE``), ``RUNNING`` elsewhere; None when all are
+        valid. Solvers give those elements that status without solving them."""
+        faults = getattr(self.cost, "element_faults", None)
+        return faults(batch_size) if callable(faults) else None
+
     def take(self, idx: Tensor, batch_size: int) -> Problem:
         """The problem for the sub-batch ``idx`` of a batch of ``batch_size``: each
         per-element tensor indexed with ``idx`` (a shallow copy; ``self`` itself when
@@ -112,6 +120,7 @@ class Problem(nn.Module):
                     f"x0 has dtype {x0.dtype} but the problem's tensor {name!r} has dtype "
                     f"{t.dtype}; convert one of them (e.g. problem.to({x0.dtype}))"
                 )
-        if not bool(torch.isfinite(x0).all()):
-            raise ValueError("x0 contains non-finite values")
+        # a NaN or infinity in one row of x0 (or u_init) is that element's fault: it
+        # starts as non_finite and the others are solved (the granularity rule of
+        # torchslq.Status)
         return x0, u, unbatched

@@ -84,8 +84,6 @@ class ContinuousProblem(nn.Module):
             raise TypeError("x0 must be a floating-point tensor of shape (B, n) or (n,)")
         if x0.ndim not in (1, 2) or x0.shape[-1] != n:
             raise ValueError(f"x0 must have shape (B, {n}) or ({n},), got {tuple(x0.shape)}")
-        if not bool(torch.isfinite(x0).all()):
-            raise ValueError("x0 contains non-finite values")
         for name, t in list(self.named_parameters()) + list(self.named_buffers()):
             if t.is_floating_point() and t.dtype != x0.dtype:
                 raise TypeError(

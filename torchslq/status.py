@@ -22,8 +22,9 @@ class Status(IntEnum):
     * ``MAX_ITER``: the iteration limit came first;
     * ``LINE_SEARCH_FAILED``: no step decreased the cost (for ILQR/DDP: not even with
       the regularisation at ``mu_max``);
-    * ``NON_FINITE``: a NaN or infinity in the element's trajectory, cost, derivatives
-      (e.g. a NaN Jacobian) or direction;
+    * ``NON_FINITE``: a NaN or infinity in the element's data, trajectory, cost,
+      derivatives (e.g. a NaN Jacobian) or direction, or an LQ recursion that overflowed
+      (finite data such as ``A = 1e200``);
     * ``DIVERGED``: a constant-step method's iterate left the finite range;
     * ``NOT_POSITIVE_DEFINITE``: with finite data, the LQ subproblem has no minimum (a
       ``Quu`` not positive definite, for ILQR/DDP even with ``mu_max``);
@@ -32,6 +33,14 @@ class Status(IntEnum):
     * ``INFEASIBLE``: a constrained solve (``constraints=``) could not bring the element's
       largest constraint violation below ``constraint_tol``, even at the largest penalty;
     * ``RUNNING`` is only seen inside a solver loop.
+
+    One granularity rule holds at every entry point: a fault confined to some batch
+    elements (a NaN in one row of ``x0`` or ``u_init``, a per-element weight that is not
+    positive definite, one element's NaN or overflowing data in :func:`torchslq.lqr_solve`)
+    gives those elements a status (``NON_FINITE``, ``NOT_POSITIVE_DEFINITE``), the other
+    elements are solved exactly as without them, and a failed element gets a zero
+    gradient. A fault in data shared by the whole batch, or a malformed argument (shape,
+    dtype, type), is an error naming the argument.
     """
 
     RUNNING = -1

@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from .._backend import _launch, can_use_compiled
 from .._shapes import broadcast_shapes
+from ..status import Status
 
 __all__ = ["CostExpansion", "QuadraticCost"]
 
@@ -96,10 +97,22 @@ class QuadraticCost(nn.Module):
                 raise ValueError(
                     f"u_ref must have shape (m,), (T,m) or (B,T,m) with m={m}, got {tuple(u_ref.shape)}"
                 )
-        _check_symmetric("Q", Q, psd=True)
-        _check_symmetric("R", R, psd=False)
+        faults = [_check_symmetric("Q", Q, psd=True), _check_symmetric("R", R, psd=False)]
         if Qf is not None:
-            _check_symmetric("Qf", Qf, psd=True)
+            faults.append(_check_symmetric("Qf", Qf, psd=True))
+        faults = [f for f in faults if f is not None]
+        if len({f.shape for f in faults}) > 1:
+            raise ValueError(
+                f"per-element weights have different batch sizes: {[f.shape[0] for f in faults]}"
+            )
+        # per element: NOT_POSITIVE_DEFINITE where a weight is not PSD / PD (the element
+        # is not solved), else RUNNING; see element_faults
+        fault_codes = None
+        if faults:
+            bad = torch.stack(faults).any(0)
+            fault_codes = torch.where(
+                bad, int(Status.NOT_POSITIVE_DEFINITE), int(Status.RUNNING)
+            ).to(torch.int64)
         self.state_dim, self.control_dim = n, m
         self._diagonal_cache: dict[str, tuple] = {}  # name -> (tensor, version, diagonal?)
         _register(self, "Q", Q)
@@ -107,6 +120,7 @@ class QuadraticCost(nn.Module):
         _register(self, "Qf", Qf)
         _register(self, "x_ref", x_ref)
         _register(self, "u_ref", u_ref)
+        self.register_buffer("fault_codes", fault_codes, persistent=False)
 
     # ------------------------------------------------------------------ shapes per horizon
     def _time_varying(self, W: Tensor, steps: int, name: str, tail: int) -> Tensor:
@@ -207,11 +221,21 @@ class QuadraticCost(nn.Module):
             cache[name] = (W, W._version, not bool(off.any()))
         return cache[name][2]
 
+    def element_faults(self, batch_size: int) -> Tensor | None:
+        """``(batch_size,)`` int64 status codes: ``NOT_POSITIVE_DEFINITE`` for elements
+        whose per-element weight is not positive (semi)definite, ``RUNNING`` for the
+        others; None when every element is fine or the weights are shared (a shared
+        weight that is not PD is an error at construction)."""
+        f = self.fault_codes
+        if f is None or f.shape[0] != batch_size or not bool((f != Status.RUNNING).any()):
+            return None
+        return f
+
     def per_element_names(self, batch_size: int) -> list[str]:
         """The weights and targets given per batch element (``(B, T, n, n)`` ``Q``,
         ``(B, T+1, n)`` ``x_ref``, ...) for a batch of ``batch_size``; see
         :mod:`torchslq.per_element`."""
-        full = {"Q": 4, "R": 4, "Qf": 3, "x_ref": 3, "u_ref": 3}
+        full = {**_PER_ELEMENT_NDIM, "fault_codes": 1}
         return [
             name
             for name, ndim in full.items()
@@ -318,24 +342,39 @@ def _as_tensor(name: str, value, like: Tensor | None = None) -> Tensor:
             ) from err
     if not t.is_floating_point():
         t = t.to(torch.get_default_dtype() if like is None else like.dtype)
-    if not bool(torch.isfinite(t.detach()).all()):
+    # per-element data (a leading batch dim) may hold a NaN in some elements: those
+    # start as non_finite and the batch goes on (the granularity rule of Status)
+    if not _per_element(name, t) and not bool(torch.isfinite(t.detach()).all()):
         raise ValueError(f"{name} contains non-finite values")
     return t
 
 
-def _check_symmetric(name: str, W: Tensor, psd: bool) -> None:
+_PER_ELEMENT_NDIM = {"Q": 4, "R": 4, "Qf": 3, "x_ref": 3, "u_ref": 3}
+
+
+def _per_element(name: str, t: Tensor) -> bool:
+    return t.ndim == _PER_ELEMENT_NDIM[name] and t.shape[0] > 1
+
+
+def _check_symmetric(name: str, W: Tensor, psd: bool) -> Tensor | None:
+    """Raise if a shared weight is not symmetric (or not PSD / PD); for a per-element
+    weight ``(B, ...)``, return the ``(B,)`` mask of elements that are not PSD / PD (a
+    status for those elements, not an error for the batch). Symmetry is always
+    required: a non-symmetric weight is a mistake in the code, not in the data."""
     Wd = W.detach()
+    per_element = _per_element(name, W)
+    finite = torch.isfinite(Wd)
+    Wd = torch.nan_to_num(Wd, nan=0.0, posinf=0.0, neginf=0.0)
     scale = Wd.abs().amax().clamp_min(1.0)
     tol = 1e-6 if Wd.dtype == torch.float32 else 1e-10
     if not bool(((Wd - Wd.mT).abs() <= tol * scale).all()):
         raise ValueError(f"{name} must be symmetric")
     eig = torch.linalg.eigvalsh(Wd)
-    if psd:
-        if bool((eig < -tol * scale * 10).any()):
-            raise ValueError(
-                f"{name} must be positive semidefinite (min eigenvalue {eig.min().item():.3g})"
-            )
-    elif bool((eig <= 0).any()):
-        raise ValueError(
-            f"{name} must be positive definite (min eigenvalue {eig.min().item():.3g})"
-        )
+    bad = (eig < -tol * scale * 10) if psd else (eig <= 0)
+    bad = bad.flatten(1).any(1) & finite.flatten(1).all(1) if per_element else bad
+    if per_element:
+        return bad
+    if bool(bad.any()):
+        kind = "semidefinite" if psd else "definite"
+        raise ValueError(f"{name} must be positive {kind} (min eigenvalue {eig.min().item():.3g})")
+    return None

@@ -281,8 +281,20 @@ def _check_tensor(
             )
     if not t.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {t.dtype}")
-    if not bool(torch.isfinite(t).all()):
-        raise ValueError(f"{name} contains non-finite values (nan or inf)")
+
+
+def _element_faults(name: str, fault: Tensor, batch: torch.Size, what: str) -> Tensor:
+    """``fault`` (one flag per batch entry of argument ``name``, its batch dims only) as a
+    mask over ``batch``.
+
+    The granularity rule of :func:`lqr_solve`: a fault confined to some batch elements
+    gives those elements a status and the batch goes on; a fault in data shared by the
+    whole batch (no batch dims) is an error naming the argument."""
+    if fault.numel() <= 1:
+        if bool(fault.any()):
+            raise ValueError(f"{name} {what} (in data shared by the whole batch)")
+        return torch.zeros(batch, dtype=torch.bool, device=fault.device)
+    return fault.expand(batch)
 
 
 def choose_method(T: int, batch: int, device: torch.device | str, dtype: torch.dtype) -> str:
@@ -304,6 +316,44 @@ def choose_method(T: int, batch: int, device: torch.device | str, dtype: torch.d
     if kind == "cpu" and dtype in (torch.float32, torch.float64) and not compiled_available():
         return "scan" if batch == 1 and T >= 100 else "sequential"
     return "sequential"
+
+
+def _input_faults(A, B, Q, R, x0, q, r, S, c, batch: torch.Size) -> tuple[Tensor, Tensor]:
+    """``(nonfinite, not_pd)`` masks over ``batch``: elements with a NaN or infinity in
+    their data, elements whose ``R`` is not positive definite (the rule is in
+    :func:`_element_faults`)."""
+    nonfinite = torch.zeros(batch, dtype=torch.bool, device=x0.device)
+    core = {"A": 3, "B": 3, "Q": 3, "R": 3, "x0": 1, "q": 2, "r": 2, "S": 3, "c": 2}
+    for name, t in zip(core, (A, B, Q, R, x0, q, r, S, c), strict=True):
+        if t is not None:
+            flags = ~torch.isfinite(t).flatten(t.ndim - core[name]).all(-1)
+            nonfinite = nonfinite | _element_faults(name, flags, batch, "contains nan or inf")
+    Rsym = 0.5 * (R + R.mT)
+    info = torch.linalg.cholesky_ex(torch.nan_to_num(Rsym)).info.ne(0).any(-1)
+    not_pd = _element_faults("R", info, batch, "must be symmetric positive definite")
+    return nonfinite, not_pd & ~nonfinite
+
+
+def _overflowed(F: Tensor, H: Tensor, Vh: Tensor, m: int) -> Tensor:
+    """``(B,)``: elements whose backward recursion overflowed (finite data, but a
+    non-finite ``Quu`` at the first failing step) rather than met a ``Quu`` that is not
+    positive definite. ``Quu_t`` is recomputed from the returned ``V_{t+1}``, which is
+    exact up to the first failure (from the end)."""
+    M = H + F.mT @ Vh[..., 1:, :, :] @ F  # (B, T, m+n+1, m+n+1); F, H may be shared
+    Quu = M[..., :m, :m]
+    finite = torch.isfinite(Quu).flatten(-2).all(-1)
+    info = torch.linalg.cholesky_ex(torch.nan_to_num(0.5 * (Quu + Quu.mT))).info
+    fails = ~finite | (info != 0)  # (B, T)
+    T = fails.shape[-1]
+    steps = torch.arange(T, device=fails.device)
+    last = torch.where(fails, steps, -1).amax(-1)  # the first failing step from the end
+    at = (~finite).gather(-1, last.clamp_min(0).unsqueeze(-1)).squeeze(-1)
+    return at & (last >= 0)
+
+
+def _with_input_faults(status: Tensor, nonfinite: Tensor, not_pd: Tensor) -> Tensor:
+    status = status.masked_fill(not_pd, int(Status.NOT_POSITIVE_DEFINITE))
+    return status.masked_fill(nonfinite, int(Status.NON_FINITE))
 
 
 def lqr_solve(
@@ -332,7 +382,11 @@ def lqr_solve(
         q: ``(B, T+1, n)`` linear state terms. r: ``(B, T, m)`` linear control terms.
         S: ``(B, T, m, n)`` cross terms (cost ``u'S x``). c: ``(B, T, n)`` affine dynamics.
         validate: check shapes, finiteness and ``R > 0`` (one host sync each); solvers
-            calling this in an inner loop pass ``False``.
+            calling this in an inner loop pass ``False``. A NaN/infinity or an ``R``
+            that is not positive definite in one element's data gives that element the
+            status ``non_finite`` / ``not_positive_definite`` (a NaN cost and solution,
+            a zero gradient; the others are solved as without it); in data shared by the
+            whole batch it is a ``ValueError`` naming the argument.
         method: the backend, the same results either way (up to rounding):
             ``"sequential"`` (default) the Riccati recursion, ``T`` dependent steps (on
             the CPU one compiled loop); ``"scan"`` the parallel-in-time associative scan
@@ -369,14 +423,12 @@ def lqr_solve(
         _check_tensor("c", c, 1, (n,), T)
         if T == 0:
             raise ValueError("A has a horizon of T = 0 steps; need T >= 1")
-        Rsym = 0.5 * (R + R.mT)
-        if bool((torch.linalg.cholesky_ex(Rsym).info != 0).any()):
-            raise ValueError("R must be symmetric positive definite (Cholesky failed)")
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     m = B.shape[-1]
     Q = with_time(Q, 2, T + 1)
     R = with_time(R, 2, T)
+    R_given = R  # before a not-PD element's R is made NaN (below)
     q = with_time(q, 1, T + 1)
     r = with_time(r, 1, T)
     S = with_time(S, 2, T)
@@ -395,6 +447,16 @@ def lqr_solve(
             )
         except RuntimeError as err:
             raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
+        batch = broadcast_shapes(
+            A.shape[:-3], B.shape[:-3], Q.shape[:-3], R.shape[:-3], x0.shape[:-1],
+            *(t.shape[:-2] for t in (q, r, c) if t is not None),
+            *(() if S is None else (S.shape[:-3],)),
+        )  # fmt: skip
+        nonfinite, not_pd = _input_faults(A, B, Q, R, x0, q, r, S, c, batch)
+        # an element with an R that is not positive definite is not solved (NaN data
+        # make its factorisation fail: no solution, a zero gradient)
+        if bool(not_pd.any()):
+            R = torch.where(not_pd.reshape(*not_pd.shape, 1, 1, 1), float("nan"), R)
     F = homogeneous_dynamics(A, B, c)
     H, VhT = homogeneous_cost(Q, R, q, r, S)
     batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
@@ -410,13 +472,22 @@ def lqr_solve(
 
     finite = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
     status = lq_status(failed, finite)
+    if bool(failed.any()):  # finite data whose recursion overflowed: non_finite
+        over = failed & _overflowed(Ff, Hf, Vh, m)
+        status = status.masked_fill(over, int(Status.NON_FINITE))
     lam = (Vh[..., :n, :] @ _homog(x).unsqueeze(-1))[..., 0]
 
     def unflat(t: Tensor) -> Tensor:
         return t.reshape(tuple(batch) + tuple(t.shape[1:]))
 
     x, u = unflat(x), unflat(u)
-    cost = lq_objective(x, u, Q, R, q, r, S)
+    # a failed element's cost is NaN; its NaN trajectory is kept out of the objective's
+    # graph, where 0 * NaN would reach the gradients of weights shared by the batch
+    ok = unflat(finite & ~failed)
+    okx, oku = ok.reshape(*ok.shape, 1, 1), ok.reshape(*ok.shape, 1, 1)
+    cost = lq_objective(
+        torch.where(okx, x, 0.0), torch.where(oku, u, 0.0), Q, R_given, q, r, S
+    ).masked_fill(~ok, float("nan"))
     return LQRSolution(
         x=x,
         u=u,
@@ -426,5 +497,7 @@ def lqr_solve(
         v=unflat(Vh[..., :n, n]),
         lam=unflat(lam),
         cost=cost,
-        status=unflat(status),
+        status=_with_input_faults(unflat(status), nonfinite, not_pd)
+        if validate
+        else unflat(status),
     )

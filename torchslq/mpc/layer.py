@@ -384,15 +384,30 @@ class MPC(nn.Module):
             lo, hi = self._bounds(x0)
             iters = self.unroll_iters or getattr(self.solver.options, "max_iter", 100)
             u0 = result.u.new_zeros(result.u.shape) if guess is None else guess
-            x, u, _ = unrolled_solve(
-                self.problem,
-                x0,
-                u0.expand(result.u.shape),
+            u0 = u0.expand(result.u.shape)
+            # elements whose solve met NaN or infinity are not unrolled: a graph through
+            # them would send 0 * NaN into x0's and the shared parameters' gradients
+            # (they keep the solver's values, with a zero gradient)
+            finite = torch.isfinite(result.x).flatten(1).all(1) & torch.isfinite(result.u).flatten(
+                1
+            ).all(1)
+            idx = (finite & (status != Status.NON_FINITE)).nonzero().squeeze(1)
+            Bsz = x0.shape[0]
+
+            def take(t: Tensor | None) -> Tensor | None:
+                return None if t is None or t.shape[0] != Bsz else t[idx]
+
+            xs, us, _ = unrolled_solve(
+                self.problem.take(idx, Bsz),
+                x0[idx],
+                u0[idx],
                 max_iter=iters,
                 tol=getattr(self.solver.options, "tol", 1e-8),
-                u_min=lo,
-                u_max=hi,
+                u_min=take(lo),
+                u_max=take(hi),
             )
+            x = result.x.detach().index_copy(0, idx, xs)
+            u = result.u.detach().index_copy(0, idx, us)
         else:
             active = None
             if result.active_bounds is not None:

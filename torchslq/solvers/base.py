@@ -41,7 +41,7 @@ def checked_x_init(x_init: Tensor, x0: Tensor, T: int) -> Tensor:
             f"got {tuple(x_init.shape)}"
         )
     x = x.to(dtype=x0.dtype, device=x0.device).expand(Bsz, T + 1, n)
-    if not torch.equal(x[:, 0], x0):
+    if not bool(((x[:, 0] == x0) | (x[:, 0].isnan() & x0.isnan())).all()):
         raise ValueError("x_init[:, 0] must equal x0 (x_init is the rollout of u_init from x0)")
     return x.detach().clone()
 

@@ -219,6 +219,12 @@ def iterate(
     finite0 = torch.isfinite(state.J) & torch.isfinite(state.x).flatten(1).all(1)
     status = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=dev)
     status = status.masked_fill(~finite0, int(Status.NON_FINITE))
+    # elements whose problem data are invalid (e.g. a per-element R that is not positive
+    # definite) are not solved; the others are (the granularity rule of Status)
+    faults = getattr(problem, "element_faults", None)
+    faults = faults(Bsz) if callable(faults) else None
+    if faults is not None:
+        status = torch.where((faults != Status.RUNNING) & finite0, faults, status)
     iterations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
     stalls = torch.zeros_like(iterations)  # consecutive noise-level accepted steps
     stall_grad = torch.zeros_like(state.J)  # gradient norm when that run started
