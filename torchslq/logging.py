@@ -14,13 +14,24 @@ Tags written (per iteration ``it``):
 * ``running``: number of elements still iterating;
 * ``time/iteration``: wall time of the iteration in seconds.
 
-At the end: histogram ``final/cost``, scalar ``final/converged_fraction``, a figure
-``trajectories`` of the first elements, text ``options`` and the hparams plugin record.
+At the end: histogram ``final/cost``, scalar ``final/converged_fraction``, figures
+``trajectories`` (the first elements, see :func:`torchslq.plotting.trajectory_figure`)
+and ``convergence`` (cost and gradient norm over the batch: median and 10-90 percentile
+band, see :func:`torchslq.plotting.convergence_figure`), text ``options`` and the
+hparams plugin record. With ``save_png=True`` the two figures are also written to the
+log directory as ``trajectories.png`` and ``convergence.png``.
+
+The trajectory figure names the states and controls after the logger's
+``state_labels`` / ``control_labels``, else after the model's ``state_names`` /
+``control_names`` (:func:`torchslq.plotting.state_control_names`), and draws the
+cost's ``x_ref`` as goal lines and the solver's ``u_min`` / ``u_max`` as bound lines
+when the problem and the result's options have them.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
@@ -40,18 +51,52 @@ def _finite_stats(t: Tensor) -> tuple[float, float, float]:
     return (v.mean().item(), v.min().item(), v.max().item())
 
 
+def _goal(problem: Any, x: Tensor) -> Tensor | None:
+    """The cost's ``x_ref`` when its shape fits ``x (B, T+1, n)`` (else None)."""
+    ref = getattr(getattr(problem, "cost", None), "x_ref", None)
+    if not torch.is_tensor(ref) or x.ndim != 3:
+        return None
+    B, T1, n = x.shape
+    return ref if tuple(ref.shape) in ((n,), (T1, n), (1, T1, n), (B, T1, n)) else None
+
+
+def _bound(value: Any, m: int) -> float | Tensor | None:
+    """A solver's ``u_min`` / ``u_max`` option when it is a number or ``(m,)``."""
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if torch.is_tensor(value) and (value.numel() == 1 or tuple(value.shape) == (m,)):
+        return value
+    return None
+
+
 class TensorBoardLogger:
     """Writes a solver's convergence to TensorBoard event files in ``log_dir``.
 
     Args:
         log_dir: directory for the event files (created if missing).
         plot_elements: how many batch elements the final trajectory figure shows.
-        dt: time step for the figure's time axis (step index when None).
+        dt: time step for the figure's time axis in seconds (step index when None).
+        save_png: when True, :meth:`log_result` also saves its figures as
+            ``log_dir/trajectories.png`` and ``log_dir/convergence.png`` (overwritten by
+            a later ``log_result`` into the same directory).
+        state_labels: ``n`` names for the state panels of the trajectory figure;
+            default: the model's ``state_names`` when it has them, else ``x[i]``.
+        control_labels: ``m`` names for the control panels; as above
+            (``control_names``, else ``u[j]``).
 
     Use as a context manager or call :meth:`close`.
     """
 
-    def __init__(self, log_dir: str | Path, plot_elements: int = 4, dt: float | None = None):
+    def __init__(
+        self,
+        log_dir: str | Path,
+        plot_elements: int = 4,
+        dt: float | None = None,
+        *,
+        save_png: bool = False,
+        state_labels: Sequence[str] | None = None,
+        control_labels: Sequence[str] | None = None,
+    ):
         from torch.utils.tensorboard import SummaryWriter
 
         self.log_dir = Path(log_dir)
@@ -59,6 +104,9 @@ class TensorBoardLogger:
         self.writer = SummaryWriter(log_dir=str(self.log_dir))
         self.plot_elements = plot_elements
         self.dt = dt
+        self.save_png = bool(save_png)
+        self.state_labels = None if state_labels is None else tuple(state_labels)
+        self.control_labels = None if control_labels is None else tuple(control_labels)
         self._last_time = 0.0
         self._options: dict[str, Any] = {}
 
@@ -94,8 +142,9 @@ class TensorBoardLogger:
         self._last_time = wall_time
 
     def log_result(self, result: Any, problem: Any = None) -> None:
-        from .plotting import trajectory_figure
-
+        """Final records and figures of ``result`` (a :class:`torchslq.SolverResult`
+        with batched ``x (B, T+1, n)``, ``u (B, T, m)``, ``cost (B,)`` and ``history``)
+        of ``problem`` (optional: names, goal and bounds for the figures)."""
         w = self.writer
         cost = result.cost.detach().reshape(-1)
         finite = cost[torch.isfinite(cost)]
@@ -103,9 +152,7 @@ class TensorBoardLogger:
             w.add_histogram("final/cost", finite.to("cpu", torch.float64), 0)
         conv = result.converged.reshape(-1).double().mean().item()
         w.add_scalar("final/converged_fraction", conv, 0)
-        if result.x.ndim < 3 or result.x.shape[0] > 0:  # an empty batch has nothing to draw
-            fig = trajectory_figure(result.x, result.u, dt=self.dt, max_elements=self.plot_elements)
-            w.add_figure("trajectories", fig, 0, close=True)
+        self._log_figures(result, problem)
         hparams = {
             k: (v if isinstance(v, (int, float, str, bool)) else str(v))
             for k, v in self._options.items()
@@ -118,6 +165,40 @@ class TensorBoardLogger:
         }
         w.add_hparams(hparams, metrics, run_name=".")
         w.flush()
+
+    def _log_figures(self, result: Any, problem: Any) -> None:
+        from .plotting import convergence_figure, state_control_names, trajectory_figure
+
+        figures = []
+        x, u = result.x, result.u
+        if x.ndim < 3 or x.shape[0] > 0:  # an empty batch has nothing to draw
+            n, m = x.shape[-1], u.shape[-1]
+            s_names, c_names = state_control_names(getattr(problem, "dynamics", None))
+            s_names = s_names if s_names is not None and len(s_names) == n else None
+            c_names = c_names if c_names is not None and len(c_names) == m else None
+            options = getattr(result, "options", None)
+            options = options if isinstance(options, dict) else {}
+            fig = trajectory_figure(
+                x,
+                u,
+                dt=self.dt,
+                max_elements=self.plot_elements,
+                state_labels=self.state_labels or s_names,
+                control_labels=self.control_labels or c_names,
+                x_ref=_goal(problem, x),
+                u_min=_bound(options.get("u_min"), m),
+                u_max=_bound(options.get("u_max"), m),
+            )
+            figures.append(("trajectories", fig))
+        history = getattr(result, "history", None) or {}
+        curves = {k: history[k] for k in ("cost", "grad_norm") if torch.is_tensor(history.get(k))}
+        if curves:
+            name = str(self._options.get("solver", "solver"))
+            figures.append(("convergence", convergence_figure({name: curves})))
+        for tag, fig in figures:
+            if self.save_png:
+                fig.savefig(self.log_dir / f"{tag}.png", dpi=110)
+            self.writer.add_figure(tag, fig, 0, close=True)
 
     # lifecycle ------------------------------------------------------------------------
     def flush(self) -> None:

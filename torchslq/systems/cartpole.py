@@ -154,6 +154,8 @@ class CartPole(ContinuousDynamics):
 
     state_dim = 4
     control_dim = 1
+    state_names = ("s [m]", "theta [rad]", "s_dot [m/s]", "theta_dot [rad/s]")
+    control_names = ("F [N]",)
 
     def __init__(self, mc=1.0, mp=0.1, l=0.5, g=9.81):
         super().__init__()

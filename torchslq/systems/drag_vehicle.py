@@ -38,6 +38,8 @@ class DragVehicle(Dynamics):
 
     state_dim = 2
     control_dim = 1
+    state_names = ("x [m]", "v [m/s]")
+    control_names = ("u [N]",)
 
     def __init__(self, beta=0.1, m=0.0259, Ts=1.0 / 500.0):
         super().__init__()

@@ -46,6 +46,8 @@ class Hopper(Dynamics):
 
     state_dim = 3
     control_dim = 1
+    state_names = ("y [in]", "y_dot [in/s]", "y_p [in]")
+    control_names = ("y_p_dot [in/s]",)
 
     def __init__(self, k_over_m=500.0, g=386.4, alpha=0.1, tf=1.0, N=100):
         super().__init__()

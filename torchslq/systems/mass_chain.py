@@ -124,6 +124,17 @@ class MassChain(ContinuousDynamics):
     for ``x (B, T, n)``); ``nn.Parameter``s stay learnable.
     """
 
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """``("p_1 [m]", ..., "p_N [m]", "v_1 [m/s]", ..., "v_N [m/s]")``."""
+        idx = range(1, self.n_masses + 1)
+        return (*(f"p_{i} [m]" for i in idx), *(f"v_{i} [m/s]" for i in idx))
+
+    @property
+    def control_names(self) -> tuple[str, ...]:
+        """``("F_1 [N]", ..., "F_N [N]")``."""
+        return tuple(f"F_{i} [N]" for i in range(1, self.n_masses + 1))
+
     def __init__(self, n_masses: int = 4, mass=1.0, k=1.0, k3=1.0, damping=0.1):
         super().__init__()
         if not isinstance(n_masses, int) or n_masses < 1:

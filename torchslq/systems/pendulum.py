@@ -35,6 +35,8 @@ class Pendulum(ContinuousDynamics):
 
     state_dim = 2
     control_dim = 1
+    state_names = ("theta [rad]", "theta_dot [rad/s]")
+    control_names = ("tau [N m]",)
 
     def __init__(self, mass=1.0, length=1.0, g=9.81, damping=0.1):
         super().__init__()

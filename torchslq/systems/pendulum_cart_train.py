@@ -54,6 +54,17 @@ class PendulumCartTrain(ContinuousDynamics):
     control_dim: int
     state_dim: int
 
+    @property
+    def state_names(self) -> tuple[str, ...]:
+        """``(theta_i, theta_dot_i, w_i, w_dot_i)`` with units, for ``i = 1 .. N``."""
+        units = (("theta", "rad"), ("theta_dot", "rad/s"), ("w", "m"), ("w_dot", "m/s"))
+        return tuple(f"{s}_{i} [{u}]" for i in range(1, self.n_carts + 1) for s, u in units)
+
+    @property
+    def control_names(self) -> tuple[str, ...]:
+        """``("u_1 [N]", ..., "u_N [N]")``."""
+        return tuple(f"u_{i} [N]" for i in range(1, self.n_carts + 1))
+
     def __init__(
         self,
         n_carts: int,

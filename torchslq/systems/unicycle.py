@@ -39,6 +39,8 @@ class Unicycle(Dynamics):
     """
 
     state_dim, control_dim = 3, 2
+    state_names = ("px [m]", "py [m]", "theta [rad]")
+    control_names = ("v [m/s]", "w [rad/s]")
 
     def __init__(self, dt: float = 0.1):
         super().__init__()
