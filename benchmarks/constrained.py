@@ -15,7 +15,8 @@ Not part of the test suite. The problems are the two examples' (imported from
 Solvers:
 
 * torchslq ``ILQR(constraints=..., u_min=, u_max=)`` (augmented Lagrangian over iLQR,
-  control bounds in the box QP) as the examples build it (``make_solver``: ``tol = 1e-6``
+  control bounds in the box QP), or ``DDP`` with ``--solver ddp`` (the same loop with the
+  dynamics' and the constraint rows' curvature), as the examples build it (``make_solver``: ``tol = 1e-6``
   on each inner solve's gradient, ``penalty_factor = 100``, ``constraint_tol = 1e-6``),
   with the ``--option`` overrides named in the command (the committed run:
   ``constraint_tol = 1e-8``, so that a violation's effect on the cost, about
@@ -394,7 +395,7 @@ def bench(args, spec: Spec, B: int, rows: list, save) -> None:
     conv = ours["converged"]
     row = {
         **base,
-        "solver": "torchslq ILQR (AL)",
+        "solver": f"torchslq {args.solver.upper()} (AL)",
         "time_s": ours["time"],
         "warmup_s": warm,
         "status": ours["status_counts"],
@@ -609,7 +610,7 @@ def markdown(meta: dict, rows: list) -> str:
         "|---|---|---|---|---|---|",
     ]
     for r in rows:
-        if r["solver"] != "torchslq ILQR (AL)":
+        if not r["solver"].startswith("torchslq"):
             continue
         same = r.get("vs_ipopt_same_optimum")
         cost = "-" if same is None else f"{r['vs_ipopt_cost_match']}/{same}"
@@ -667,6 +668,12 @@ def main(argv=None) -> int:
     ap.add_argument("--model", choices=("zoo", "user"), default="zoo", help="cart-pole model")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
+        "--solver",
+        choices=("ilqr", "ddp"),
+        default="ilqr",
+        help="torchslq solver of the AL loop (ddp: exact constraint Hessian)",
+    )
+    ap.add_argument(
         "--option",
         action="append",
         default=[],
@@ -691,6 +698,7 @@ def main(argv=None) -> int:
     for k in ("max_iter", "al_max_iter"):
         if k in args.options:
             args.options[k] = int(args.options[k])
+    args.options["solver"] = args.solver
     torch.set_num_threads(1)
     meta = {
         "command": "python " + " ".join(shlex.quote(a) for a in [sys.argv[0], *sys.argv[1:]]),

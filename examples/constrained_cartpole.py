@@ -104,9 +104,12 @@ def make_solver(
     max_iter: int = 500,
     al_max_iter: int = 30,
     penalty_factor: float = 100.0,
+    solver: str = "ilqr",
     **options,
-) -> ts.ILQR:
-    return ts.ILQR(
+) -> ts.ILQR | ts.DDP:
+    """``solver="ilqr"`` (Gauss-Newton constraint Hessian) or ``"ddp"`` (the dynamics'
+    and the constraint rows' curvature: fewer inner iterations, each dearer)."""
+    return {"ilqr": ts.ILQR, "ddp": ts.DDP}[solver](
         max_iter=max_iter,
         tol=tol,
         u_min=-u_max,

@@ -95,9 +95,12 @@ def make_solver(
     constraint_tol: float = 1e-6,
     max_iter: int = 300,
     penalty_factor: float = 100.0,
+    solver: str = "ilqr",
     **options,
-) -> ts.ILQR:
-    return ts.ILQR(
+) -> ts.ILQR | ts.DDP:
+    """``solver="ilqr"`` (Gauss-Newton constraint Hessian) or ``"ddp"`` (the dynamics'
+    and the constraint rows' curvature: fewer inner iterations, each dearer)."""
+    return {"ilqr": ts.ILQR, "ddp": ts.DDP}[solver](
         max_iter=max_iter,
         tol=tol,
         u_min=torch.tensor([-V_MAX, -W_MAX]),
