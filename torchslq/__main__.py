@@ -1,0 +1,5 @@
+"""``python -m torchslq``: the ``torchslq`` command (:mod:`torchslq.cli`)."""
+
+from .cli import main
+
+raise SystemExit(main())
