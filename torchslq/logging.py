@@ -99,12 +99,32 @@ class TensorBoardLogger:
     ):
         from torch.utils.tensorboard import SummaryWriter
 
+        if (
+            not isinstance(plot_elements, int)
+            or isinstance(plot_elements, bool)
+            or plot_elements < 0
+        ):
+            raise ValueError(f"plot_elements must be an int >= 0, got {plot_elements!r}")
+        if dt is not None and (
+            isinstance(dt, bool)
+            or not isinstance(dt, (int, float))
+            or not math.isfinite(dt)
+            or dt <= 0
+        ):
+            raise ValueError(f"dt must be a positive finite number or None, got {dt!r}")
+        if not isinstance(save_png, bool):
+            raise TypeError(f"save_png must be a bool, got {save_png!r}")
+        for name, labels in (("state_labels", state_labels), ("control_labels", control_labels)):
+            if labels is not None and (
+                isinstance(labels, str) or not all(isinstance(s, str) for s in labels)
+            ):
+                raise TypeError(f"{name} must be a sequence of str (one per dim), got {labels!r}")
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.writer = SummaryWriter(log_dir=str(self.log_dir))
         self.plot_elements = plot_elements
         self.dt = dt
-        self.save_png = bool(save_png)
+        self.save_png = save_png
         self.state_labels = None if state_labels is None else tuple(state_labels)
         self.control_labels = None if control_labels is None else tuple(control_labels)
         self._last_time = 0.0

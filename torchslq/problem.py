@@ -12,7 +12,17 @@ from .dynamics.linearize import as_transition
 from .dynamics.rollout import rollout
 from .per_element import per_element_names, take_per_element
 
-__all__ = ["Problem"]
+__all__ = ["Problem", "check_problem"]
+
+
+def check_problem(problem: object) -> None:
+    """TypeError unless ``problem`` is a :class:`Problem` (or a problem-like object with
+    ``check_inputs``), for the solvers' front doors."""
+    if not callable(getattr(problem, "check_inputs", None)):
+        raise TypeError(
+            f"problem must be a torchslq.Problem (dynamics, cost, horizon), got "
+            f"{type(problem).__name__}"
+        )
 
 
 class Problem(nn.Module):
@@ -60,6 +70,13 @@ class Problem(nn.Module):
 
     def rollout(self, x0: Tensor, u: Tensor) -> Tensor:
         """States ``(..., B, T+1, n)`` from ``x0 (..., B, n)`` under open-loop ``u (..., B, T, m)``."""
+        n, m = self.state_dim, self.control_dim
+        checks = (("x0", x0, n, f"(..., B, {n})", 1), ("u", u, m, f"(..., B, T, {m})", 2))
+        for name, t, k, shape, min_ndim in checks:
+            if not torch.is_tensor(t) or not t.is_floating_point():
+                raise TypeError(f"{name} must be a floating-point tensor of shape {shape}")
+            if t.ndim < min_ndim or t.shape[-1] != k:
+                raise ValueError(f"{name} must have shape {shape}, got {tuple(t.shape)}")
         return rollout(self.transition, x0, u)
 
     def total_cost(self, x0: Tensor, u: Tensor) -> Tensor:
@@ -113,6 +130,12 @@ class Problem(nn.Module):
                     f"u_init has batch size {u_init.shape[0]} but x0 has {Bsz}; expected "
                     f"u_init of shape ({Bsz}, {T}, {m}) or ({T}, {m})"
                 )
+            if Bsz > 1 and (u_init.ndim == 2 or u_init.shape[0] == 1):
+                # initial controls shared by the batch: a NaN there is no element's fault
+                if not bool(torch.isfinite(u_init).all()):
+                    raise ValueError(
+                        "u_init contains nan or inf (in data shared by the whole batch)"
+                    )
             u = u_init.to(dtype=x0.dtype, device=x0.device).expand(Bsz, T, m).clone()
         for name, t in list(self.named_parameters()) + list(self.named_buffers()):
             if t.is_floating_point() and t.dtype != x0.dtype:
@@ -120,6 +143,14 @@ class Problem(nn.Module):
                     f"x0 has dtype {x0.dtype} but the problem's tensor {name!r} has dtype "
                     f"{t.dtype}; convert one of them (e.g. problem.to({x0.dtype}))"
                 )
+            if t.device != x0.device:
+                raise ValueError(
+                    f"x0 is on device {x0.device} but the problem's tensor {name!r} is on "
+                    f"{t.device}; move one of them (e.g. problem.to({str(x0.device)!r}))"
+                )
+        check_batch = getattr(self.cost, "check_batch", None)
+        if callable(check_batch):  # per-element weights/targets for another batch size
+            check_batch(Bsz)
         # a NaN or infinity in one row of x0 (or u_init) is that element's fault: it
         # starts as non_finite and the others are solved (the granularity rule of
         # torchslq.Status)

@@ -51,6 +51,8 @@ class ContinuousProblem(nn.Module):
         for name, v in (("t0", t0), ("tf", tf)):
             if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v:
                 raise TypeError(f"{name} must be a real number, got {v!r}")
+            if v in (float("inf"), -float("inf")):  # an endless horizon: no finite solve
+                raise ValueError(f"{name} must be finite, got {v!r}")
         if not tf > t0:
             raise ValueError(f"tf must be greater than t0, got t0={t0}, tf={tf}")
         self.dynamics = dynamics

@@ -210,7 +210,14 @@ class Constraints(nn.Module):
 def _bound(name: str, v: float | Tensor | None) -> Tensor | None:
     if v is None:
         return None
-    b = torch.as_tensor(v, dtype=torch.float64 if not torch.is_tensor(v) else None)
+    if isinstance(v, bool):
+        raise TypeError(f"{name} must be a float or a tensor of shape (n,), got {v!r}")
+    try:
+        b = torch.as_tensor(v, dtype=torch.float64 if not torch.is_tensor(v) else None)
+    except (TypeError, ValueError, RuntimeError) as err:
+        raise TypeError(
+            f"{name} must be a float or a tensor of shape (n,), got {type(v).__name__}"
+        ) from err
     if not b.is_floating_point():
         b = b.double()
     if b.ndim > 1:
@@ -218,6 +225,33 @@ def _bound(name: str, v: float | Tensor | None) -> Tensor | None:
     if bool(torch.isnan(b).any()):
         raise ValueError(f"{name} contains NaN")
     return b
+
+
+def _check_rows(name: str, v: object, ndim: int) -> None:
+    """``v``, a constraint function's value at one row (``x (1, 1, n)`` for ``stage``,
+    ``(1, n)`` for ``terminal``), is a tensor ``(., ., p)`` / ``(., q)``; else a TypeError
+    / ValueError naming the function."""
+    shape = "(..., T, p)" if name == "stage" else "(..., q)"
+    if not torch.is_tensor(v):
+        raise TypeError(
+            f"the constraints' {name} must return a tensor {shape}, got {type(v).__name__}"
+        )
+    if v.ndim != ndim:  # (leading dims may be a batch: per-element parameters broadcast)
+        raise ValueError(
+            f"the constraints' {name} must return {shape} (a last dim of rows); at one row "
+            f"of shape {(1, 1, 'n') if ndim == 3 else (1, 'n')} it returned {tuple(v.shape)}"
+        )
+
+
+def _check_jacobian(name: str, J: object, tail: tuple[int, int]) -> None:
+    """A Jacobian (analytic ``{name}_jacobian`` or autodiff) ends in ``tail`` =
+    ``(rows, n or m)``; else a ValueError naming the function."""
+    if not torch.is_tensor(J) or tuple(J.shape[-2:]) != tail:
+        got = tuple(J.shape) if torch.is_tensor(J) else type(J).__name__
+        raise ValueError(
+            f"the constraints' {name}_jacobian returned {got}; expected (..., {tail[0]}, "
+            f"{tail[1]}) (rows of the {name} constraint by state or control dims)"
+        )
 
 
 def _cat(parts: list[Tensor], tail: int) -> Tensor:
@@ -296,11 +330,21 @@ class ConstraintSet(nn.Module):
         t = torch.zeros(1, dtype=torch.long, device=like.device)
         se, te = [], []
         for c in self.items:
+            for bound in ("x_min", "x_max"):
+                b = getattr(c, bound)
+                if b is not None and b.ndim == 1 and b.numel() not in (1, n):
+                    raise ValueError(
+                        f"Constraints {bound} has {b.numel()} entries but the state has n = {n}"
+                    )
+            # the functions' outputs at one row: (1, 1, p) and (1, q) (a wrong shape used
+            # to fail deep inside the solve)
             v = c.stage_values(x, u, t)
             if v is not None:
+                _check_rows("stage", v, 3)
                 se.append(torch.full((v.shape[-1],), c.equality, device=like.device))
             w = c.terminal_values(x[:, 0])
             if w is not None:
+                _check_rows("terminal", w, 2)
                 te.append(torch.full((w.shape[-1],), c.equality, device=like.device))
         empty = torch.zeros(0, dtype=torch.bool, device=like.device)
         return (torch.cat(se) if se else empty), (torch.cat(te) if te else empty)
@@ -333,6 +377,8 @@ class ConstraintSet(nn.Module):
                 stage.append(v.expand(*u.shape[:-1], v.shape[-1]))
                 if jacobians:
                     jx, ju = c.stage_jacobians(xs, u, t)
+                    _check_jacobian("stage", jx, (v.shape[-1], x.shape[-1]))
+                    _check_jacobian("stage", ju, (v.shape[-1], u.shape[-1]))
                     cx.append(jx.expand(*u.shape[:-1], *jx.shape[-2:]))
                     cu.append(ju.expand(*u.shape[:-1], *ju.shape[-2:]))
             w = c.terminal_values(xT)
@@ -340,6 +386,7 @@ class ConstraintSet(nn.Module):
                 term.append(w.expand(*xT.shape[:-1], w.shape[-1]))
                 if jacobians:
                     jT = c.terminal_jacobian(xT)
+                    _check_jacobian("terminal", jT, (w.shape[-1], x.shape[-1]))
                     cxT.append(jT.expand(*xT.shape[:-1], *jT.shape[-2:]))
         n, m = x.shape[-1], u.shape[-1]
 

@@ -31,6 +31,29 @@ def project_psd(H: Tensor, min_eig: float) -> Tensor:
     return (V * w.clamp_min(min_eig).unsqueeze(-2)) @ V.mT
 
 
+def _checked_output(name: str, value: object, lead: torch.Size, shape: str) -> Tensor:
+    """``value`` of the user's ``stage``/``terminal`` function, with a TypeError /
+    ValueError naming it unless it is a tensor that broadcasts to ``lead`` with a full
+    last dim (``(..., T)`` for the stage cost, summed over time; ``(..., B)`` for the
+    terminal cost). A ``(..., T, 1)`` output or a scalar sum over the batch would
+    otherwise misalign or mix the rows silently."""
+    if not torch.is_tensor(value):
+        raise TypeError(
+            f"the cost's {name} must return a tensor {shape}, got {type(value).__name__}"
+        )
+    k = value.ndim
+    ok = 1 <= k <= len(lead) and value.shape[-1] == lead[-1]
+    ok = ok and all(a in (1, b) for a, b in zip(value.shape, lead[len(lead) - k :], strict=True))
+    if len(lead) == 0:  # a single row (no leading dims): a scalar
+        ok = k == 0
+    if not ok:
+        raise ValueError(
+            f"the cost's {name} returned shape {tuple(value.shape)}; expected {shape} = "
+            f"{tuple(lead)}"
+        )
+    return value
+
+
 class Cost(nn.Module):
     """A general cost ``sum_t l(x_t, u_t, t) + Phi(x_T)``.
 
@@ -61,11 +84,9 @@ class Cost(nn.Module):
             raise TypeError(f"stage must be callable, got {type(stage).__name__}")
         if terminal is not None and not callable(terminal):
             raise TypeError(f"terminal must be callable, got {type(terminal).__name__}")
-        if not (
-            isinstance(state_dim, int)
-            and state_dim > 0
-            and isinstance(control_dim, int)
-            and control_dim > 0
+        if not all(
+            isinstance(d, int) and not isinstance(d, bool) and d > 0
+            for d in (state_dim, control_dim)
         ):
             raise ValueError(
                 f"state_dim and control_dim must be positive ints, got {state_dim}, {control_dim}"
@@ -89,6 +110,11 @@ class Cost(nn.Module):
 
     # evaluation ------------------------------------------------------------------------
     def _check(self, x: Tensor, u: Tensor) -> int:
+        if not torch.is_tensor(x) or not torch.is_tensor(u):
+            raise TypeError(
+                f"x and u must be tensors (B,T+1,n) and (B,T,m), got {type(x).__name__} and "
+                f"{type(u).__name__}"
+            )
         if x.ndim < 3 or u.ndim < 3 or x.shape[-2] != u.shape[-2] + 1:
             raise ValueError(
                 f"x must be (B,T+1,n) and u (B,T,m), got {tuple(x.shape)} and {tuple(u.shape)}"
@@ -107,7 +133,10 @@ class Cost(nn.Module):
         """Total cost ``(..., B)`` of ``x (..., B, T+1, n)``, ``u (..., B, T, m)``."""
         T = self._check(x, u)
         t = self._steps(T, x)
-        return self.stage(x[..., :T, :], u, t).sum(-1) + self.terminal(x[..., T, :])
+        xs = x[..., :T, :]
+        stage = _checked_output("stage", self.stage(xs, u, t), xs.shape[:-1], "(..., T)")
+        terminal = _checked_output("terminal", self.terminal(x[..., T, :]), x.shape[:-2], "(...)")
+        return stage.sum(-1) + terminal
 
     def quadratize(self, x: Tensor, u: Tensor) -> CostExpansion:
         """Gradients and Hessians at ``(x (B,T+1,n), u (B,T,m))`` by ``torch.func``.

@@ -164,6 +164,11 @@ class QuadraticCost(nn.Module):
         return xr, ur
 
     def _check_traj(self, x: Tensor, u: Tensor) -> int:
+        if not torch.is_tensor(x) or not torch.is_tensor(u):
+            raise TypeError(
+                f"x and u must be tensors (B,T+1,n) and (B,T,m), got {type(x).__name__} and "
+                f"{type(u).__name__}"
+            )
         if x.ndim < 3 or u.ndim < 3:
             raise ValueError(
                 f"x must be (B,T+1,n) and u (B,T,m), got {tuple(x.shape)} and {tuple(u.shape)}"
@@ -230,6 +235,18 @@ class QuadraticCost(nn.Module):
         if f is None or f.shape[0] != batch_size or not bool((f != Status.RUNNING).any()):
             return None
         return f
+
+    def check_batch(self, batch_size: int) -> None:
+        """ValueError naming the weight or target given per element for another batch
+        size than ``batch_size`` (``Q (B', T, n, n)`` with ``B'`` not 1 or ``B``); called
+        by :meth:`torchslq.Problem.check_inputs`."""
+        for name, ndim in _PER_ELEMENT_NDIM.items():
+            t = getattr(self, name)
+            if t is not None and t.ndim == ndim and t.shape[0] not in (1, batch_size):
+                raise ValueError(
+                    f"cost.{name} is given per element for a batch of {t.shape[0]} "
+                    f"(shape {tuple(t.shape)}) but x0 has a batch of {batch_size}"
+                )
 
     def per_element_names(self, batch_size: int) -> list[str]:
         """The weights and targets given per batch element (``(B, T, n, n)`` ``Q``,
@@ -362,11 +379,13 @@ def _check_symmetric(name: str, W: Tensor, psd: bool) -> Tensor | None:
     status for those elements, not an error for the batch). Symmetry is always
     required: a non-symmetric weight is a mistake in the code, not in the data."""
     Wd = W.detach()
+    tol = 1e-10 if Wd.dtype == torch.float64 else 1e-6
+    if Wd.dtype not in (torch.float32, torch.float64):  # eigvalsh has no float16 kernel
+        Wd = Wd.float()
     per_element = _per_element(name, W)
     finite = torch.isfinite(Wd)
     Wd = torch.nan_to_num(Wd, nan=0.0, posinf=0.0, neginf=0.0)
-    scale = Wd.abs().amax().clamp_min(1.0)
-    tol = 1e-6 if Wd.dtype == torch.float32 else 1e-10
+    scale = (Wd.abs().amax() if Wd.numel() else Wd.new_zeros(())).clamp_min(1.0)
     if not bool(((Wd - Wd.mT).abs() <= tol * scale).all()):
         raise ValueError(f"{name} must be symmetric")
     eig = torch.linalg.eigvalsh(Wd)

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import hashlib
 import json
-import math
 import os
 import tempfile
 from dataclasses import dataclass, fields
@@ -79,9 +78,12 @@ class ShardReport:
 
 def shard_bounds(batch: int, shard_size: int) -> list[tuple[int, int]]:
     """Row ranges ``[(start, stop), ...]`` of the shards of a batch of ``batch`` rows; the
-    last shard may be shorter."""
-    if not isinstance(shard_size, int) or shard_size < 1:
+    last shard may be shorter. An empty batch has one empty shard ``[(0, 0)]`` (its file
+    holds the empty result, so that the job can be loaded like any other)."""
+    if not isinstance(shard_size, int) or isinstance(shard_size, bool) or shard_size < 1:
         raise ValueError(f"shard_size must be a positive int, got {shard_size!r}")
+    if batch == 0:
+        return [(0, 0)]
     return [(s, min(s + shard_size, batch)) for s in range(0, batch, shard_size)]
 
 
@@ -119,7 +121,7 @@ def _manifest(x0: Tensor, u_init: Tensor | None, shard_size: int, solver, proble
         "format": FORMAT,
         "batch": int(x0.shape[0]),
         "shard_size": shard_size,
-        "num_shards": math.ceil(x0.shape[0] / shard_size),
+        "num_shards": len(shard_bounds(int(x0.shape[0]), shard_size)),
         "state_dim": int(x0.shape[1]),
         "dtype": str(x0.dtype),
         "horizon": int(getattr(problem, "horizon", -1)),
@@ -184,6 +186,11 @@ def solve_sharded(
         :class:`ShardReport` of this process. With a process group every rank returns
         after all ranks finished (a barrier).
     """
+    if isinstance(solver, type) or not callable(getattr(solver, "solve", None)):
+        raise TypeError(
+            f"solver must be a solver object with solve(problem, x0, u_init) (e.g. "
+            f"torchslq.ILQR()), got {solver!r}"
+        )
     if not torch.is_tensor(x0) or x0.ndim != 2 or not x0.is_floating_point():
         raise ValueError(
             f"x0 must be a floating-point tensor (N, n), got {getattr(x0, 'shape', x0)}"
@@ -199,7 +206,8 @@ def solve_sharded(
     g_rank, g_world = (dist.get_rank(), dist.get_world_size()) if group else (0, 1)
     rank = g_rank if rank is None else rank
     world_size = g_world if world_size is None else world_size
-    if not (isinstance(world_size, int) and world_size >= 1 and 0 <= rank < world_size):
+    ints = all(isinstance(v, int) and not isinstance(v, bool) for v in (rank, world_size))
+    if not (ints and world_size >= 1 and 0 <= rank < world_size):
         raise ValueError(f"need 0 <= rank < world_size, got rank={rank}, world_size={world_size}")
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

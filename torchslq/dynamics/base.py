@@ -144,10 +144,19 @@ def state_control_dims(dynamics: nn.Module) -> tuple[int, int]:
     """``(state_dim, control_dim)`` of a dynamics module, with a clear error if missing."""
     n = getattr(dynamics, "state_dim", None)
     m = getattr(dynamics, "control_dim", None)
-    if not isinstance(n, int) or not isinstance(m, int):
+    if (
+        not isinstance(n, int)
+        or not isinstance(m, int)
+        or isinstance(n, bool)
+        or isinstance(m, bool)
+    ):
         raise TypeError(
             f"{type(dynamics).__name__} must declare integer attributes state_dim and "
             "control_dim (wrap a plain network with torchslq.LearnedDynamics)"
+        )
+    if n < 1 or m < 1:
+        raise ValueError(
+            f"{type(dynamics).__name__} has state_dim {n} and control_dim {m}; both must be >= 1"
         )
     return n, m
 

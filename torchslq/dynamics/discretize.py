@@ -29,8 +29,10 @@ class DiscretizedDynamics(Dynamics):
         super().__init__()
         if method not in _METHODS:
             raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
-        if not (isinstance(dt, (int, float)) and dt > 0):
-            raise ValueError(f"dt must be a positive number, got {dt!r}")
+        if not (
+            isinstance(dt, (int, float)) and not isinstance(dt, bool) and 0 < dt < float("inf")
+        ):
+            raise ValueError(f"dt must be a positive finite number, got {dt!r}")
         self.continuous = continuous
         self.dt = float(dt)
         self.method = method

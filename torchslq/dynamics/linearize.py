@@ -6,6 +6,7 @@ This is the single linearisation used by every solver.
 from __future__ import annotations
 
 import inspect
+import operator
 from collections.abc import Callable
 from contextlib import nullcontext
 
@@ -38,9 +39,30 @@ class LearnedDynamics(Dynamics):
 
     def __init__(self, net: nn.Module, state_dim: int, control_dim: int, residual: bool = True):
         super().__init__()
+        if not callable(net):
+            raise TypeError(f"net must be a module or callable on [x, u], got {type(net).__name__}")
+        dims = []
+        for name, v in (("state_dim", state_dim), ("control_dim", control_dim)):
+            try:  # ints (numpy's too), not 2.7 truncated to 2 or True read as 1
+                d = operator.index(v) if not isinstance(v, bool) else -1
+            except TypeError:
+                d = -1
+            if d < 1:
+                raise ValueError(f"{name} must be a positive int, got {v!r}")
+            dims.append(d)
+        state_dim, control_dim = dims
+        if not isinstance(residual, bool):
+            raise TypeError(f"residual must be a bool, got {residual!r}")
+        first = net[0] if isinstance(net, nn.Sequential) and len(net) else net
+        width = getattr(first, "in_features", None)
+        if isinstance(first, nn.Linear) and width != state_dim + control_dim:
+            raise ValueError(
+                f"net takes {width} input features but [x, u] has state_dim + control_dim = "
+                f"{state_dim + control_dim}"
+            )
         self.net = net
-        self.state_dim = int(state_dim)
-        self.control_dim = int(control_dim)
+        self.state_dim = state_dim
+        self.control_dim = control_dim
         self.residual = residual
 
     def per_element_names(self, batch_size: int) -> list[str]:
@@ -50,6 +72,13 @@ class LearnedDynamics(Dynamics):
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         out = self.net(torch.cat([x, u], dim=-1))
+        if not torch.is_tensor(out) or out.shape[-1:] != x.shape[-1:]:
+            got = tuple(out.shape) if torch.is_tensor(out) else type(out).__name__
+            raise ValueError(
+                f"LearnedDynamics: net returned {got} for input {tuple(x.shape[:-1])} + "
+                f"({self.state_dim + self.control_dim},); its last dim must be state_dim = "
+                f"{self.state_dim}"
+            )
         return x + out if self.residual else out
 
 
@@ -105,6 +134,11 @@ def linearize(
     """
     if method not in _METHODS:
         raise ValueError(f"method must be one of {_METHODS}, got {method!r}")
+    if not torch.is_tensor(x) or not torch.is_tensor(u):
+        raise TypeError(
+            f"x and u must be tensors (..., n) and (..., m), got {type(x).__name__} and "
+            f"{type(u).__name__}"
+        )
     if x.shape[:-1] != u.shape[:-1]:
         raise ValueError(
             f"x and u must share leading dims, got x {tuple(x.shape)} and u {tuple(u.shape)}"
@@ -112,8 +146,8 @@ def linearize(
     if getattr(dynamics, "has_analytic_jacobians", False):
         ctx = torch.enable_grad() if create_graph else torch.no_grad()
         with ctx:
-            A, B = dynamics.jacobians(x, u)
-        return A, B
+            out = dynamics.jacobians(x, u)
+        return _checked_jacobians(dynamics, out, x, u)
     f = as_transition(dynamics)
     if isinstance(dynamics, Dynamics):
         n, m = state_control_dims(dynamics)
@@ -148,6 +182,34 @@ def linearize(
         )
     del n, m
     return A.reshape(*lead, n_out, x.shape[-1]), B.reshape(*lead, n_out, u.shape[-1])
+
+
+def _checked_jacobians(dynamics, out, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """The model's analytic ``jacobians(x, u)`` output ``(A, B)``, with a TypeError /
+    ValueError naming the model unless they are two tensors of ``x``'s dtype and device
+    broadcasting to ``(..., n, n)`` and ``(..., n, m)`` (a wrong shape used to fail deep
+    inside the solvers with an IndexError)."""
+    name = type(dynamics).__name__
+    lead, n, m = x.shape[:-1], x.shape[-1], u.shape[-1]
+    if not (isinstance(out, (tuple, list)) and len(out) == 2 and all(map(torch.is_tensor, out))):
+        raise TypeError(f"{name}.jacobians(x, u) must return two tensors (A, B), got {out!r:.80}")
+    for what, J, tail in (("A = df/dx", out[0], (n, n)), ("B = df/du", out[1], (n, m))):
+        ok = J.ndim >= 2 and tuple(J.shape[-2:]) == tail
+        try:
+            ok = ok and broadcast_shapes(J.shape[:-2], lead) == lead
+        except RuntimeError:
+            ok = False
+        if not ok:
+            raise ValueError(
+                f"{name}.jacobians(x, u) returned {what} of shape {tuple(J.shape)}; expected "
+                f"{(*lead, *tail)} for x {tuple(x.shape)} and u {tuple(u.shape)}"
+            )
+        if J.dtype != x.dtype or J.device != x.device:
+            raise ValueError(
+                f"{name}.jacobians(x, u) returned {what} as {J.dtype} on {J.device} for x of "
+                f"{x.dtype} on {x.device}; they must match"
+            )
+    return out[0], out[1]
 
 
 # rows per call of the batched reverse-over-reverse passes (dynamics_vhp/_hessians)

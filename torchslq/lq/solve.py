@@ -261,6 +261,8 @@ def _check_tensor(
     name: str, t: Tensor | None, min_ndim: int, tail: tuple[int, ...], time: int | None
 ):
     if t is None:
+        if name in ("Q", "R", "x0"):
+            raise TypeError(f"{name} must be a torch.Tensor, got None")
         return
     if not torch.is_tensor(t):
         raise TypeError(f"{name} must be a torch.Tensor, got {type(t).__name__}")
@@ -281,6 +283,31 @@ def _check_tensor(
             )
     if not t.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {t.dtype}")
+
+
+def _check_common_dtype_device(**args: Tensor | None) -> None:
+    """Every given argument has ``A``'s dtype (float32 or float64) and device; TypeError /
+    ValueError naming the first that differs (mixed precisions would fail or be promoted
+    deep inside the kernels)."""
+    A = args["A"]
+    if A.dtype not in (torch.float32, torch.float64):
+        raise TypeError(
+            f"A has dtype {A.dtype}; lqr_solve needs float32 or float64 tensors (convert "
+            "all arguments, e.g. .double())"
+        )
+    for name, t in args.items():
+        if t is None:
+            continue
+        if t.dtype != A.dtype:
+            raise TypeError(
+                f"{name} has dtype {t.dtype} but A has {A.dtype}; all arguments of "
+                "lqr_solve must have one dtype"
+            )
+        if t.device != A.device:
+            raise ValueError(
+                f"{name} is on device {t.device} but A is on {A.device}; all arguments of "
+                "lqr_solve must be on one device"
+            )
 
 
 def _element_faults(name: str, fault: Tensor, batch: torch.Size, what: str) -> Tensor:
@@ -423,6 +450,7 @@ def lqr_solve(
         _check_tensor("c", c, 1, (n,), T)
         if T == 0:
             raise ValueError("A has a horizon of T = 0 steps; need T >= 1")
+        _check_common_dtype_device(A=A, B=B, Q=Q, R=R, x0=x0, q=q, r=r, S=S, c=c)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     m = B.shape[-1]

@@ -507,6 +507,18 @@ def qp_solve(
         ``status (B,)``. Gradients flow to every input by implicit differentiation of the
         KKT conditions (strict complementarity assumed at the solution).
     """
+    args = {"f": f, "H": H, "A": A, "b": b, "G": G, "h": h, "lb": lb, "ub": ub}
+    for name, t in args.items():
+        if t is None and name in ("lb", "ub"):
+            continue
+        if not torch.is_tensor(t) or not t.is_floating_point():
+            got = t.dtype if torch.is_tensor(t) else type(t).__name__
+            raise TypeError(f"{name} must be a floating-point tensor, got {got}")
+        if t.dtype != f.dtype or t.device != f.device:
+            raise TypeError(
+                f"{name} is {t.dtype} on {t.device} but f is {f.dtype} on {f.device}; all "
+                "arguments of qp_solve must have one dtype and device"
+            )
     B, n = f.shape if f.ndim == 2 else (None, None)
     if B is None:
         raise ValueError(f"f must be (B, n); got {tuple(f.shape)}")

@@ -31,6 +31,7 @@ import torch
 from torch import Tensor
 
 from ..solvers.core import Advance, ElementState, LoopSettings, Measure, iterate, shared
+from ..solvers.options import check_int, check_real
 from ..status import Status
 from .backends import QPSolution, solve
 from .transcription import Transcription
@@ -211,10 +212,9 @@ class Quasilinearization:
             raise ValueError(f"backend must be 'clarabel', 'osqp' or 'dense'; got {backend!r}")
         if safeguard not in (None, "merit"):
             raise ValueError(f"safeguard must be None or 'merit'; got {safeguard!r}")
-        if not tol > 0:
-            raise ValueError(f"tol must be positive; got {tol}")
-        if not isinstance(max_iter, int) or max_iter < 1:
-            raise ValueError(f"max_iter must be a positive int; got {max_iter!r}")
+        check_real("tol", tol, 0.0)
+        check_int("max_iter", max_iter, 1)
+        check_real("feas_tol", feas_tol, 0.0)
         self.tol, self.max_iter, self.backend = tol, max_iter, backend
         self.safeguard, self.feas_tol = safeguard, feas_tol
         self.qp_options = dict(qp_options or {})
@@ -227,9 +227,7 @@ class Quasilinearization:
         """
         if not isinstance(tr, Transcription):
             raise TypeError(f"tr must be a Transcription; got {type(tr).__name__}")
-        z0 = torch.as_tensor(z0)
-        if z0.ndim == 1:
-            z0 = z0[None]
+        z0 = tr.as_batch("z0", z0, tr.n)
         tr._check_z(z0)
         t0 = time.perf_counter()
         z0 = z0.detach()

@@ -99,6 +99,10 @@ class Transcription:
     ) -> None:
         if not isinstance(problem, LQDOProblem):
             raise TypeError(f"problem must be an LQDOProblem; got {type(problem).__name__}")
+        if not (isinstance(dtype, torch.dtype) and dtype.is_floating_point):
+            raise TypeError(f"dtype must be a floating-point torch.dtype, got {dtype!r}")
+        if not isinstance(method, str):
+            raise TypeError(f"method must be 'TR' or 'PS'; got {method!r}")
         method = method.upper()
         if method not in ("TR", "PS"):
             raise ValueError(f"method must be 'TR' or 'PS'; got {method!r}")
@@ -193,6 +197,26 @@ class Transcription:
             z[:, self.off_x : self.off_p].reshape(B, nt, P.nx),
             z[:, self.off_p :],
         )
+
+    def as_batch(self, name: str, value, width: int) -> Tensor:
+        """``value`` (a tensor or array-like ``(B, width)`` or ``(width,)``) as a
+        ``(B, width)`` tensor of the transcription's dtype and device; a TypeError /
+        ValueError naming ``name`` otherwise (and for an empty batch)."""
+        if value is None or isinstance(value, (str, bytes)):
+            raise TypeError(f"{name} must be a tensor (B, {width}), got {type(value).__name__}")
+        try:
+            t = torch.as_tensor(value, dtype=self.dtype, device=self.device)
+        except (TypeError, ValueError, RuntimeError) as err:
+            raise TypeError(
+                f"{name} must be a tensor (B, {width}), got {type(value).__name__}"
+            ) from err
+        if t.ndim == 1:
+            t = t[None]
+        if t.ndim != 2 or t.shape[1] != width:
+            raise ValueError(f"{name} must be (B, {width}) or ({width},); got {tuple(t.shape)}")
+        if t.shape[0] == 0:
+            raise ValueError(f"{name} has an empty batch (B = 0); give at least one row")
+        return t
 
     def _check_z(self, z: Tensor) -> None:
         if not torch.is_tensor(z) or z.ndim != 2 or z.shape[1] != self.n:

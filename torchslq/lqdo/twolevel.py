@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from ..solvers.options import check_int, check_real
 from ..status import Status
 from .backends import QPSolution, solve
 from .transcription import Transcription
@@ -90,8 +91,8 @@ class TwoLevel:
     ) -> None:
         if backend not in ("clarabel", "osqp", "dense"):
             raise ValueError(f"backend must be 'clarabel', 'osqp' or 'dense'; got {backend!r}")
-        if not isinstance(max_iter, int) or max_iter < 1:
-            raise ValueError(f"max_iter must be a positive int; got {max_iter!r}")
+        check_int("max_iter", max_iter, 1)
+        check_real("tol", tol, 0.0)
         self.backend, self.tol, self.max_iter = backend, tol, max_iter
         self.qp_options = dict(qp_options or {})
 
@@ -104,11 +105,7 @@ class TwoLevel:
         P = tr.problem
         if P.np == 0:
             raise ValueError("the problem has no static parameters (np = 0)")
-        p = torch.as_tensor(p, dtype=tr.dtype, device=tr.device)
-        if p.ndim == 1:
-            p = p[None]
-        if p.ndim != 2 or p.shape[1] != P.np:
-            raise ValueError(f"p must be (B, {P.np}); got {tuple(p.shape)}")
+        p = tr.as_batch("p", p, P.np)
         B = p.shape[0]
         mask = torch.zeros(tr.n, dtype=torch.bool, device=p.device)
         mask[tr.idx_p] = True
@@ -137,10 +134,12 @@ class TwoLevel:
         """Minimise ``v(p)`` over the parameter bounds from ``p0 (B, np)`` (a batch of
         starting designs, or of problems that differ in ``initial``/``final``)."""
         t0 = time.perf_counter()
+        if not isinstance(tr, Transcription):
+            raise TypeError(f"tr must be a Transcription; got {type(tr).__name__}")
         P = tr.problem
-        p0 = torch.as_tensor(p0, dtype=tr.dtype, device=tr.device)
-        if p0.ndim == 1:
-            p0 = p0[None]
+        if P.np == 0:
+            raise ValueError("the problem has no static parameters (np = 0)")
+        p0 = tr.as_batch("p0", p0, P.np)
         B, m = p0.shape
         lb = P.p_lb.to(p0).expand(B, m)
         ub = P.p_ub.to(p0).expand(B, m)
@@ -174,6 +173,9 @@ class TwoLevel:
         Hinv = torch.eye(m, dtype=p0.dtype, device=p0.device).expand(B, m, m).clone()
         status = torch.full((B,), int(Status.RUNNING), dtype=torch.int64, device=p0.device)
         status = status.masked_fill(ev.status != 0, int(Status.NOT_POSITIVE_DEFINITE))
+        # a NaN or infinity in a starting design is that element's non_finite (one
+        # meaning per status)
+        status = status.masked_fill(ev.status == Status.NON_FINITE, int(Status.NON_FINITE))
         iters = torch.zeros(B, dtype=torch.int64, device=p0.device)
         z = ev.z
         hist = [v.clone()]

@@ -41,7 +41,6 @@ __all__ = ["MPC", "MPCOutput"]
 
 _BACKWARDS = ("implicit", "implicit_gn", "unroll")
 _UNCONVERGED = ("warn", "raise", "zero")
-_WARM = (True, False, "shift", "reuse")
 # gradient-norm tolerance of the default solver by dtype (others: the float32 value)
 DEFAULT_TOL = {torch.float64: 1e-8, torch.float32: 1e-4}
 
@@ -144,7 +143,8 @@ class MPC(nn.Module):
         self.problem = Problem(dynamics, cost, horizon)
         if backward not in _BACKWARDS:
             raise ValueError(f"backward must be one of {_BACKWARDS}, got {backward!r}")
-        if warm_start not in _WARM:
+        if not (isinstance(warm_start, bool) or warm_start in ("shift", "reuse")):
+            # (0 and 1 compare equal to False and True but would not act as them)
             raise ValueError(
                 f"warm_start must be True, False, 'shift' or 'reuse', got {warm_start!r}"
             )
@@ -153,8 +153,11 @@ class MPC(nn.Module):
         self._default_solver = solver is None
         if solver is None:
             solver = ILQR(max_iter=200, tol=DEFAULT_TOL[torch.float64], progress=False)
-        if not callable(getattr(solver, "solve", None)):
-            raise TypeError(f"solver must have a solve(problem, x0, u_init) method, got {solver!r}")
+        if isinstance(solver, type) or not callable(getattr(solver, "solve", None)):
+            raise TypeError(
+                f"solver must be a solver object with a solve(problem, x0, u_init) method "
+                f"(e.g. torchslq.ILQR()), got {solver!r}"
+            )
         if (u_min is not None or u_max is not None) and not getattr(
             solver, "supports_bounds", False
         ):
@@ -162,9 +165,11 @@ class MPC(nn.Module):
                 "control bounds need an ILQR or DDP solver (one with supports_bounds), "
                 f"got {type(solver).__name__}"
             )
-        if compact not in (True, False, "auto"):
+        if not (isinstance(compact, bool) or compact == "auto"):
             raise ValueError(f"compact must be True, False or 'auto', got {compact!r}")
-        if unroll_iters is not None and (not isinstance(unroll_iters, int) or unroll_iters < 1):
+        if unroll_iters is not None and (
+            not isinstance(unroll_iters, int) or isinstance(unroll_iters, bool) or unroll_iters < 1
+        ):
             raise ValueError(f"unroll_iters must be a positive int, got {unroll_iters!r}")
         if u_min is not None or u_max is not None:
             # a new solver with the bounds: the one given is never changed
@@ -301,6 +306,9 @@ class MPC(nn.Module):
         unbatched = x0.ndim == 1
         x0b = x0.reshape(-1, n)
         Bsz = x0b.shape[0]
+        # u_init, and x0's dtype and device against the problem's, checked before the
+        # warm start uses them (the solver checks them again)
+        self.problem.check_inputs(x0b.detach(), u_init)
         guess, guess_x = self._initial_guess(x0b, u_init)
         solver = self._solver_for(x0b.dtype, Bsz)
         kw = {"x_init": guess_x} if guess_x is not None and self._supports_compact() else {}

@@ -32,10 +32,10 @@ from ..constraints.polish import polish
 from ..constraints.spec import ConstraintSet, max_violation
 from ..costs.quadratic import compiled_cost_evaluation
 from ..dynamics.rollout import rollout
-from ..problem import Problem
+from ..problem import Problem, check_problem
 from ..status import Status
 from .base import checked_x_init
-from .core import Advance, ElementState, LoopSettings, Measure, iterate
+from .core import Advance, ElementState, LoopSettings, Measure, check_logger, iterate
 from .options import loggable
 from .result import SolverResult
 
@@ -198,6 +198,8 @@ def solve_constrained(
     ``multipliers`` (``{"stage": (B, T, p), "terminal": (B, q)}``, e.g. a previous
     solve's, shifted) start the outer loop instead of zeros."""
     o = solver.options
+    check_problem(problem)
+    check_logger(logger)
     x0, u, unbatched = problem.check_inputs(x0, u_init)
     if x_init is not None:
         x_init = checked_x_init(x_init, x0, problem.horizon)
@@ -205,6 +207,13 @@ def solve_constrained(
     cset = o.constraints.to(dtype=x0.dtype, device=x0.device)
     stage_eq, terminal_eq = cset.dims(problem.state_dim, problem.control_dim, x0)
     ctol = default_constraint_tol(x0.dtype) if o.constraint_tol is None else o.constraint_tol
+    largest = torch.finfo(x0.dtype).max
+    for name in ("penalty_init", "penalty_max"):
+        if largest < getattr(o, name) < float("inf"):
+            raise ValueError(
+                f"{name} = {getattr(o, name):g} overflows {x0.dtype} (largest {largest:g}); "
+                f"pass a smaller {name}"
+            )
     inner = solver.with_options(constraints=None, progress=False, compact=False)
     u, x_init, extra = inner.prepare(problem, x0, u, x_init)  # clamp into the control bounds
     lo, hi = extra.get("lo"), extra.get("hi")
@@ -233,14 +242,17 @@ def solve_constrained(
         name=solver.name,
     )
     n, m = problem.state_dim, problem.control_dim
-    lam, lam_T = _initial_multipliers(multipliers, x0, T, stage_eq, terminal_eq)
+    lam, lam_T, bad_lam = _initial_multipliers(multipliers, x0, T, stage_eq, terminal_eq)
     with torch.no_grad(), compiled_cost_evaluation():
         x = rollout(problem.transition, x0, u) if x_init is None else x_init
         zeros = x0.new_zeros(Bsz)
+        J0 = problem.cost(x, u)
+        if multipliers is not None:  # a non-finite objective: the loop starts it non_finite
+            J0 = J0.masked_fill(bad_lam, float("nan"))
         state = ALState(
             x=x,
             u=u,
-            J=problem.cost(x, u),
+            J=J0,
             lam=lam,
             lam_T=lam_T,
             rho=torch.full_like(zeros, float(o.penalty_init)),
@@ -287,12 +299,15 @@ def solve_constrained(
 
 def _initial_multipliers(
     given: dict[str, Tensor] | None, x0: Tensor, T: int, stage_eq: Tensor, terminal_eq: Tensor
-) -> tuple[Tensor, Tensor]:
-    """``(lam (B, T, p), lam_T (B, q))``: zeros, or ``given`` checked (shapes, finite,
-    ``>= 0`` on inequality rows) and broadcast over the batch."""
+) -> tuple[Tensor, Tensor, Tensor]:
+    """``(lam (B, T, p), lam_T (B, q), bad (B,))``: zeros, or ``given`` checked (shapes,
+    ``>= 0`` on inequality rows) and broadcast over the batch. ``bad`` flags the elements
+    whose own multipliers contain NaN or infinity (they start ``non_finite``, with zero
+    multipliers); in multipliers shared by the batch that is a ValueError."""
     Bsz, p, q = x0.shape[0], stage_eq.numel(), terminal_eq.numel()
+    bad = torch.zeros(Bsz, dtype=torch.bool, device=x0.device)
     if given is None:
-        return x0.new_zeros(Bsz, T, p), x0.new_zeros(Bsz, q)
+        return x0.new_zeros(Bsz, T, p), x0.new_zeros(Bsz, q), bad
     if not isinstance(given, dict) or set(given) != {"stage", "terminal"}:
         raise TypeError("multipliers must be a dict with keys 'stage' and 'terminal'")
     out = []
@@ -308,14 +323,23 @@ def _initial_multipliers(
             )
         ):
             got = tuple(t.shape) if torch.is_tensor(t) else type(t).__name__
-            raise ValueError(f"multipliers[{key!r}] must have shape (B, {shape}), got {got}")
+            want = ", ".join(map(str, shape))
+            raise ValueError(f"multipliers[{key!r}] must have shape (B, {want}), got {got}")
         if t.ndim == len(shape) + 1 and t.shape[0] not in (1, Bsz):
             raise ValueError(f"multipliers[{key!r}] has batch size {t.shape[0]} but x0 has {Bsz}")
+        shared = Bsz > 1 and (t.ndim == len(shape) or t.shape[0] == 1)
         t = t.detach().to(dtype=x0.dtype, device=x0.device).expand(Bsz, *shape).clone()
-        if not bool(torch.isfinite(t).all()):
-            raise ValueError(f"multipliers[{key!r}] contains non-finite values")
+        finite = torch.isfinite(t).flatten(1).all(1)
+        if not bool(finite.all()):
+            if shared:
+                raise ValueError(
+                    f"multipliers[{key!r}] contains nan or inf (in data shared by the whole batch)"
+                )
+            # one element's fault: that element starts non_finite (granularity rule)
+            bad = bad | ~finite
+            t = torch.where(finite.view(-1, *([1] * (t.ndim - 1))), t, 0.0)
         out.append(torch.where(eq, t, t.clamp_min(0.0)))  # inequality multipliers are >= 0
-    return out[0], out[1]
+    return out[0], out[1], bad
 
 
 def _polish_and_resume(

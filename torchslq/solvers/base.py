@@ -17,8 +17,9 @@ from torch import Tensor
 
 from ..costs.quadratic import compiled_cost_evaluation
 from ..dynamics.rollout import rollout
+from ..problem import check_problem
 from ..status import Status
-from .core import LoopSettings, iterate
+from .core import LoopSettings, check_logger, iterate
 from .descent import DescentState
 from .options import loggable
 from .result import SolverResult
@@ -173,6 +174,8 @@ class DescentSolver(Solver):
             :class:`torchslq.SolverResult`.
         """
         o = self.options
+        check_problem(problem)
+        check_logger(logger)
         x0, u, unbatched = problem.check_inputs(x0, u_init)
         if x_init is not None:
             x_init = checked_x_init(x_init, x0, problem.horizon)

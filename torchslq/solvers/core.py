@@ -187,6 +187,23 @@ def _history_row(hist: dict[str, list], key: str, value: Tensor) -> None:
     hist.setdefault(key, []).append(value)
 
 
+LOGGER_METHODS = ("log_options", "log_iteration", "log_result")
+
+
+def check_logger(logger: Any) -> None:
+    """TypeError unless ``logger`` is None or has the logger methods (``log_options``,
+    ``log_iteration``, ``log_result``, as :class:`torchslq.TensorBoardLogger`)."""
+    if logger is None:
+        return
+    missing = [k for k in LOGGER_METHODS if not callable(getattr(logger, k, None))]
+    if missing:
+        raise TypeError(
+            f"logger must be None or a logger such as torchslq.TensorBoardLogger (with "
+            f"{', '.join(LOGGER_METHODS)}); got {type(logger).__name__} without "
+            f"{', '.join(missing)}"
+        )
+
+
 def iterate(
     rule: IterationRule,
     problem: Problem,

@@ -104,6 +104,7 @@ includes it; ``grad_norm`` is that of the objective.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any, ClassVar
 
@@ -116,9 +117,10 @@ from ..costs.quadratic import CostExpansion
 from ..dynamics.linearize import linearize
 from ..dynamics.rollout import costate_gradient, rollout, rollout_closed_loop
 from ..lq.riccati import riccati_backward
+from ..problem import check_problem
 from ..status import Status
 from .base import Solver
-from .core import Advance, ElementState, Measure, iterate, shared
+from .core import Advance, ElementState, Measure, check_logger, iterate, shared
 from .line_search import TrialRecorder, armijo_search
 from .options import check_choice, check_int, check_passes, check_real, loggable, options_record
 from .result import SolverResult
@@ -259,7 +261,7 @@ class GoPRONTOOptions:
             if self.step != "armijo":
                 raise ValueError(f"step must be 'armijo' or a positive float, got {self.step!r}")
         else:
-            check_real("step", self.step, 0.0)
+            check_real("step", self.step, 0.0, math.inf)
         check_int("max_iter", self.max_iter, 0)
         check_real("tol", self.tol, 0.0)
         check_real("gamma_hb", self.gamma_hb, 0.0, 1.0, lo_closed=True)
@@ -288,7 +290,9 @@ class GoPRONTOOptions:
         check_real("armijo_beta", self.armijo_beta, 0.0, 1.0)
         check_int("max_backtracks", self.max_backtracks, 1)
         object.__setattr__(self, "armijo_passes", check_passes(self.armijo_passes))
-        check_real("step0", self.step0, 0.0)
+        check_real("step0", self.step0, 0.0, math.inf)
+        if not isinstance(self.progress, bool):
+            raise TypeError(f"progress must be a bool, got {self.progress!r}")
         check_real("armijo_growth", self.armijo_growth, 1.0, lo_closed=True)
         check_choice("linearize_method", self.linearize_method, ("auto", "vjp", "jacrev", "jacfwd"))
 
@@ -703,6 +707,8 @@ class GoPRONTO(Solver):
             projection gains ``K``, recomputations, history.
         """
         o = self.options
+        check_problem(problem)
+        check_logger(logger)
         x0, u, unbatched = problem.check_inputs(x0, u_init)
         Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
         dev = x0.device

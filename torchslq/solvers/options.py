@@ -7,6 +7,7 @@ solver. The same concept has the same name in every solver (e.g. ``armijo_passes
 
 from __future__ import annotations
 
+import math
 from dataclasses import asdict, dataclass, fields
 from typing import Any
 
@@ -220,14 +221,16 @@ class ILQROptions(DescentOptions):
                 "ILQR/DDP use rollout='closed_loop' and line_search='armijo' "
                 f"(got rollout={self.rollout!r}, line_search={self.line_search!r})"
             )
-        check_real("mu_init", self.mu_init, 0.0, lo_closed=True)
+        # an infinite mu_init or hessian_floor makes every element's first step non-finite:
+        # an error, not a batch of statuses
+        check_real("mu_init", self.mu_init, 0.0, math.inf, lo_closed=True)
         check_real("mu_min", self.mu_min, 0.0, lo_closed=True)
         check_real("mu_max", self.mu_max, 0.0, lo_closed=True)
         if self.mu_min > self.mu_max:
             raise ValueError(f"mu_min ({self.mu_min}) must not exceed mu_max ({self.mu_max})")
         check_real("mu_factor", self.mu_factor, 1.0)
         if self.hessian_floor is not None:
-            check_real("hessian_floor", self.hessian_floor)
+            check_real("hessian_floor", self.hessian_floor, -math.inf, math.inf)
         for name in ("u_min", "u_max"):
             v = getattr(self, name)
             if v is not None and not torch.is_tensor(v):

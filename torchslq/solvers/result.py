@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields
+import pickle
+import struct
+from dataclasses import MISSING, dataclass, field, fields
+from os import PathLike
 from pathlib import Path
 
 import torch
@@ -74,6 +77,12 @@ class SolverResult:
     def save(self, path: str | Path) -> None:
         """Write the result to ``path`` (``torch.save`` of :meth:`to_dict` and the result's
         class); :meth:`load` reads it back with every field and status."""
+        if not isinstance(path, (str, PathLike)) and not callable(getattr(path, "write", None)):
+            raise TypeError(
+                f"path must be a str, a path or a writable file, got {type(path).__name__}"
+            )
+        if isinstance(path, (str, PathLike)) and Path(path).is_dir():
+            raise IsADirectoryError(f"path {str(path)!r} is a directory; give a file name")
         torch.save({"class": type(self).__name__, "fields": self.to_dict()}, path)
 
     @staticmethod
@@ -81,13 +90,46 @@ class SolverResult:
         """The result saved at ``path`` by :meth:`save` (of its class: a
         :class:`SolverResult` or a subclass such as :class:`torchslq.GoPRONTOResult`),
         loaded with ``weights_only=True`` (tensors and plain containers only)."""
-        data = torch.load(path, map_location=map_location, weights_only=True)
+        if not isinstance(path, (str, PathLike)) and not callable(getattr(path, "read", None)):
+            raise TypeError(
+                f"path must be a str, a path or a readable file, got {type(path).__name__}"
+            )
+        if isinstance(map_location, str):
+            try:
+                torch.device(map_location)
+            except RuntimeError as err:
+                raise ValueError(f"map_location {map_location!r} is not a device: {err}") from err
+        try:
+            data = torch.load(path, map_location=map_location, weights_only=True)
+        except (
+            pickle.UnpicklingError, EOFError, KeyError, IndexError, ValueError, struct.error,
+            RuntimeError,
+        ) as err:  # fmt: skip
+            # torch.load reads a text or corrupt file as a pickle (UnpicklingError,
+            # KeyError, struct.error, ...) or a broken zip archive (the PytorchStreamReader)
+            if isinstance(err, RuntimeError) and "PytorchStreamReader" not in str(err):
+                raise
+            raise ValueError(
+                f"{path!s} is not a file written by SolverResult.save ({type(err).__name__}: "
+                f"{str(err)[:200]})"
+            ) from err
         if not isinstance(data, dict) or "class" not in data or "fields" not in data:
             raise ValueError(f"{path!s} is not a file written by SolverResult.save")
         kinds = {k.__name__: k for k in _result_classes()}
         if data["class"] not in kinds:
             raise ValueError(f"{path!s} holds an unknown result class {data['class']!r}")
-        return kinds[data["class"]](**data["fields"])
+        cls, given = kinds[data["class"]], data["fields"]
+        names = {f.name for f in fields(cls)}
+        required = {
+            f.name for f in fields(cls) if f.default is MISSING and f.default_factory is MISSING
+        }
+        if not isinstance(given, dict) or not required <= set(given) or not set(given) <= names:
+            have = sorted(given) if isinstance(given, dict) else type(given).__name__
+            raise ValueError(
+                f"{path!s} is not a file written by SolverResult.save: its fields {have} do "
+                f"not match {cls.__name__}'s"
+            )
+        return cls(**given)
 
     def status_names(self) -> list[str]:
         return status_names(self.status)

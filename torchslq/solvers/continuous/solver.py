@@ -26,7 +26,7 @@ from torch import Tensor
 
 from ...status import Status
 from ..base import Solver
-from ..core import Advance, ElementState, LoopSettings, Measure, iterate, shared
+from ..core import Advance, ElementState, LoopSettings, Measure, check_logger, iterate, shared
 from ..options import check_int, check_real, loggable, options_record
 from ..result import SolverResult
 from .expansion import Layout
@@ -442,6 +442,7 @@ class ContinuousILQR(Solver):
             raise TypeError(
                 f"problem must be a torchslq.ContinuousProblem, got {type(problem).__name__}"
             )
+        check_logger(logger)
         o = self.options
         x0, unbatched = problem.check_x0(x0)
         layout = Layout(problem.state_dim, problem.control_dim, o.ddp)
