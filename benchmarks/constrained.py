@@ -106,7 +106,7 @@ class Spec:
             self.u_max = np.array([cpx.U_MAX])
             self.T, self.n, self.m = cpx.T, 4, 1
         else:
-            self.problem = unx.make_problem()
+            self.problem = unx.make_problem(model)
             self.x0 = unx.initial_states(B, seed)
             self.u_init = unx.initial_controls(B)
             self.constraints = unx.make_constraints()
@@ -604,10 +604,10 @@ def markdown(meta: dict, rows: list) -> str:
         "",
         "## Targets (issue 22)",
         "",
-        "| problem | B | converged with violation <= 1e-6 | same optimum as IPOPT: cost within "
+        "| problem | B | solver | converged with violation <= 1e-6 | same optimum as IPOPT: cost within "
         "1e-6 | different optimum: ours lower / higher (IPOPT from ours stays) | "
         "t_trajax / t_torchslq (>= 3 wanted) |",
-        "|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if not r["solver"].startswith("torchslq"):
@@ -622,7 +622,8 @@ def markdown(meta: dict, rows: list) -> str:
         )
         ratio = _f(r.get("trajax_over_torchslq"), ".2f")
         out.append(
-            f"| {r['problem']} | {r['B']} | {r['converged_violation_ok']}/{r['converged']} "
+            f"| {r['problem']} | {r['B']} | {r['solver'].split()[1]} | "
+            f"{r['converged_violation_ok']}/{r['converged']} "
             f"(of {r['B']}) | {cost} | {diff} | {ratio} |"
         )
     return "\n".join(out) + "\n"
@@ -665,7 +666,12 @@ def main(argv=None) -> int:
     ap.add_argument("--problems", default="cartpole,unicycle")
     ap.add_argument("--peers", default="ipopt,trajax")
     ap.add_argument("--trajax", default="/tmp/trajax", help="path of a trajax checkout")
-    ap.add_argument("--model", choices=("zoo", "user"), default="zoo", help="cart-pole model")
+    ap.add_argument(
+        "--model",
+        choices=("zoo", "user"),
+        default="zoo",
+        help="zoo: the library's models; user: the same equations written as plain modules",
+    )
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument(
         "--solver",

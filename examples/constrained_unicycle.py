@@ -67,13 +67,30 @@ def initial_controls(batch: int) -> torch.Tensor:
     return u
 
 
-def make_problem() -> ts.Problem:
+class UserUnicycle(ts.Dynamics):
+    """The same Euler step written as a user would (no compiled hooks): the library's
+    speed on a user's own model (``--model user`` in ``benchmarks/constrained.py``)."""
+
+    state_dim, control_dim = 3, 2
+
+    def forward(self, x: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        th = x[..., 2]
+        v, w = u[..., 0] * DT, u[..., 1] * DT
+        return torch.stack(
+            [x[..., 0] + torch.cos(th) * v, x[..., 1] + torch.sin(th) * v, th + w], -1
+        )
+
+
+def make_problem(model: str = "zoo") -> ts.Problem:
+    """``model="zoo"``: :class:`torchslq.systems.Unicycle` (compiled rollouts);
+    ``"user"``: :class:`UserUnicycle`."""
     cost = ts.QuadraticCost(
         torch.zeros(3, 3, dtype=torch.float64),
         torch.eye(2, dtype=torch.float64),
         Qf=torch.zeros(3, 3, dtype=torch.float64),
     )
-    return ts.Problem(Unicycle(DT).double(), cost, T)
+    dyn = UserUnicycle() if model == "user" else Unicycle(DT).double()
+    return ts.Problem(dyn, cost, T)
 
 
 def make_constraints() -> list[ts.Constraints]:
