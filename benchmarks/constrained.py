@@ -396,6 +396,7 @@ def bench(args, spec: Spec, B: int, rows: list, save) -> None:
     row = {
         **base,
         "solver": f"torchslq {args.solver.upper()} (AL)",
+        "model": args.model,
         "time_s": ours["time"],
         "warmup_s": warm,
         "status": ours["status_counts"],
@@ -622,7 +623,7 @@ def markdown(meta: dict, rows: list) -> str:
         )
         ratio = _f(r.get("trajax_over_torchslq"), ".2f")
         out.append(
-            f"| {r['problem']} | {r['B']} | {r['solver'].split()[1]} | "
+            f"| {r['problem']} | {r['B']} | {r['solver'].split()[1]}, {r.get('model', 'zoo')} model | "
             f"{r['converged_violation_ok']}/{r['converged']} "
             f"(of {r['B']}) | {cost} | {diff} | {ratio} |"
         )
@@ -650,7 +651,7 @@ def merge(paths: list[str], out: Path, name: str, note: str | None = None) -> in
     meta["merged_from"] = [r["meta"] for r in runs]
     if note:
         meta["note"] = note
-    rows = [row for r in runs for row in r["rows"]]
+    rows = [{"model": r["meta"].get("model", "zoo"), **row} for r in runs for row in r["rows"]]
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(
         json.dumps({"meta": meta, "rows": rows}, indent=1, default=float)
