@@ -15,9 +15,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from ..costs.general import Cost
-from ..dynamics.linearize import linearize_with_vhp
-from ..dynamics.rollout import costate_gradient
+from ..lagrangian import RowMultipliers, lagrangian_terms
 from .spec import ConstraintSet, ConstraintValues
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -137,43 +135,17 @@ def lagrangian_kkt(
     ``nu_s (B,T,p)``, ``nu_T (B,q)`` and the active rows ``act_*``; ``hessian="exact"``:
     the Hessian of the Lagrangian (cost, ``λ·f_zz`` and ``ν·c_zz``), ``"gn"``: the cost's.
     Detached."""
-    if hessian not in ("exact", "gn"):
-        raise ValueError(f"hessian must be 'exact' or 'gn', got {hessian!r}")
-    T, n, m = problem.horizon, problem.state_dim, problem.control_dim
-    Bsz = x.shape[0]
     xl, ul = x.detach(), u.detach()
-    f = problem.transition
+    T = problem.horizon
     with torch.no_grad():
-        e = problem.cost.quadratize(xl, ul)
         v = constraints.values(xl, ul, jacobians=True)
-        lx = e.lx.expand(Bsz, T + 1, n).clone()
-        lx[:, :T] += (v.cx * nu_s.unsqueeze(-1)).sum(-2)
-        lx[:, T] += (v.cxT * nu_T.unsqueeze(-1)).sum(-2)
-        lu = e.lu.expand(Bsz, T, m) + (v.cu * nu_s.unsqueeze(-1)).sum(-2)
-        A, Bm, vhp = linearize_with_vhp(f, xl[:, :T], ul)
-        _, lam = costate_gradient(A, Bm, lx, lu)
-        Q = e.lxx.expand(Bsz, T + 1, n, n).clone()
-        R = e.luu.expand(Bsz, T, m, m).clone()
-        S = ul.new_zeros(Bsz, T, m, n) if e.lux is None else e.lux.expand(Bsz, T, m, n).clone()
-        if hessian == "exact":
-            Hxx, Huu, Hux = vhp(lam[:, 1:])
-            Q[:, :T] += Hxx
-            R += Huu
-            S += Hux
-            if nu_s.numel() or nu_T.numel():
-                # the multiplier-weighted constraint curvature, by the cost machinery
-                curv = Cost(
-                    stage=lambda a, b, t: (nu_s * constraints.stage_values(a, b)).sum(-1),
-                    terminal=lambda a: (nu_T * constraints.terminal_values(a)).sum(-1),
-                    state_dim=n,
-                    control_dim=m,
-                ).quadratize(xl, ul)
-                Q += curv.lxx
-                R += curv.luu
-                S += curv.lux
+        lt = lagrangian_terms(
+            problem, xl, ul, hessian, rows=RowMultipliers(constraints, v, nu_s, nu_T)
+        )
+        Q, R, S, A, Bm, lam = lt.Q, lt.R, lt.S, lt.A, lt.B, lt.lam
         H = torch.cat([torch.cat([Q[:, :T], S.mT], -1), torch.cat([S, R], -1)], -2)
         K = kkt_system(H, Q[:, T], A, Bm, v.cx, v.cu, v.cxT, act_s, act_T, act_u)
-        grad_u = lu + (Bm.mT @ lam[:, 1:].unsqueeze(-1))[..., 0]
+        grad_u = lt.lu + (Bm.mT @ lam[:, 1:].unsqueeze(-1))[..., 0]
     return KKTPoint(K=K, lam=lam, grad_u=grad_u, values=v, A=A, B=Bm)
 
 

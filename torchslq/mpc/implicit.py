@@ -33,15 +33,13 @@ the identity and their linear term by zero), so their sensitivity is zero.
 
 from __future__ import annotations
 
-from functools import partial
 from typing import TYPE_CHECKING
 
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from ..dynamics.linearize import dynamics_vhp, linearize_with_vhp
-from ..dynamics.rollout import costate_gradient
+from ..lagrangian import lagrangian_terms
 from ..lq.riccati import homogeneous_cost, homogeneous_dynamics, riccati_homogeneous
 from ..lq.solve import lq_adjoint_solve, lq_status
 
@@ -49,15 +47,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
 
 __all__ = ["cost_gradients", "implicit_solution", "lagrangian_hessian"]
-
-_HESSIANS = ("exact", "gn")
-
-
-def _batched(t: Tensor, Bsz: int, tail: tuple[int, ...]) -> Tensor:
-    """``t`` of shape ``(tail)`` / ``(T.., tail)`` / ``(B, T.., tail)`` as ``(B, T.., tail)``."""
-    while t.ndim < 2 + len(tail):
-        t = t.unsqueeze(0)
-    return t.expand(Bsz, *t.shape[1:])
 
 
 def lagrangian_hessian(
@@ -73,51 +62,11 @@ def lagrangian_hessian(
     Returns ``(Q (B,T+1,n,n), R (B,T,m,m), S (B,T,m,n), lx (B,T+1,n), lu (B,T,m))``:
     the cost Hessian blocks plus, for ``hessian="exact"``, the costate-weighted dynamics
     second derivatives ``λ_{t+1}·f_xx``, ``λ_{t+1}·f_uu``, ``λ_{t+1}·f_ux`` (the DDP
-    terms, vector-Hessian products with ``torch.func``), and the cost gradients.
+    terms, vector-Hessian products with ``torch.func``), and the cost gradients
+    (:func:`torchslq.lagrangian.lagrangian_terms`).
     """
-    return _lagrangian_terms(problem, x, u, hessian, A, B)[:5]
-
-
-def _lagrangian_terms(
-    problem: Problem,
-    x: Tensor,
-    u: Tensor,
-    hessian: str,
-    A: Tensor | None,
-    B: Tensor | None,
-    return_jacobians: bool = False,
-) -> tuple[Tensor, ...]:
-    """:func:`lagrangian_hessian`'s blocks and the costates ``λ (B,T+1,n)`` at ``(x, u)``
-    (Sideris & Bobrow eqs. 8-9); with ``return_jacobians`` also ``A, B`` (computed here
-    when not given, with the second derivatives' shared work: :func:`linearize_with_vhp`)."""
-    if hessian not in _HESSIANS:
-        raise ValueError(f"hessian must be one of {_HESSIANS}, got {hessian!r}")
-    T, n, m = problem.horizon, problem.state_dim, problem.control_dim
-    Bsz = x.shape[0]
-    x, u = x.detach(), u.detach()
-    with torch.no_grad():
-        e = problem.cost.quadratize(x, u)
-        Q = _batched(e.lxx.detach(), Bsz, (n, n)).expand(Bsz, T + 1, n, n)
-        R = _batched(e.luu.detach(), Bsz, (m, m)).expand(Bsz, T, m, m)
-        if e.lux is None:
-            S = x.new_zeros(Bsz, T, m, n)
-        else:
-            S = _batched(e.lux.detach(), Bsz, (m, n)).expand(Bsz, T, m, n)
-        lx = _batched(e.lx.detach(), Bsz, (n,)).expand(Bsz, T + 1, n)
-        lu = _batched(e.lu.detach(), Bsz, (m,)).expand(Bsz, T, m)
-        if A is None or B is None:
-            A, B, vhp = linearize_with_vhp(problem.transition, x[:, :T], u)
-        else:
-            vhp = partial(dynamics_vhp, problem.transition, x[:, :T], u)
-        _, lam = costate_gradient(A.detach(), B.detach(), lx, lu)
-        if hessian == "exact":
-            Hxx, Huu, Hux = vhp(lam[:, 1:])
-            Q = torch.cat([Q[:, :T] + Hxx, Q[:, T:]], dim=1)
-            R = R + Huu
-            S = S + Hux
-    if return_jacobians:
-        return Q, R, S, lx, lu, lam, A, B
-    return Q, R, S, lx, lu, lam
+    t = lagrangian_terms(problem, x, u, hessian, A, B)
+    return t.Q, t.R, t.S, t.lx, t.lu
 
 
 def cost_gradients(cost, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
@@ -204,7 +153,8 @@ def implicit_solution(
     xl = torch.where(finite.view(-1, 1, 1), xs, torch.zeros_like(xs))
     ul = torch.where(finite.view(-1, 1, 1), us, torch.zeros_like(us))
     with torch.no_grad():
-        Q, R, S, _, _, lam, A, Bm = _lagrangian_terms(problem, xl, ul, hessian, None, None, True)
+        lt = lagrangian_terms(problem, xl, ul, hessian)
+        Q, R, S, lam, A, Bm = lt.Q, lt.R, lt.S, lt.lam, lt.A, lt.B
         keep_u = torch.ones_like(ul, dtype=torch.bool) if active is None else ~active
         if active is not None:
             keep = keep_u.to(xs.dtype)  # (B, T, m)
