@@ -115,3 +115,18 @@ def test_help_names_the_defaults(capsys):
         main(["demo", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "--solver {slq,ilqr,ddp} default: ilqr" in text
+
+
+def test_python_dash_m_torchslq_runs_the_command():
+    """``python -m torchslq`` is the ``torchslq`` command (the package had no __main__)."""
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-m", "torchslq", "solve", "no-such-system"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert out.returncode == 2
+    assert "unknown system 'no-such-system'" in out.stderr
