@@ -356,3 +356,36 @@ def test_mpc_unroll_with_a_failed_element_gives_it_zero_gradient():
             assert torch.equal(x.grad[1], torch.zeros_like(x.grad[1]))
             assert torch.isfinite(x.grad).all()
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-12, atol=0)
+
+
+def test_invalid_bounds_of_one_element_are_its_status():
+    """Per-element bounds (B, T, m) with a NaN in one element and an empty box in another:
+    non_finite / infeasible, and the others equal their solve without them, bit for bit,
+    for ILQR, DDP (compact) and the constrained loop (which used to fail on per-element
+    bounds once it worked on a sub-batch). Shared bounds with a fault stay errors."""
+    problem, x0 = pendulum_swingup(batch=4, horizon=15, seed=1)
+    T, m = 15, 1
+    lo = torch.full((4, T, m), -3.0, dtype=F64)
+    hi = torch.full((4, T, m), 3.0, dtype=F64)
+    lo[1, 3, 0] = float("nan")
+    lo[2, 5, 0] = 5.0
+    makers = [
+        lambda **k: ts.ILQR(max_iter=40, progress=False, **k),
+        lambda **k: ts.DDP(max_iter=40, progress=False, compact=True, **k),
+        lambda **k: ts.ILQR(
+            max_iter=40, progress=False, constraints=ts.Constraints(x_max=20.0), **k
+        ),
+    ]
+    good = [0, 3]
+    for make in makers:
+        res = make(u_min=lo, u_max=hi).solve(problem, x0)
+        ref = make(u_min=lo[good], u_max=hi[good]).solve(problem, x0[good])
+        assert res.status_names()[1:3] == ["non_finite", "infeasible"]
+        assert [res.status_names()[i] for i in good] == ref.status_names()
+        torch.testing.assert_close(res.u[good], ref.u, rtol=0, atol=0)
+    with pytest.raises(ValueError, match="u_min must be <= u_max"):
+        ts.ILQR(u_min=1.0, u_max=0.0, progress=False).solve(problem, x0)
+    with pytest.raises(ValueError, match="u_min contains NaN"):
+        ts.ILQR(u_min=torch.full((T, m), float("nan"), dtype=F64), progress=False).solve(
+            problem, x0
+        )

@@ -69,6 +69,8 @@ class ALState(ElementState):
         inner_status ``(B,)``: its status; inner_iterations ``(B,)``: their total.
         inner_tol ``(B,)``: the gradient tolerance of the element's next subproblem.
         K ``(B, T, m, n)``, k ``(B, T, m)``: the last inner solve's gains.
+        lo, hi ``(B, T, m)``: the control bounds (None: unbounded), carried per element so
+        that a subproblem on a sub-batch gets its elements' bounds.
     """
 
     lam: Tensor = None
@@ -81,6 +83,8 @@ class ALState(ElementState):
     inner_tol: Tensor = None
     K: Tensor = None
     k: Tensor = None
+    lo: Tensor = None
+    hi: Tensor = None
 
 
 @dataclass(frozen=True)
@@ -144,6 +148,8 @@ class AugmentedLagrangian:
         # subproblems far from the solution need not be solved tightly (Conn, Gould &
         # Toint): the tolerance falls tenfold per outer iteration down to ``tol``
         inner = self.inner.with_options(tol=float(sub.inner_tol.max()))
+        if sub.lo is not None:  # the sub-batch's own bounds (they may be per element)
+            inner = inner.with_options(u_min=sub.lo, u_max=sub.hi)
         r = inner.solve(inner_problem, sub.x[:, 0], sub.u, x_init=sub.x)
         v = self.constraints.values(r.x, r.u)
         viol = max_violation(v, self.stage_eq, self.terminal_eq)
@@ -267,8 +273,13 @@ def solve_constrained(
             ),
             K=x0.new_zeros(Bsz, T, m, n),
             k=x0.new_zeros(Bsz, T, m),
+            lo=lo,
+            hi=hi,
         )
-        out = iterate(rule, problem, state, settings, logger=logger, options=loggable(record))
+        out = iterate(
+            rule, problem, state, settings, logger=logger, options=loggable(record),
+            start_status=extra.get("start_status"),
+        )  # fmt: skip
         s, status, grad_norm, outer = out.state, out.status, out.grad_norm, out.iterations
         if o.polish:
             s, status, grad_norm, outer = _polish_and_resume(

@@ -193,6 +193,7 @@ class DescentSolver(Solver):
                 self.settings(),
                 logger=logger,
                 options=loggable(record),
+                start_status=extra.get("start_status"),
             )
         s = out.state
         result = SolverResult(

@@ -212,6 +212,7 @@ def iterate(
     *,
     logger: Any = None,
     options: dict[str, Any] | None = None,
+    start_status: Tensor | None = None,
 ) -> LoopOutcome:
     """Run ``rule`` from ``state`` until every element has a final status.
 
@@ -224,6 +225,8 @@ def iterate(
             ``compact``, ``progress``.
         logger: e.g. :class:`torchslq.TensorBoardLogger` (``log_options`` with
             ``options``, then ``log_iteration`` per iteration); None costs nothing.
+        start_status: optional ``(B,)`` status codes: elements with a code other than
+            ``RUNNING`` (e.g. invalid bounds of their own) start with it, not solved.
 
     Returns:
         :class:`LoopOutcome`; its ``history`` has ``(B, iters+1)`` tensors ``cost``,
@@ -242,6 +245,8 @@ def iterate(
     faults = faults(Bsz) if callable(faults) else None
     if faults is not None:
         status = torch.where((faults != Status.RUNNING) & finite0, faults, status)
+    if start_status is not None:
+        status = torch.where(start_status != Status.RUNNING, start_status, status)
     iterations = torch.zeros(Bsz, dtype=torch.int64, device=dev)
     stalls = torch.zeros_like(iterations)  # consecutive noise-level accepted steps
     stall_grad = torch.zeros_like(state.J)  # gradient norm when that run started

@@ -16,7 +16,7 @@ from torch import Tensor
 from ..lq.regularization import RegularizationSchedule
 from .base import DescentSolver
 from .descent import descent_rule
-from .newton import RegularizedNewton, active_bounds, resolve_bounds
+from .newton import RegularizedNewton, active_bounds, bounds_with_faults, resolve_bounds
 from .options import ILQROptions
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -161,7 +161,7 @@ class ILQR(DescentSolver):
     def rule(self):
         return descent_rule(self._newton(), self.options, quadratic_model=True)
 
-    def initial_state(self, problem, x0, u, x, lo=None, hi=None, bounds=None):
+    def initial_state(self, problem, x0, u, x, lo=None, hi=None, bounds=None, start_status=None):
         state = super().initial_state(problem, x0, u, x)
         mu = torch.full_like(state.J, float(self.options.mu_init))
         return replace(state, mu=mu, delta=torch.ones_like(mu), lo=lo, hi=hi)
@@ -172,13 +172,14 @@ class ILQR(DescentSolver):
         o = self.options
         if o.u_min is None and o.u_max is None:
             return u, x_init, {}
-        lo, hi = resolve_bounds(problem, x0, o.u_min, o.u_max)
+        lo, hi, faults = bounds_with_faults(problem, x0, o.u_min, o.u_max)
         uc = torch.minimum(torch.maximum(u, lo), hi)
         if x_init is not None and not torch.equal(uc, u):
             x_init = None  # the rollout of other controls
         bounded = not (bool(torch.isinf(lo).all()) and bool(torch.isinf(hi).all()))
         extra = {"lo": lo.contiguous(), "hi": hi.contiguous()} if bounded else {}
-        return uc, x_init, extra | {"bounds": (lo, hi)}
+        # elements with invalid bounds of their own start with that status (not solved)
+        return uc, x_init, extra | {"bounds": (lo, hi), "start_status": faults}
 
     def finish(self, result, extra):
         if "bounds" in extra:

@@ -41,12 +41,13 @@ from ..dynamics.linearize import (
 from ..dynamics.rollout import costate_gradient
 from ..lq.regularization import RegularizationSchedule
 from ..lq.riccati import RiccatiFactors, StageHook, riccati_backward
+from ..status import Status
 from .descent import DescentState, nonfinite_rows
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
 
-__all__ = ["RegularizedNewton", "active_bounds", "resolve_bounds"]
+__all__ = ["RegularizedNewton", "active_bounds", "bounds_with_faults", "resolve_bounds"]
 
 
 def active_bounds(u: Tensor, lo: Tensor, hi: Tensor, rtol: float | None = None) -> Tensor:
@@ -61,17 +62,22 @@ def active_bounds(u: Tensor, lo: Tensor, hi: Tensor, rtol: float | None = None) 
     return torch.where(at_hi & ~at_lo, torch.ones_like(out), out)
 
 
-def resolve_bounds(
+def bounds_with_faults(
     problem: Problem, x0: Tensor, u_min: float | Tensor | None, u_max: float | Tensor | None
-) -> tuple[Tensor, Tensor]:
+) -> tuple[Tensor, Tensor, Tensor]:
     """``u_min``/``u_max`` (float, ``(m,)``, ``(T, m)`` or ``(B, T, m)``, None: unbounded)
-    as ``(B, T, m)`` tensors on ``x0``'s device and dtype; ValueError naming the argument
-    for a bad shape, NaN, ``u_min > u_max``."""
+    as ``(B, T, m)`` tensors on ``x0``'s device and dtype, and ``(B,)`` int64 status
+    codes of the elements whose own bounds are invalid (the granularity rule of
+    :class:`torchslq.Status`): ``NON_FINITE`` for a NaN, ``INFEASIBLE`` for an empty box
+    (``u_min > u_max``, ``u_min = +inf`` or ``u_max = -inf``), ``RUNNING`` elsewhere;
+    those elements get the unbounded box. A bad shape, or a fault in bounds shared by the
+    batch, is a ValueError naming the argument."""
     Bsz, T, m = x0.shape[0], problem.horizon, problem.control_dim
-    out = []
+    out, per_element = [], []
     for name, val, fill in (("u_min", u_min, -float("inf")), ("u_max", u_max, float("inf"))):
         if val is None:
             out.append(x0.new_full((Bsz, T, m), fill))
+            per_element.append(False)
             continue
         b = torch.as_tensor(val, dtype=x0.dtype, device=x0.device)
         ok = (
@@ -85,14 +91,35 @@ def resolve_bounds(
                 f"{name} must be a float or a tensor of shape ({m},), ({T}, {m}) or "
                 f"({Bsz}, {T}, {m}), got {tuple(b.shape)}"
             )
-        if bool(torch.isnan(b).any()):
+        own = b.ndim == 3 and b.shape[0] == Bsz and Bsz > 1
+        if not own and bool(torch.isnan(b).any()):
             raise ValueError(f"{name} contains NaN")
         out.append(b.expand(Bsz, T, m))
+        per_element.append(own)
     lo, hi = out
-    if bool((lo > hi).any()):
-        raise ValueError("u_min must be <= u_max everywhere")
-    if bool((lo == float("inf")).any()) or bool((hi == -float("inf")).any()):
-        raise ValueError("u_min cannot be +inf and u_max cannot be -inf")
+    nan = (lo.isnan() | hi.isnan()).flatten(1).any(1)
+    empty = ((lo > hi) | (lo == float("inf")) | (hi == -float("inf"))).flatten(1).any(1)
+    if not any(per_element):  # shared bounds: a fault is an error for the batch
+        if bool(empty.any()):
+            raise ValueError(
+                "u_min must be <= u_max everywhere (u_min cannot be +inf, u_max cannot be -inf)"
+            )
+    faults = torch.full((Bsz,), int(Status.RUNNING), dtype=torch.int64, device=x0.device)
+    faults = faults.masked_fill(empty & ~nan, int(Status.INFEASIBLE))
+    faults = faults.masked_fill(nan, int(Status.NON_FINITE))
+    bad = (faults != Status.RUNNING).view(-1, 1, 1)
+    if bool(bad.any()):
+        lo = torch.where(bad, -float("inf"), lo)
+        hi = torch.where(bad, float("inf"), hi)
+    return lo, hi, faults
+
+
+def resolve_bounds(
+    problem: Problem, x0: Tensor, u_min: float | Tensor | None, u_max: float | Tensor | None
+) -> tuple[Tensor, Tensor]:
+    """The bounds of :func:`bounds_with_faults`, as ``(B, T, m)`` tensors (elements with
+    invalid per-element bounds get the unbounded box: their solve has a status)."""
+    lo, hi, _ = bounds_with_faults(problem, x0, u_min, u_max)
     return lo, hi
 
 
