@@ -32,6 +32,7 @@ class Status(IntEnum):
       the stopping test was unmet (the precision of the dtype is reached);
     * ``INFEASIBLE``: a constrained solve (``constraints=``) could not bring the element's
       largest constraint violation below ``constraint_tol``, even at the largest penalty;
+      or the element's own control bounds are empty (``u_min > u_max``: not solved);
     * ``RUNNING`` is only seen inside a solver loop.
 
     One granularity rule holds at every entry point: a fault confined to some batch
