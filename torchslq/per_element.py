@@ -77,24 +77,17 @@ def take_per_element(module: nn.Module, idx: Tensor, batch_size: int) -> nn.Modu
     if not names:
         return module
     root = _shallow_copy(module)
+    copies = {id(root)}  # modules already copied along an earlier path
     for name in names:
         *path, leaf = name.split(".")
         owner = root
         for part in path:
             child = owner._modules[part]
-            if not getattr(child, "_torchslq_taken", False):
+            if id(child) not in copies:
                 child = _shallow_copy(child)
-                child.__dict__["_torchslq_taken"] = True
+                copies.add(id(child))
                 owner._modules[part] = child
             owner = child
         store = owner._parameters if leaf in owner._parameters else owner._buffers
         store[leaf] = store[leaf].index_select(0, idx)
-    _clear_marks(root)
     return root
-
-
-def _clear_marks(module: nn.Module) -> None:
-    module.__dict__.pop("_torchslq_taken", None)
-    for child in module._modules.values():
-        if child is not None and "_torchslq_taken" in child.__dict__:
-            _clear_marks(child)

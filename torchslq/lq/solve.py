@@ -464,7 +464,7 @@ def lqr_solve(
 
     if validate:
         try:
-            broadcast_shapes(
+            batch = broadcast_shapes(
                 A.shape[:-3],
                 B.shape[:-3],
                 Q.shape[:-3],
@@ -475,11 +475,6 @@ def lqr_solve(
             )
         except RuntimeError as err:
             raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
-        batch = broadcast_shapes(
-            A.shape[:-3], B.shape[:-3], Q.shape[:-3], R.shape[:-3], x0.shape[:-1],
-            *(t.shape[:-2] for t in (q, r, c) if t is not None),
-            *(() if S is None else (S.shape[:-3],)),
-        )  # fmt: skip
         nonfinite, not_pd = _input_faults(A, B, Q, R, x0, q, r, S, c, batch)
         # an element with an R that is not positive definite is not solved (NaN data
         # make its factorisation fail: no solution, a zero gradient)
