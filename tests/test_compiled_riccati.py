@@ -633,14 +633,18 @@ def test_whole_closed_loop_rollout_with_the_models_compiled_step(torch_path, cas
 
 def test_models_without_a_usable_compiled_step_take_the_torch_model():
     """Per-element parameters, Euler steps and models without a compiled right-hand side
-    give no compiled step (their rollouts call the torch model)."""
+    (their own or generated) give no compiled step (their rollouts call the torch model)."""
     from torchslq.systems import CartPole, MassChain, Pendulum
 
     per_elem = torch.rand(3, 1, dtype=F64) + 0.5
     assert ts.discretize(CartPole(mc=per_elem), 0.05).compiled_step() is None
     assert ts.discretize(MassChain(mass=per_elem), 0.1).compiled_step() is None
     assert ts.discretize(CartPole(), 0.05, "euler").compiled_step() is None
-    assert ts.discretize(Pendulum(), 0.1).compiled_step() is None
+
+    class OwnCodeOnly(Pendulum):  # no compiled right-hand side of its own, none generated
+        generate_compiled_code = False
+
+    assert ts.discretize(OwnCodeOnly(), 0.1).compiled_step() is None
     assert ts.discretize(CartPole(), 0.05).compiled_step() is not None
     assert ts.discretize(MassChain(), 0.1).compiled_step() is not None
 

@@ -118,12 +118,26 @@ class ContinuousDynamics(nn.Module):
     def has_analytic_vhp(self) -> bool:
         return type(self).vhp is not ContinuousDynamics.vhp
 
+    #: Whether :meth:`compiled_rhs` and :meth:`compiled_derivatives` may be generated from
+    #: :meth:`forward` (:mod:`torchslq.dynamics.codegen`); set False in a subclass to keep
+    #: it on torch ops (``TORCHSLQ_CODEGEN=0`` turns generation off for all models).
+    generate_compiled_code: bool = True
+
     def compiled_rhs(self):
         """Optional: ``(rhs, params)`` with ``rhs(x, u, params, out)`` a numba function
         writing ``f(x, u)`` for one row (time-invariant models; ``params`` a 1-d float64
         array), so that :func:`torchslq.discretize` can give its step as a compiled
-        function (:meth:`torchslq.Dynamics.compiled_step`); None by default."""
-        return None
+        function (:meth:`torchslq.Dynamics.compiled_step`).
+
+        By default it is generated from :meth:`forward` (traced once, differentiated
+        symbolically and compiled, see :mod:`torchslq.dynamics.codegen`); None where that
+        is not possible (:func:`torchslq.dynamics.codegen.explain` says why)."""
+        from .codegen import generated_hooks
+
+        hooks = generated_hooks(self)
+        if hooks is None:
+            return None
+        return hooks.rhs, hooks.params(self)
 
     def compiled_derivatives(self):
         """Optional, with :meth:`compiled_rhs`: the model's first and second derivatives as
@@ -136,8 +150,12 @@ class ContinuousDynamics(nn.Module):
         default). :func:`torchslq.discretize`'s RK4 step then computes its Jacobians
         and second derivatives on CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`)
         when nothing needs autograd. It must agree with :meth:`jacobians` and
-        :meth:`vhp`."""
-        return None
+        :meth:`vhp`. By default generated from :meth:`forward` with
+        :meth:`compiled_rhs`."""
+        from .codegen import generated_hooks
+
+        hooks = generated_hooks(self)
+        return None if hooks is None else hooks.derivatives
 
 
 def state_control_dims(dynamics: nn.Module) -> tuple[int, int]:

@@ -83,6 +83,20 @@ class DiscretizedDynamics(Dynamics):
         A, B, _ = self._rk4_chain(x, u)
         return A, B
 
+    def compiled_jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:
+        """The step's Jacobians ``(A, B)`` on the CPU kernels from the continuous
+        model's compiled derivatives (its own or generated from its ``forward``), or None
+        where those do not apply (:func:`torchslq.linearize` then differentiates as
+        usual). Detached."""
+        hooks = self._compiled_derivatives(x, u)
+        return None if hooks is None else rk4_jacobians_compiled(hooks, self.dt, x, u)
+
+    def compiled_vhp(self, x: Tensor, u: Tensor, s: Tensor):
+        """:meth:`vhp` on the CPU kernels (``s`` may carry extra leading dims), or None
+        where the compiled derivatives do not apply. Detached."""
+        hooks = self._compiled_derivatives(x, u, s)
+        return None if hooks is None else rk4_vhp_compiled(hooks, self.dt, x, u, s)
+
     def _compiled_derivatives(self, *tensors: Tensor):
         """The continuous model's compiled functions (:func:`~.compiled_rk4.rk4_hooks`) when this RK4 step's
         derivatives can run on the CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`):
@@ -173,14 +187,28 @@ class DiscretizedDynamics(Dynamics):
         no analytic second derivatives to chain (or for Euler, where nothing is shared).
         For callers that need both at the same point, the second after a costate
         recursion on the first (DDP's costate mode, the MPC layer's exact backward)."""
-        if self.method == "euler" or not self.has_analytic_vhp:
+        if self.method == "euler":
             return None
         hooks = self._compiled_derivatives(x, u)
         if hooks is not None:  # the kernel recomputes the stages: cheaper than keeping them
             A, B = rk4_jacobians_compiled(hooks, self.dt, x, u)
-            return A, B, lambda s: self.vhp(x, u, s)
+            return A, B, lambda s: self._vhp_any(x, u, s)
+        if not self.has_analytic_vhp:
+            return None
         A, B, stages = self._rk4_chain(x, u, keep_stages=True)
         return A, B, lambda s: self._vhp_from_stages(u, s, stages)
+
+    def _vhp_any(self, x: Tensor, u: Tensor, s: Tensor):
+        """:meth:`vhp` on the kernels where they apply, else chained from the continuous
+        model's analytic derivatives, else by automatic differentiation of the step."""
+        out = self.compiled_vhp(x, u, s)
+        if out is not None:
+            return out
+        if self.has_analytic_vhp:
+            return self.vhp(x, u, s)
+        from .linearize import dynamics_vhp
+
+        return dynamics_vhp(lambda a, b: self(a, b), x, u, s)
 
     def jacobians_and_hessians(self, x: Tensor, u: Tensor):
         """``(A, B, (Hxx, Huu, Hux))``: the step's Jacobians and every output's Hessian

@@ -143,6 +143,12 @@ def linearize(
         raise ValueError(
             f"x and u must share leading dims, got x {tuple(x.shape)} and u {tuple(u.shape)}"
         )
+    fast = None if create_graph else getattr(dynamics, "compiled_jacobians", None)
+    if fast is not None:  # a model on the CPU kernels (e.g. generated compiled code)
+        with torch.no_grad():
+            out = fast(x, u)
+        if out is not None:
+            return out
     if getattr(dynamics, "has_analytic_jacobians", False):
         ctx = torch.enable_grad() if create_graph else torch.no_grad()
         with ctx:
@@ -254,6 +260,12 @@ def dynamics_vhp(
     f = as_transition(dynamics)
     n, m = x.shape[-1], u.shape[-1]
     x, u, s = x.detach(), u.detach(), s.detach()
+    fast = getattr(f, "compiled_vhp", None)
+    if fast is not None:
+        with torch.no_grad():
+            out = fast(x, u, s)
+        if out is not None:
+            return _full_vhp(out, x, u, s)
     if getattr(f, "has_analytic_vhp", False):
         with torch.no_grad():
             return _analytic_vhp(f, x, u, s)
@@ -356,6 +368,13 @@ def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor,
     """
     n = x.shape[-1]
     f = as_transition(dynamics)
+    fast = getattr(f, "compiled_vhp", None)
+    if fast is not None:
+        basis = torch.eye(n, dtype=x.dtype, device=x.device).reshape(n, *([1] * (x.ndim - 1)), n)
+        with torch.no_grad():
+            out = fast(x.detach(), u.detach(), basis)
+        if out is not None:
+            return _full_vhp(out, x, u, basis)
     if getattr(f, "has_analytic_vhp", False):
         # the output basis as n weight vectors at once (an extra leading dim)
         basis = torch.eye(n, dtype=x.dtype, device=x.device)

@@ -1,0 +1,291 @@
+"""Compiled code generated from a user's own torch model (torchslq.dynamics.codegen):
+the generated right-hand side and derivatives against the model's forward and
+torch.func, the cases that must stay on the torch path, and solves that equal the
+torch path's."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+import torchslq as ts
+from torchslq.dynamics import CompiledDerivatives, codegen
+
+
+@pytest.fixture(autouse=True)
+def _cache(tmp_path_factory, monkeypatch):
+    # the generated modules go to a fresh directory (shared by this file's tests)
+    monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path_factory.getbasetemp() / "codegen"))
+    monkeypatch.setenv("TORCHSLQ_CODEGEN", "1")
+
+
+class UserCartPole(ts.ContinuousDynamics):
+    state_dim, control_dim = 4, 1
+
+    def forward(self, x, u, t=None):
+        th, sd, thd, F = x[..., 1], x[..., 2], x[..., 3], u[..., 0]
+        s, c = torch.sin(th), torch.cos(th)
+        D = 1.0 + 0.1 * s * s
+        sdd = (F + 0.1 * s * (0.5 * thd * thd + 9.81 * c)) / D
+        thdd = (-F * c - 0.1 * 0.5 * thd * thd * c * s - 1.1 * 9.81 * s) / (0.5 * D)
+        return torch.stack([sd, thd, sdd, thdd], -1)
+
+
+class DampedPendulum(ts.ContinuousDynamics):
+    """Parameters and a buffer; writes its output in place; tanh, exp, sqrt, pow."""
+
+    state_dim, control_dim = 2, 2
+
+    def __init__(self):
+        super().__init__()
+        self.damping = nn.Parameter(torch.tensor(0.3, dtype=torch.float64))
+        self.register_buffer("gains", torch.tensor([1.5, -0.7], dtype=torch.float64))
+
+    def forward(self, x, u, t=None):
+        out = torch.zeros_like(x)
+        out[..., 0] = x[..., 1]
+        drive = (self.gains * torch.tanh(u)).sum(-1)
+        out[..., 1] = (
+            -9.81 * torch.sin(x[..., 0])
+            - self.damping * x[..., 1] * torch.exp(-0.1 * x[..., 0] ** 2)
+            + drive / torch.sqrt(1.0 + x[..., 1] ** 2)
+        )
+        return out
+
+
+class LinearModel(ts.ContinuousDynamics):
+    """No curvature: matrix products with constant matrices."""
+
+    state_dim, control_dim = 3, 1
+
+    def __init__(self):
+        super().__init__()
+        self.register_buffer("A", torch.tensor([[0.0, 1, 0], [0, 0, 1], [-1, -2, -3]]).double())
+        self.register_buffer("B", torch.tensor([[0.0], [0], [1]]).double())
+
+    def forward(self, x, u, t=None):
+        return x @ self.A.mT + u @ self.B.mT
+
+
+class Branches(ts.ContinuousDynamics):
+    """torch.where, clamp, relu, comparisons: compiled as branches, with torch's
+    derivatives on each side."""
+
+    state_dim, control_dim = 2, 1
+
+    def forward(self, x, u, t=None):
+        a = torch.where(x[..., 0] > 0.2, x[..., 0] ** 2, 0.5 * x[..., 0])
+        b = torch.clamp(x[..., 1] * u[..., 0], -1.0, 1.5) + torch.relu(x[..., 0] - x[..., 1])
+        return torch.stack([a + torch.maximum(x[..., 1], u[..., 0]), b], -1)
+
+
+def _reference(model, x, u):
+    """forward, [f_x | f_u] and per-output Hessians in z = (x, u) by torch.func, row by row."""
+    n = x.shape[-1]
+
+    def f(z):
+        return model(z[:n][None], z[n:][None])[0]
+
+    z = torch.cat([x, u], -1)
+    with torch.no_grad():
+        F = torch.stack([f(zr) for zr in z])
+    J = torch.stack([torch.func.jacrev(f)(zr) for zr in z]).detach()
+    H = torch.stack([torch.func.hessian(f)(zr) for zr in z]).detach()
+    return F, J, H
+
+
+@pytest.mark.parametrize("model_cls", [UserCartPole, DampedPendulum, LinearModel, Branches])
+def test_generated_functions_equal_forward_and_torch_func_derivatives(model_cls):
+    model = model_cls()
+    assert codegen.explain(model) == "compiled"
+    hooks = codegen.generated_hooks(model)
+    n, m = model.state_dim, model.control_dim
+    gen = torch.Generator().manual_seed(5)
+    x = 2 * torch.randn(16, n, generator=gen, dtype=torch.float64)
+    u = 2 * torch.randn(16, m, generator=gen, dtype=torch.float64)
+    F, J, H = _reference(model, x, u)
+    rhs, p = model.compiled_rhs()
+    derivs = model.compiled_derivatives()
+    if isinstance(derivs, CompiledDerivatives):
+        fn, outs, ents = derivs
+    else:  # no curvature: a plain function that writes all of H
+        fn, outs, ents = derivs, range(n), range(n + m)
+        assert model_cls is LinearModel
+    for r in range(16):
+        out = np.zeros(n)
+        fz = np.zeros((n, n + m))
+        Hc = np.full((n, n + m, n + m), np.nan)
+        rhs(x[r].numpy(), u[r].numpy(), p, out)
+        fn(x[r].numpy(), u[r].numpy(), p, fz, Hc)
+        np.testing.assert_allclose(out, F[r].numpy(), rtol=1e-13, atol=1e-13)
+        np.testing.assert_allclose(fz, J[r].numpy(), rtol=1e-12, atol=1e-12)
+        idx = np.ix_(list(outs), list(ents), list(ents))
+        np.testing.assert_allclose(Hc[idx], H[r].numpy()[idx], rtol=1e-11, atol=1e-11)
+        # outside the declared pattern the Hessians are zero
+        mask = np.ones(H[r].shape, dtype=bool)
+        mask[idx] = False
+        assert np.all(H[r].numpy()[mask] == 0)
+    assert hooks.tensor_names == tuple(
+        k for k, _ in (*model.named_parameters(), *model.named_buffers())
+    )
+
+
+def test_generated_code_reads_the_current_parameter_values():
+    model = DampedPendulum()
+    rhs, _ = model.compiled_rhs()
+    with torch.no_grad():
+        model.damping.fill_(2.5)
+        model.gains.mul_(-3.0)
+    rhs2, p = model.compiled_rhs()
+    assert rhs2 is rhs  # the same compiled function, new numbers
+    x = torch.tensor([[0.4, -1.2]], dtype=torch.float64)
+    u = torch.tensor([[0.3, 0.8]], dtype=torch.float64)
+    out = np.zeros(2)
+    rhs(x[0].numpy(), u[0].numpy(), p, out)
+    with torch.no_grad():
+        np.testing.assert_allclose(out, model(x, u)[0].numpy(), rtol=1e-13)
+
+
+def test_an_equal_model_reuses_the_generated_module():
+    a, b = UserCartPole(), UserCartPole()
+    ha, hb = codegen.generated_hooks(a), codegen.generated_hooks(b)
+    assert ha.source_path is not None and ha.source_path == hb.source_path
+    assert ha.rhs is hb.rhs
+
+
+class ValueBranch(ts.ContinuousDynamics):
+    state_dim, control_dim = 1, 1
+
+    def forward(self, x, u, t=None):
+        if bool((x > 0).all()):  # a branch on the values: cannot be compiled as traced
+            return -x + u
+        return x + u
+
+
+class MixesRows(ts.ContinuousDynamics):
+    state_dim, control_dim = 2, 1
+
+    def forward(self, x, u, t=None):
+        return x - x.mean(0, keepdim=True) + u
+
+
+class PerElementMass(ts.ContinuousDynamics):
+    state_dim, control_dim = 2, 1
+
+    def __init__(self, mass):
+        super().__init__()
+        self.register_buffer("mass", mass)  # (B, 1): one per element, against (B, T)
+
+    def forward(self, x, u, t=None):
+        return torch.stack([x[..., 1], u[..., 0] / self.mass], -1)
+
+
+class BigNetwork(ts.ContinuousDynamics):
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.net = nn.Sequential(nn.Linear(5, 64), nn.Tanh(), nn.Linear(64, 4)).double()
+
+    def forward(self, x, u, t=None):
+        return self.net(torch.cat([x, u], -1))
+
+
+class OptedOut(UserCartPole):
+    generate_compiled_code = False
+
+
+@pytest.mark.parametrize(
+    "model, reason",
+    [
+        (ValueBranch(), "could not be traced"),
+        (MixesRows(), "not independent"),
+        (PerElementMass(torch.full((3, 1), 2.0, dtype=torch.float64)), "could not be traced"),
+        (BigNetwork(), "parameter entries"),
+        (OptedOut(), "generate_compiled_code is False"),
+    ],
+    ids=["value-branch", "mixes-rows", "per-element", "network", "opted-out"],
+)
+def test_models_the_generator_cannot_take_keep_the_torch_path(model, reason):
+    why = codegen.explain(model)
+    assert why != "compiled" and reason in why
+    assert model.compiled_rhs() is None and model.compiled_derivatives() is None
+    # and they still solve (the torch path), e.g. one ILQR iteration
+    n, m = model.state_dim, model.control_dim
+    B = 3
+    cost = ts.QuadraticCost(torch.eye(n, dtype=torch.float64), torch.eye(m, dtype=torch.float64))
+    problem = ts.Problem(ts.discretize(model, 0.1), cost, 5)
+    x0 = torch.ones(B, n, dtype=torch.float64)
+    res = ts.ILQR(max_iter=1).solve(problem, x0)
+    assert torch.isfinite(res.cost).all()
+
+
+def test_code_generation_can_be_turned_off(monkeypatch):
+    monkeypatch.setenv("TORCHSLQ_CODEGEN", "0")
+    model = UserCartPole()
+    assert model.compiled_rhs() is None
+    assert "off" in codegen.explain(model)
+
+
+def _swingup(model, B=3, dtype=torch.float64):
+    kw = {"dtype": dtype}
+    cost = ts.QuadraticCost(
+        torch.zeros(4, 4, **kw),
+        0.02 * torch.eye(1, **kw),
+        Qf=200.0 * torch.eye(4, **kw),
+        x_ref=torch.tensor([0.0, math.pi, 0.0, 0.0], **kw),
+    )
+    problem = ts.Problem(ts.discretize(model, 0.05).to(dtype), cost, 50)
+    x0 = torch.zeros(B, 4, **kw)
+    x0[:, 1] = torch.tensor([0.05, -0.03, 0.01][:B], **kw)
+    return problem, x0
+
+
+@pytest.mark.parametrize("solver", [ts.ILQR, ts.DDP])
+def test_solve_on_generated_code_equals_the_torch_path(solver, monkeypatch):
+    problem, x0 = _swingup(UserCartPole())
+    assert codegen.explain(problem.dynamics.continuous) == "compiled"
+    # DDP to convergence; ILQR (~180 iterations here) for its first 40 on the torch path
+    max_iter = 500 if solver is ts.DDP else 40
+    fast = solver(max_iter=max_iter, tol=1e-6).solve(problem, x0)
+    monkeypatch.setenv("TORCHSLQ_CODEGEN", "0")
+    problem_t, _ = _swingup(UserCartPole())
+    slow = solver(max_iter=max_iter, tol=1e-6).solve(problem_t, x0)
+    if solver is ts.DDP:
+        assert fast.converged.all() and slow.converged.all()
+    torch.testing.assert_close(fast.cost, slow.cost, rtol=1e-9, atol=0)
+    torch.testing.assert_close(fast.u, slow.u, rtol=0, atol=1e-6)
+    torch.testing.assert_close(fast.iterations, slow.iterations)
+
+
+def test_float32_model_solves_on_generated_code():
+    problem, x0 = _swingup(UserCartPole(), dtype=torch.float32)
+    res = ts.DDP(max_iter=200, tol=1e-3).solve(problem, x0)
+    ref = ts.DDP(max_iter=200, tol=1e-8).solve(*_swingup(UserCartPole()))
+    assert res.x.dtype == torch.float32
+    torch.testing.assert_close(res.cost.double(), ref.cost, rtol=1e-3, atol=0)
+
+
+def test_parameters_that_need_grad_take_the_autograd_path():
+    """A learnable parameter under autograd: the kernels (which take numbers) are
+    skipped and the Jacobians keep their graph to the parameter."""
+    model = DampedPendulum()
+    step = ts.discretize(model, 0.1)
+    x = torch.tensor([[0.3, -0.2], [1.0, 0.5]], dtype=torch.float64)
+    u = torch.tensor([[0.1, 0.2], [-0.4, 0.3]], dtype=torch.float64)
+    A, B = ts.linearize(step, x, u, create_graph=True)
+    assert A.requires_grad
+    (dA,) = torch.autograd.grad(A.sum(), model.damping)
+    eps = 1e-6
+    with torch.no_grad():
+        model.damping += eps
+    Ap, _ = ts.linearize(step, x, u)  # the compiled path (no grad needed)
+    with torch.no_grad():
+        model.damping -= 2 * eps
+    Am, _ = ts.linearize(step, x, u)
+    torch.testing.assert_close(dA, (Ap.sum() - Am.sum()) / (2 * eps), rtol=1e-6, atol=1e-8)
+    torch.testing.assert_close(Ap, A.detach(), rtol=1e-5, atol=1e-5)

@@ -1,0 +1,487 @@
+"""Compiled functions generated from a user's own torch model.
+
+A :class:`~torchslq.ContinuousDynamics` written in plain torch ops is called a dozen
+tiny ops at a time: a rollout of ``T`` RK4 steps is ``4 T`` calls of its ``forward``,
+each ~50 us of dispatch for a few flops, and its Jacobians come from ``torch.func``
+passes of the same kind. The library's CPU kernels (:mod:`torchslq.dynamics.compiled_rk4`,
+the compiled rollouts) need the model's right-hand side and derivatives as numba
+functions (:meth:`~torchslq.ContinuousDynamics.compiled_rhs`,
+:meth:`~torchslq.ContinuousDynamics.compiled_derivatives`). This module derives them
+from the model's own ``forward``, so a user's model runs on the same kernels as a model
+with hand-written compiled code:
+
+1. **trace** ``forward`` on two symbolic rows (``torch.fx`` ``make_fx`` on fake tensors,
+   functionalized, so in-place writes and views become plain ops; Python control flow
+   that depends on the values cannot be traced and the model is left on the torch path);
+2. **evaluate** the traced aten graph on numpy arrays of ``sympy`` expressions in the
+   row's entries ``x_i``, ``u_j`` and the model's parameters ``p_k`` (its parameters and
+   buffers, flattened), and check the rows are independent and alike (a model that
+   mixes rows, or a per-element parameter, is left on the torch path);
+3. **differentiate** symbolically: the Jacobian ``[f_x | f_u]`` and every output's
+   Hessian in ``z = (x, u)``, whose nonzero pattern is the model's curvature pattern
+   (:class:`~torchslq.dynamics.CompiledDerivatives`);
+4. **print** the expressions after common-subexpression elimination as numba functions
+   in a module file under the cache directory (``$TORCHSLQ_CACHE_DIR``, default
+   ``~/.cache/torchslq``), keyed on a hash of the traced graph, so a later process
+   imports them (numba's disk cache) without running steps 2-4 again;
+5. **check** the compiled functions against the model's ``forward`` and
+   ``torch.func`` derivatives at random points; a mismatch leaves the model on the
+   torch path with a warning.
+
+The parameters travel as numbers (``params``), read from the module at each call, so a
+model whose parameters change (training, a sweep) uses the same compiled code. Models
+this cannot take (unsupported ops, per-element parameters, too large, value-dependent
+control flow, time-varying) keep the torch path; :func:`explain` says why.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib.util
+import logging
+import os
+import sys
+import threading
+import warnings
+import weakref
+from collections.abc import Callable
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor, nn
+
+from ._symbolic import Unsupported as _Unsupported
+from ._symbolic import as_array, evaluate, symbols
+
+__all__ = ["GeneratedHooks", "explain", "generated_hooks"]
+
+#: bumped when the generated code changes meaning (part of the cache key)
+CODEGEN_VERSION = 1
+#: models larger than this keep the torch path (a network is faster as matrix ops)
+MAX_GRAPH_NODES = 600
+MAX_PARAMETERS = 256
+MAX_EXPRESSION_OPS = 4000
+
+
+class GeneratedHooks(NamedTuple):
+    """What :func:`generated_hooks` derives from a model: ``rhs(x, u, p, out)`` and
+    ``derivatives`` (a :class:`~torchslq.dynamics.CompiledDerivatives`, or a plain
+    function for a model without curvature) as numba functions, and the names of the
+    module tensors (parameters and buffers) whose flattened values make ``p``."""
+
+    rhs: Callable
+    derivatives: object
+    tensor_names: tuple[str, ...]
+    source_path: str | None
+
+    def params(self, model: nn.Module) -> np.ndarray:
+        """The current values of the model's tensors, flattened into one float64 array
+        (the ``p`` the generated functions read)."""
+        tensors = dict(_named_tensors(model))
+        parts = [
+            tensors[k].detach().to("cpu", torch.float64).reshape(-1) for k in self.tensor_names
+        ]
+        if not parts:
+            return np.zeros(0, dtype=np.float64)
+        return torch.cat(parts).numpy()
+
+
+_LOCK = threading.Lock()
+# per model instance (weakly: a dropped model takes its entry with it, and the entry is
+# not copied or pickled with the model): (structure key, hooks or None, reason)
+_BUILT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _enabled() -> bool:
+    return os.environ.get("TORCHSLQ_CODEGEN", "1") not in ("0", "false", "off", "no")
+
+
+def generated_hooks(model: nn.Module) -> GeneratedHooks | None:
+    """The generated compiled functions of ``model`` (a time-invariant
+    :class:`~torchslq.ContinuousDynamics`), or None when it cannot be compiled (see
+    :func:`explain`) or code generation is off (``TORCHSLQ_CODEGEN=0``, or the model's
+    class sets ``generate_compiled_code = False``). Computed once per model instance
+    and structure (parameter shapes, non-tensor attributes)."""
+    if not _enabled() or not getattr(model, "generate_compiled_code", True):
+        return None
+    key = _structure_key(model)
+    cached = _BUILT.get(model)
+    if cached is not None and cached[0] == key:
+        return cached[1]
+    with _LOCK:
+        try:
+            hooks, reason = _build(model), ""
+        except _Unsupported as e:
+            hooks, reason = None, str(e)
+        except Exception as e:  # a model the tracer does not understand: torch path
+            hooks, reason = None, f"{type(e).__name__}: {e}"
+        _BUILT[model] = (key, hooks, reason)
+    return hooks
+
+
+def explain(model: nn.Module) -> str:
+    """Why ``model`` runs on generated compiled code or not: ``"compiled"`` or the reason
+    it keeps the torch path."""
+    if not _enabled():
+        return "code generation is off (TORCHSLQ_CODEGEN=0)"
+    if not getattr(model, "generate_compiled_code", True):
+        return f"{type(model).__name__}.generate_compiled_code is False"
+    hooks = generated_hooks(model)
+    if hooks is not None:
+        return "compiled"
+    return _BUILT[model][2]
+
+
+# ------------------------------------------------------------------------- structure
+def _named_tensors(model: nn.Module) -> list[tuple[str, Tensor]]:
+    return [*model.named_parameters(), *model.named_buffers()]
+
+
+def _simple(v) -> bool:
+    if isinstance(v, (bool, int, float, str, type(None))):
+        return True
+    return isinstance(v, (tuple, list)) and len(v) <= 64 and all(_simple(e) for e in v)
+
+
+def _structure_key(model: nn.Module) -> tuple:
+    """What the traced graph may depend on besides the tensors' values: their names and
+    shapes, and every module's plain attributes (numbers a model's ``forward`` reads)."""
+    tensors = tuple((k, tuple(t.shape)) for k, t in _named_tensors(model))
+    attrs = []
+    for name, mod in model.named_modules():
+        for k, v in vars(mod).items():
+            if not k.startswith("_") and _simple(v):
+                attrs.append((name, k, repr(v)))
+            elif torch.is_tensor(v) and not k.startswith("_") and v.numel() <= MAX_PARAMETERS:
+                # a plain tensor attribute is traced as a constant: key on its value
+                attrs.append((name, k, tuple(v.detach().cpu().reshape(-1).tolist())))
+    return (type(model), tensors, tuple(attrs))
+
+
+# ------------------------------------------------------------------------- build
+def _build(model: nn.Module) -> GeneratedHooks:
+    from .base import state_control_dims
+
+    n, m = state_control_dims(model)
+    named = _named_tensors(model)
+    count = sum(t.numel() for _, t in named)
+    if count > MAX_PARAMETERS:
+        raise _Unsupported(
+            f"{count} parameter entries (more than {MAX_PARAMETERS}): a network runs faster "
+            "as batched matrix ops"
+        )
+    gm = _trace(model, n, m, named)
+    consts = [getattr(gm, node.target) for node in gm.graph.nodes if node.op == "get_attr"]
+    h = hashlib.sha256()
+    h.update(f"v{CODEGEN_VERSION};{n};{m};{[(k, tuple(t.shape)) for k, t in named]}".encode())
+    h.update(gm.code.encode())
+    for c in consts:
+        h.update(c.detach().cpu().to(torch.float64).contiguous().numpy().tobytes())
+    digest = h.hexdigest()[:24]
+    path = _cache_dir() / f"m_{digest}.py" if _cache_dir() is not None else None
+    module = None
+    if path is not None and path.exists():
+        try:
+            module = _import(path, digest)
+        except Exception:  # a damaged file: generate it again
+            module = None
+    if module is None:
+        source = _generate(gm, n, m, named, type(model).__name__)
+        module = _write_and_import(path, digest, source)
+    derivatives = module.derivatives
+    if module.CURVED_OUTPUTS:
+        from .base import CompiledDerivatives
+
+        derivatives = CompiledDerivatives(
+            module.derivatives, module.CURVED_OUTPUTS, module.CURVED_ENTRIES
+        )
+    hooks = GeneratedHooks(module.rhs, derivatives, tuple(k for k, _ in named), module.__file__)
+    _check(model, hooks, n, m)
+    return hooks
+
+
+def _trace(model: nn.Module, n: int, m: int, named: list[tuple[str, Tensor]]):
+    from torch.func import functional_call, functionalize
+
+    with warnings.catch_warnings():  # its first import warns about torch's own code
+        warnings.simplefilter("ignore", DeprecationWarning)
+        from torch.fx.experimental.proxy_tensor import make_fx
+
+    names = [k for k, _ in named]
+
+    def fn(x, u, *ps):
+        return functional_call(model, dict(zip(names, ps, strict=True)), (x, u))
+
+    x = torch.zeros(2, n, dtype=torch.float64)
+    u = torch.zeros(2, m, dtype=torch.float64)
+    ps = [t.detach().to("cpu", torch.float64) for _, t in named]
+    # a model that cannot be traced is an expected outcome here, not an error to log
+    quiet = logging.getLogger("torch._subclasses.fake_tensor")
+    level = quiet.level
+    quiet.setLevel(logging.CRITICAL)
+    try:
+        with warnings.catch_warnings():
+            # torch's tracing machinery, imported on first use, warns about its own code
+            warnings.simplefilter("ignore", DeprecationWarning)
+            traced = make_fx(functionalize(fn, remove="mutations_and_views"), tracing_mode="fake")
+            gm = traced(x, u, *ps)
+    except Exception as e:
+        first = str(e).strip().splitlines()[0] if str(e).strip() else ""
+        raise _Unsupported(f"forward could not be traced ({type(e).__name__}: {first})") from e
+    finally:
+        quiet.setLevel(level)
+    calls = sum(1 for node in gm.graph.nodes if node.op == "call_function")
+    if calls > MAX_GRAPH_NODES:
+        raise _Unsupported(f"forward is {calls} ops (more than {MAX_GRAPH_NODES})")
+    return gm
+
+
+def _cache_dir() -> Path | None:
+    root = os.environ.get("TORCHSLQ_CACHE_DIR")
+    base = Path(root) if root else Path.home() / ".cache" / "torchslq"
+    d = base / f"generated_v{CODEGEN_VERSION}"
+    try:
+        d.mkdir(parents=True, exist_ok=True)
+    except OSError:
+        return None
+    return d if os.access(d, os.W_OK) else None
+
+
+def _import(path: Path, digest: str):
+    name = f"torchslq_generated_{digest}"
+    if name in sys.modules:
+        return sys.modules[name]
+    spec = importlib.util.spec_from_file_location(name, path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except Exception:
+        del sys.modules[name]
+        raise
+    return module
+
+
+def _write_and_import(path: Path | None, digest: str, source: str):
+    if path is not None:
+        tmp = path.with_suffix(f".{os.getpid()}.tmp")
+        try:
+            tmp.write_text(source)
+            os.replace(tmp, path)  # atomic: a concurrent process sees all or nothing
+            return _import(path, digest)
+        except OSError:
+            pass
+    # no writable cache: compile in memory (numba then compiles in every process)
+    scope: dict = {"__name__": f"torchslq_generated_{digest}"}
+    exec(
+        compile(source.replace("cache=True", "cache=False"), f"<generated {digest}>", "exec"), scope
+    )
+
+    class _Module:
+        pass
+
+    module = _Module()
+    module.__dict__.update(scope)
+    module.__file__ = None
+    return module
+
+
+# ------------------------------------------------------------------------- generate
+def _row_expressions(gm, n: int, m: int, named) -> tuple[list, list, list, list]:
+    """``(f, xs, us, ps)``: the output expressions of row 0 and the symbols."""
+    import sympy
+
+    x = symbols("x", (2, n))
+    u = symbols("u", (2, m))
+    ps, flat = [], []
+    k = 0
+    for _, t in named:
+        arr = np.empty(tuple(t.shape), dtype=object)
+        for idx in np.ndindex(*t.shape):
+            arr[idx] = sympy.Symbol(f"p{k}", real=True)
+            flat.append(arr[idx])
+            k += 1
+        ps.append(arr)
+    out = evaluate(gm, [x, u, *ps])
+    out = as_array(out) if not isinstance(out, (list, tuple)) else None
+    if out is None or out.shape != (2, n):
+        raise _Unsupported(
+            f"forward returned shape {None if out is None else out.shape} for 2 rows of "
+            f"states (expected (2, {n}))"
+        )
+    rows = [[sympy.sympify(e) for e in out[r]] for r in range(2)]
+    own = [set(x[0]) | set(u[0]), set(x[1]) | set(u[1])]
+    swap = {**dict(zip(x[1], x[0], strict=True)), **dict(zip(u[1], u[0], strict=True))}
+    for i in range(n):
+        f0, f1 = rows[0][i], rows[1][i]
+        free0 = f0.free_symbols - set(flat)
+        if not free0 <= own[0] or f1.xreplace(swap) != f0:
+            raise _Unsupported(
+                "output rows are not independent and alike (a model mixing rows, or a "
+                "parameter with a batch dim)"
+            )
+    ops = sum(sympy.count_ops(e) for e in rows[0])
+    if ops > MAX_EXPRESSION_OPS:
+        raise _Unsupported(f"forward is {ops} scalar ops per row (more than {MAX_EXPRESSION_OPS})")
+    return rows[0], list(x[0]), list(u[0]), flat
+
+
+def _printer():
+    from sympy.printing.pycode import PythonCodePrinter
+
+    class Printer(PythonCodePrinter):
+        def _print_Float(self, expr):
+            return repr(float(expr))
+
+        def _print_Rational(self, expr):
+            return repr(float(expr))
+
+        def _print_Integer(self, expr):
+            return repr(float(expr))
+
+        def _print_Pow(self, expr, rational=False):
+            base, e = expr.args
+            if e.is_Integer and 1 < int(e) <= 4:  # x*x...: what the forward computed
+                b = self.parenthesize(base, 100)
+                return "(" + "*".join([b] * int(e)) + ")"
+            if e.is_Integer and int(e) == -1:
+                return f"(1.0/{self.parenthesize(base, 100)})"
+            return super()._print_Pow(expr, rational=rational)
+
+    return Printer({"fully_qualified_modules": True, "standard": "python3"})
+
+
+def _generate(gm, n: int, m: int, named, model_name: str) -> str:
+    import sympy
+
+    f, xs, us, ps = _row_expressions(gm, n, m, named)
+    z = xs + us
+    nz = n + m
+    J = [[sympy.diff(fi, zc) for zc in z] for fi in f]
+    H = {}
+    for i in range(n):
+        for a in range(nz):
+            for b in range(a, nz):
+                h = sympy.diff(J[i][a], z[b])
+                if h != 0:
+                    H[(i, a, b)] = h
+    outs = tuple(sorted({i for i, _, _ in H}))
+    ents = tuple(sorted({a for _, a, _ in H} | {b for _, _, b in H}))
+    printer = _printer()
+
+    def reads(exprs) -> list[str]:
+        used = set().union(*(sympy.sympify(e).free_symbols for e in exprs)) if exprs else set()
+        lines = []
+        for name, syms in (("x", xs), ("u", us), ("p", ps)):
+            for i, s in enumerate(syms):
+                if s in used:
+                    lines.append(f"    {s.name} = {name}[{i}]")
+        return lines
+
+    def body(exprs, tag) -> tuple[list[str], list[str]]:
+        subs, reduced = sympy.cse(exprs, symbols=sympy.numbered_symbols(tag), order="none")
+        lines = [f"    {s.name} = {printer.doprint(e)}" for s, e in subs]
+        return lines, [printer.doprint(e) for e in reduced]
+
+    src = [
+        f"# generated by torchslq.dynamics.codegen (version {CODEGEN_VERSION}) from {model_name}.forward",
+        f"# state dim {n}, control dim {m}, parameters {len(ps)}; do not edit",
+        "import math",
+        "import numba",
+        "",
+        f"CURVED_OUTPUTS = {outs!r}",
+        f"CURVED_ENTRIES = {ents!r}",
+        "",
+        "",
+        "@numba.njit(nogil=True, cache=True)",
+        "def rhs(x, u, p, out):",
+    ]
+    src += reads(f)
+    lines, vals = body(f, "r")
+    src += lines + [f"    out[{i}] = {v}" for i, v in enumerate(vals)]
+    src += ["", "", "@numba.njit(nogil=True, cache=True)", "def derivatives(x, u, p, fz, H):"]
+    jac = [J[i][c] for i in range(n) for c in range(nz)]
+    hes = list(H.values())
+    src += reads(jac + hes)
+    lines, vals = body(jac, "j")
+    src += lines + [f"    fz[{i}, {c}] = {vals[i * nz + c]}" for i in range(n) for c in range(nz)]
+    src += ["    if H.shape[0] == 0:", "        return"]
+    if hes:
+        lines, vals = body(hes, "h")
+        src += lines
+        val = dict(zip(H, vals, strict=True))
+        for j in outs:
+            for a in ents:
+                for b in ents:
+                    key = (j, min(a, b), max(a, b))
+                    src.append(f"    H[{j}, {a}, {b}] = {val.get(key, '0.0')}")
+    else:  # no curvature: the whole H is zero
+        src += [
+            f"    for j in range({n}):",
+            f"        for a in range({nz}):",
+            f"            for b in range({nz}):",
+            "                H[j, a, b] = 0.0",
+        ]
+    if printer._not_supported:
+        raise _Unsupported(f"cannot print {sorted(map(str, printer._not_supported))[:3]}")
+    return "\n".join(src) + "\n"
+
+
+# ------------------------------------------------------------------------- check
+def _check(model: nn.Module, hooks: GeneratedHooks, n: int, m: int) -> None:
+    """The compiled functions against the model's ``forward`` and ``torch.func``
+    derivatives at a few random points (float64); raises :class:`_Unsupported` on a
+    mismatch (which a tracing error would give) with a warning."""
+    from .base import CompiledDerivatives
+
+    gen = torch.Generator().manual_seed(0)
+    rows = 4
+    x = torch.randn(rows, n, generator=gen, dtype=torch.float64)
+    u = torch.randn(rows, m, generator=gen, dtype=torch.float64)
+    p = hooks.params(model)
+    state = {k: t.detach().to("cpu", torch.float64) for k, t in _named_tensors(model)}
+
+    def f(xr, ur):
+        return torch.func.functional_call(model, state, (xr[None], ur[None]))[0]
+
+    derivs = hooks.derivatives
+    if isinstance(derivs, CompiledDerivatives):
+        fn, outs, ents = derivs
+    else:
+        fn, outs, ents = derivs, range(n), range(n + m)
+    checked = 0
+    for r in range(rows):
+        with torch.no_grad():
+            ref = f(x[r], u[r])
+        if not bool(torch.isfinite(ref).all()):
+            continue
+        Jx, Ju = torch.func.jacrev(f, argnums=(0, 1))(x[r], u[r])
+        Jref = torch.cat([Jx, Ju], -1)
+        Href = torch.func.hessian(lambda z: f(z[:n], z[n:]))(torch.cat([x[r], u[r]]))
+        out = np.zeros(n)
+        fz = np.zeros((n, n + m))
+        Hc = np.zeros((n, n + m, n + m))
+        hooks.rhs(x[r].numpy(), u[r].numpy(), p, out)
+        fn(x[r].numpy(), u[r].numpy(), p, fz, Hc)
+        Hmask = np.zeros_like(Hc, dtype=bool)
+        Hmask[np.ix_(list(outs), list(ents), list(ents))] = True
+        Hc = np.where(Hmask, Hc, 0.0)
+        for what, got, want in (
+            ("forward", out, ref.numpy()),
+            ("Jacobian", fz, Jref.detach().numpy()),
+            ("Hessians", Hc, Href.detach().numpy()),
+        ):
+            scale = 1.0 + np.abs(want).max()
+            if not np.allclose(got, want, rtol=1e-9, atol=1e-9 * scale):
+                msg = (
+                    f"torchslq: the compiled code generated for {type(model).__name__} "
+                    f"differs from its forward ({what}, max error "
+                    f"{np.abs(got - want).max():.2e}); it keeps the torch path"
+                )
+                warnings.warn(msg, RuntimeWarning, stacklevel=4)
+                raise _Unsupported(msg)
+        checked += 1
+    if checked == 0:
+        raise _Unsupported("forward is not finite at the check points")
