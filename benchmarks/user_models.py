@@ -59,6 +59,7 @@ import torch  # noqa: E402
 from torch import nn  # noqa: E402
 
 import torchslq as ts  # noqa: E402
+from torchslq.dynamics import codegen  # noqa: E402
 from torchslq.systems import CartPole  # noqa: E402
 
 DT, T, MC, MP, L, G = 0.05, 50, 1.0, 0.1, 0.5, 9.81
@@ -81,6 +82,13 @@ class UserCartPole(ts.ContinuousDynamics):
         sdd = (F + MP * s * (L * thd * thd + G * c)) / D
         thdd = (-F * c - MP * L * thd * thd * c * s - (MC + MP) * G * s) / (L * D)
         return torch.stack([sd, thd, sdd, thdd], -1)
+
+
+class UserCartPoleTorchPath(UserCartPole):
+    """:class:`UserCartPole` kept on torch ops (no generated compiled code): what a user's
+    model cost before :mod:`torchslq.dynamics.codegen`."""
+
+    generate_compiled_code = False
 
 
 def residual_mlp() -> nn.Sequential:
@@ -119,7 +127,8 @@ def make_problem(model: str) -> ts.Problem:
     if model == "learned":
         dyn = LearnedCartPole()
     else:
-        f = UserCartPole() if model == "user" else CartPole(mc=MC, mp=MP, l=L)
+        models = {"user": UserCartPole, "user-torch": UserCartPoleTorchPath}
+        f = models[model]() if model in models else CartPole(mc=MC, mp=MP, l=L)
         dyn = ts.discretize(f, DT, "rk4").double()
     cost = ts.QuadraticCost(
         Q=torch.zeros(4, 4, dtype=F64),
@@ -275,21 +284,22 @@ def markdown(meta: dict, rows: list) -> str:
         f"`cost match`: instances within {RTOL:g} relative of trajax's cost. First call: "
         "torchslq's first solve of the configuration; trajax's compilation (excluded).",
         "",
-        "| model | B | solver | first call [s] | time [s] (best; all) | per iteration [ms] | "
+        "| model | B | solver | model code | first call [s] | time [s] (best; all) | per iteration [ms] | "
         "iterations mean/max | status | max dJ/dU | mean cost | cost match | max rel gap | "
         "t_trajax / t |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         if "time_s" not in r:
             out.append(
-                f"| {r['model']} | {r['B']} | {r['solver']} |" + " - |" * 9 + f" {r['note']} |"
+                f"| {r['model']} | {r['B']} | {r['solver']} |" + " - |" * 10 + f" {r['note']} |"
             )
             continue
         runs = ", ".join(f"{t:.3g}" for t in r["times_s"])
         match = "-" if r.get("cost_match") is None else f"{r['cost_match']}/{r['B']}"
         out.append(
-            f"| {r['model']} | {r['B']} | {r['solver']} | {r['first_s']:.3g}"
+            f"| {r['model']} | {r['B']} | {r['solver']} | {r.get('model_code', '-')} | "
+            f"{r['first_s']:.3g}"
             f"{' (reused)' if r.get('compile_reused') else ''} | {r['time_s']:.3g} ({runs}) | "
             f"{1e3 * r['per_iter_s']:.3g} | {r['iters_mean']:.1f}/{r['iters_max']} | "
             f"{r['status']} | {r['max_grad']:.1e} | {r['mean_cost']:.10g} | {match} | "
@@ -333,12 +343,16 @@ def load() -> list[float]:
 def row_of(model, B, solver, res, problem, x0) -> dict:
     J, gn = evaluate(problem, x0, res["u"])
     it = res["iters"]
+    f = getattr(problem.dynamics, "continuous", None)
+    path = "hand-written" if isinstance(f, CartPole) else (
+        "torch ops" if f is None else codegen.explain(f))  # fmt: skip
     best = min(res["times"])
     return {
         "model": model, "B": B, "solver": solver, "first_s": res["first"],
         "times_s": res["times"], "time_s": best, "per_iter_s": best / max(int(it.max()), 1),
         "iters_mean": float(it.mean()), "iters_max": int(it.max()), "status": res["status"],
         "max_grad": float(gn.max()), "mean_cost": float(J.mean()), "J": J.tolist(),
+        "model_code": path if solver.startswith("torchslq") else "jax.jit",
     }  # fmt: skip
 
 
@@ -401,7 +415,7 @@ def print_row(r: dict) -> None:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--models", default="user,learned,zoo")
+    ap.add_argument("--models", default="user,user-torch,learned,zoo")
     ap.add_argument("--solvers", default="ilqr,ddp")
     ap.add_argument("--batches", default="1,64,512")
     ap.add_argument("--repeats", type=int, default=1, help="timed solves; the best is kept")

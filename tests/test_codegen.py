@@ -289,3 +289,33 @@ def test_parameters_that_need_grad_take_the_autograd_path():
     Am, _ = ts.linearize(step, x, u)
     torch.testing.assert_close(dA, (Ap.sum() - Am.sum()) / (2 * eps), rtol=1e-6, atol=1e-8)
     torch.testing.assert_close(Ap, A.detach(), rtol=1e-5, atol=1e-5)
+
+
+def test_bound_kernels_equal_the_generic_kernels(monkeypatch):
+    """The generated module's copies of the RK4 and rollout kernels (bound to its
+    functions, cached on disk) compute bit for bit what the generic kernels compute
+    with the functions passed as arguments."""
+    from torchslq._backend import bound
+    from torchslq.dynamics.rollout import rollout_closed_loop
+
+    step = ts.discretize(UserCartPole(), 0.05)
+    gen = torch.Generator().manual_seed(2)
+    x = torch.randn(7, 3, 4, generator=gen, dtype=torch.float64)
+    u = torch.randn(7, 3, 1, generator=gen, dtype=torch.float64)
+    s = torch.randn(7, 3, 4, generator=gen, dtype=torch.float64)
+    K = 0.1 * torch.randn(7, 3, 1, 4, generator=gen, dtype=torch.float64)
+    alpha = torch.tensor([1.0, 0.5]).double()[:, None].expand(2, 7)
+
+    def outputs():
+        A, B = step.compiled_jacobians(x, u)
+        H = step.compiled_vhp(x, u, s)
+        xs, us = rollout_closed_loop(step, x[:, 0], x, u, K, u, alpha)
+        return A, B, *H, xs, us
+
+    assert codegen.explain(step.continuous) == "compiled"
+    with_bound = outputs()
+    assert bound.bound_kernels(step.continuous.compiled_rhs()[0]) is not None
+    monkeypatch.setattr(bound, "_BOUND", {})
+    generic = outputs()
+    for a, b in zip(with_bound, generic, strict=True):
+        assert torch.equal(a, b)

@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
+from .bound import bound_kernels
 
 __all__ = [
     "PIECE_NDIMS",
@@ -436,11 +437,17 @@ def closed_loop_rollout_compiled(
         if skip is None
         else skip.detach().expand(lead).reshape(R).contiguous().numpy()
     )
+    bound = bound_kernels(step)
+    kernel, fns = (
+        (bound.rk4_rollout, ())
+        if bound is not None
+        else (_kernels().closed_loop_rollout_kernel, (step,))
+    )
     _launch(
-        _kernels().closed_loop_rollout_kernel,
+        kernel,
         R,
         T,
-        step,
+        *fns,
         params,
         x0.detach().expand(*lead, n).reshape(R, n).contiguous().numpy(),
         x_nom.detach().contiguous().numpy(),

@@ -20,6 +20,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .._backend.bound import bound_kernels
+
 
 # (a_i, w_i) of the classical RK4 scheme: stage i at x + a_i dt k_{i-1}, weight w_i dt / 6
 # (as functions: numba indexes a constant tuple with a run-time index slowly, ~0.2 us
@@ -37,36 +39,47 @@ def _rk4_w(i):
 _RK4_STEPS: dict = {}
 
 
+@numba.njit(nogil=True)
+def rk4_step_with(rhs, x, u, p, out, work):
+    """One RK4 step of ``rhs(x, u, p[1:], out)`` with ``p[0] = dt`` into ``out`` (the
+    body of :func:`rk4_step`'s functions, and of the generated modules' ``rk4_step``)."""
+    # the same sums in the same order as DiscretizedDynamics.forward; work rows:
+    # k, the stage argument, k1 + 2 k2, k3
+    n = x.shape[0]
+    dt = p[0]
+    q = p[1:]
+    k, xi, a, k3 = work[0], work[1], work[2], work[3]
+    rhs(x, u, q, k)
+    for i in range(n):
+        a[i] = k[i]
+        xi[i] = x[i] + (0.5 * dt) * k[i]
+    rhs(xi, u, q, k)
+    for i in range(n):
+        a[i] = a[i] + 2.0 * k[i]
+        xi[i] = x[i] + (0.5 * dt) * k[i]
+    rhs(xi, u, q, k3)
+    for i in range(n):
+        xi[i] = x[i] + dt * k3[i]
+    rhs(xi, u, q, k)
+    for i in range(n):
+        out[i] = x[i] + (dt / 6.0) * (a[i] + (k[i] + 2.0 * k3[i]))
+
+
 def rk4_step(rhs):
     """A numba RK4 step ``step(x, u, p, out, work)`` (:meth:`torchslq.Dynamics.compiled_step`)
     around a model's ``rhs(x, u, p[1:], out)``
     (:meth:`torchslq.ContinuousDynamics.compiled_rhs`) with ``p[0] = dt``: one compiled
-    function per ``rhs``, built once per process (not cached on disk, being a closure)."""
+    function per ``rhs``, built once per process (not cached on disk, being a closure).
+    A generated model's module has its own, cached (:mod:`torchslq.dynamics.codegen`)."""
+    bound = bound_kernels(rhs)
+    if bound is not None:
+        return bound.rk4_step
     if rhs in _RK4_STEPS:
         return _RK4_STEPS[rhs]
 
     @numba.njit(nogil=True)
     def step(x, u, p, out, work):
-        # the same sums in the same order as DiscretizedDynamics.forward; work rows:
-        # k, the stage argument, k1 + 2 k2, k3
-        n = x.shape[0]
-        dt = p[0]
-        q = p[1:]
-        k, xi, a, k3 = work[0], work[1], work[2], work[3]
-        rhs(x, u, q, k)
-        for i in range(n):
-            a[i] = k[i]
-            xi[i] = x[i] + (0.5 * dt) * k[i]
-        rhs(xi, u, q, k)
-        for i in range(n):
-            a[i] = a[i] + 2.0 * k[i]
-            xi[i] = x[i] + (0.5 * dt) * k[i]
-        rhs(xi, u, q, k3)
-        for i in range(n):
-            xi[i] = x[i] + dt * k3[i]
-        rhs(xi, u, q, k)
-        for i in range(n):
-            out[i] = x[i] + (dt / 6.0) * (a[i] + (k[i] + 2.0 * k3[i]))
+        rk4_step_with(rhs, x, u, p, out, work)
 
     _RK4_STEPS[rhs] = step
     return step

@@ -36,6 +36,7 @@ control flow, time-varying) keep the torch path; :func:`explain` says why.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import importlib.util
 import logging
@@ -177,6 +178,7 @@ def _build(model: nn.Module) -> GeneratedHooks:
     h = hashlib.sha256()
     h.update(f"v{CODEGEN_VERSION};{n};{m};{[(k, tuple(t.shape)) for k, t in named]}".encode())
     h.update(gm.code.encode())
+    h.update(_kernel_sources_digest())
     for c in consts:
         h.update(c.detach().cpu().to(torch.float64).contiguous().numpy().tobytes())
     digest = h.hexdigest()[:24]
@@ -198,7 +200,17 @@ def _build(model: nn.Module) -> GeneratedHooks:
             module.derivatives, module.CURVED_OUTPUTS, module.CURVED_ENTRIES
         )
     hooks = GeneratedHooks(module.rhs, derivatives, tuple(k for k, _ in named), module.__file__)
-    _check(model, hooks, n, m)
+    # the code is a function of the traced graph: checked once, when first generated
+    # (a module that failed its check has no marker and is checked again: same verdict)
+    checked = None if path is None else path.with_suffix(".checked")
+    if checked is None or not checked.exists():
+        _check(model, hooks, n, m)
+        if checked is not None:
+            with contextlib.suppress(OSError):
+                checked.touch()
+    from .._backend.bound import register
+
+    register(module)
     return hooks
 
 
@@ -424,9 +436,60 @@ def _generate(gm, n: int, m: int, named, model_name: str) -> str:
             f"            for b in range({nz}):",
             "                H[j, a, b] = 0.0",
         ]
+    src += _kernel_source()
     if printer._not_supported:
         raise _Unsupported(f"cannot print {sorted(map(str, printer._not_supported))[:3]}")
     return "\n".join(src) + "\n"
+
+
+_KERNELS: list[str] = []
+
+
+def _kernel_source() -> list[str]:
+    """The library's generic kernels that take a model's functions as arguments,
+    rewritten to call this module's ``rhs`` / ``derivatives`` / RK4 step directly
+    (:mod:`torchslq.dynamics._specialize`), so they are cached with it (see
+    :mod:`torchslq._backend.bound`), plus the names the launchers look for."""
+    if not _KERNELS:
+        from .._backend import _numba_kernels
+        from . import _numba_rk4
+        from ._specialize import specialised_source
+
+        rk4, rk4_helpers = specialised_source(
+            _numba_rk4,
+            {"rhs", "derivs"},
+            ["rk4_step_with", "rk4_lanes_kernel", "rk4_second_derivatives_kernel"],
+        )
+        roll, roll_helpers = specialised_source(
+            _numba_kernels, {"step"}, ["closed_loop_rollout_kernel"]
+        )
+        lines = ["", "", "# the library's kernels with this module's functions bound in", ""]
+        lines += ["import numpy as np", ""]
+        for mod, names in (
+            ("torchslq.dynamics._numba_rk4", rk4_helpers),
+            ("torchslq._backend._numba_kernels", roll_helpers),
+        ):
+            lines += [f"from {mod} import {name}" for name in names]
+        lines += ["", "derivs = derivatives", "", "", rk4, "", "", "step = rk4_step_with"]
+        lines += ["", "", roll, "", ""]
+        lines += [
+            "rk4_step = rk4_step_with",
+            "rk4_rollout = closed_loop_rollout_kernel",
+            "rk4_lanes = rk4_lanes_kernel",
+            "rk4_second = rk4_second_derivatives_kernel",
+        ]
+        _KERNELS.extend(lines)
+    return _KERNELS
+
+
+def _kernel_sources_digest() -> bytes:
+    from .._backend import _numba_kernels
+    from . import _numba_rk4
+
+    h = hashlib.sha256()
+    for mod in (_numba_kernels, _numba_rk4):
+        h.update(Path(mod.__file__).read_bytes())
+    return h.digest()
 
 
 # ------------------------------------------------------------------------- check
@@ -459,7 +522,9 @@ def _check(model: nn.Module, hooks: GeneratedHooks, n: int, m: int) -> None:
             continue
         Jx, Ju = torch.func.jacrev(f, argnums=(0, 1))(x[r], u[r])
         Jref = torch.cat([Jx, Ju], -1)
-        Href = torch.func.hessian(lambda z: f(z[:n], z[n:]))(torch.cat([x[r], u[r]]))
+        # reverse over reverse (torch.func.hessian's forward mode imports seconds of code)
+        fz_ = lambda z: f(z[:n], z[n:])  # noqa: E731
+        Href = torch.func.jacrev(torch.func.jacrev(fz_))(torch.cat([x[r], u[r]]))
         out = np.zeros(n)
         fz = np.zeros((n, n + m))
         Hc = np.zeros((n, n + m, n + m))

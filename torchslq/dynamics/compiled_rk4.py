@@ -23,6 +23,7 @@ import torch
 from torch import Tensor
 
 from .._backend import _launch
+from .._backend.bound import bound_kernels
 from .._shapes import broadcast_shapes
 from .base import CompiledDerivatives
 
@@ -84,12 +85,17 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
     no_pattern = np.zeros(0, dtype=np.int64)
     no_weights = np.zeros((0, R, n), dtype=xa.dtype)  # W = 0: no Hessians asked
     no_hessians = np.zeros((0, R, n + m, n + m), dtype=xa.dtype)
+    bound = bound_kernels(hooks.rhs)
+    kernel, fns = (
+        (bound.rk4_lanes, ())
+        if bound is not None
+        else (_kernels().rk4_lanes_kernel, (hooks.rhs, hooks.derivatives))
+    )
     _launch(
-        _kernels().rk4_lanes_kernel,
+        kernel,
         R,
         1,
-        hooks.rhs,
-        hooks.derivatives,
+        *fns,
         hooks.params,
         float(dt),
         no_pattern,
@@ -128,13 +134,18 @@ def rk4_vhp_compiled(
     B = torch.empty(R if with_jacobians else 0, n, m, dtype=x.dtype)
     # a declared pattern: the lanes kernel; else each point's Hessians are scanned
     static = hooks.curved_outputs.size > 0
-    kernels = _kernels()
+    bound = bound_kernels(hooks.rhs)
+    if bound is not None:
+        kernel, fns = (bound.rk4_lanes if static else bound.rk4_second), ()
+    else:
+        kernels = _kernels()
+        kernel = kernels.rk4_lanes_kernel if static else kernels.rk4_second_derivatives_kernel
+        fns = (hooks.rhs, hooks.derivatives)
     _launch(
-        kernels.rk4_lanes_kernel if static else kernels.rk4_second_derivatives_kernel,
+        kernel,
         R,
         W,
-        hooks.rhs,
-        hooks.derivatives,
+        *fns,
         hooks.params,
         float(dt),
         hooks.curved_outputs,
