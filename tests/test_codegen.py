@@ -319,3 +319,60 @@ def test_bound_kernels_equal_the_generic_kernels(monkeypatch):
     generic = outputs()
     for a, b in zip(with_bound, generic, strict=True):
         assert torch.equal(a, b)
+
+
+class UserUnicycle(ts.Dynamics):
+    """A discrete model written by a user: its step is compiled, with its derivatives."""
+
+    state_dim, control_dim = 3, 2
+
+    def __init__(self, dt=0.1):
+        super().__init__()
+        self.dt = dt
+
+    def forward(self, x, u):
+        th = x[..., 2]
+        v, w = u[..., 0] * self.dt, u[..., 1] * self.dt
+        return torch.stack(
+            [x[..., 0] + torch.cos(th) * v, x[..., 1] + torch.sin(th) * v, th + w], -1
+        )
+
+
+def test_discrete_model_step_and_derivatives_equal_torch_func():
+    from torchslq.dynamics.linearize import dynamics_vhp
+    from torchslq.dynamics.rollout import rollout
+
+    model = UserUnicycle()
+    assert codegen.explain(model) == "compiled"
+    gen = torch.Generator().manual_seed(4)
+    x = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+    u = torch.randn(6, 2, generator=gen, dtype=torch.float64)
+    s = torch.randn(6, 3, generator=gen, dtype=torch.float64)
+
+    def f(a, b):  # the torch form, out of codegen's reach
+        return model.forward(a, b)
+
+    A, B = model.compiled_jacobians(x, u)
+    Ar, Br = torch.func.vmap(torch.func.jacrev(f, argnums=(0, 1)))(x, u)
+    torch.testing.assert_close(A, Ar, rtol=1e-13, atol=1e-13)
+    torch.testing.assert_close(B, Br, rtol=1e-13, atol=1e-13)
+    for got, want in zip(model.compiled_vhp(x, u, s), dynamics_vhp(f, x, u, s), strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-12, atol=1e-12)
+    us = torch.randn(6, 9, 2, generator=gen, dtype=torch.float64)
+    torch.testing.assert_close(rollout(model, x, us), rollout(f, x, us), rtol=1e-13, atol=1e-13)
+    # a model with a changed attribute is generated again (its step reads dt as a number)
+    model.dt = 0.2
+    torch.testing.assert_close(rollout(model, x, us), rollout(f, x, us), rtol=1e-13, atol=1e-13)
+
+
+def test_discrete_model_ddp_solve_equals_the_torch_path(monkeypatch):
+    cost = ts.QuadraticCost(0.1 * torch.eye(3, dtype=torch.float64), torch.eye(2, dtype=torch.float64),
+                            Qf=50 * torch.eye(3, dtype=torch.float64),
+                            x_ref=torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64))  # fmt: skip
+    x0 = torch.tensor([[0.0, 0.0, 0.3], [0.2, -0.5, -1.0]], dtype=torch.float64)
+    fast = ts.DDP(max_iter=100, tol=1e-8).solve(ts.Problem(UserUnicycle(), cost, 20), x0)
+    monkeypatch.setenv("TORCHSLQ_CODEGEN", "0")
+    slow = ts.DDP(max_iter=100, tol=1e-8).solve(ts.Problem(UserUnicycle(), cost, 20), x0)
+    assert fast.converged.all() and slow.converged.all()
+    torch.testing.assert_close(fast.cost, slow.cost, rtol=1e-10, atol=0)
+    torch.testing.assert_close(fast.u, slow.u, rtol=0, atol=1e-7)

@@ -17,13 +17,18 @@ _BOUND: dict = {}
 
 
 def register(module: ModuleType) -> None:
-    """Register a generated module under its ``rhs`` and ``rk4_step``."""
+    """Register a generated module under its ``rhs`` and ``step``; it defines
+    ``step(x, u, p, out, work)`` (the model's discrete step: the RK4 step of a
+    continuous model's ``rhs``, or ``rhs`` itself), ``rollout`` (the closed-loop rollout
+    kernel with ``step`` bound), and ``jacobians_kernel`` / ``hessians_kernel`` (the
+    step's derivatives, with the argument list of
+    :func:`torchslq.dynamics._numba_rk4.rk4_lanes_kernel` less ``rhs`` and ``derivs``)."""
     _BOUND[module.rhs] = module
-    _BOUND[module.rk4_step] = module
+    _BOUND[module.step] = module
 
 
 def bound_kernels(fn) -> ModuleType | None:
-    """The generated module whose ``rhs`` or ``rk4_step`` is ``fn``, or None."""
+    """The generated module whose ``rhs`` or ``step`` is ``fn``, or None."""
     try:
         return _BOUND.get(fn)
     except TypeError:  # unhashable

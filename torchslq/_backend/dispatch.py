@@ -439,7 +439,7 @@ def closed_loop_rollout_compiled(
     )
     bound = bound_kernels(step)
     kernel, fns = (
-        (bound.rk4_rollout, ())
+        (bound.rollout, ())
         if bound is not None
         else (_kernels().closed_loop_rollout_kernel, (step,))
     )

@@ -73,7 +73,7 @@ def rk4_step(rhs):
     A generated model's module has its own, cached (:mod:`torchslq.dynamics.codegen`)."""
     bound = bound_kernels(rhs)
     if bound is not None:
-        return bound.rk4_step
+        return bound.step
     if rhs in _RK4_STEPS:
         return _RK4_STEPS[rhs]
 

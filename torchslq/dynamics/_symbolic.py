@@ -289,6 +289,35 @@ def _handlers() -> dict[str, Callable]:
     def _new(value):
         return lambda a, size, **kw: _full(size, value)
 
+    def _eye(n, m=None, **kw):
+        m = n if m is None else m
+        out = np.empty((n, m), dtype=object)
+        for i in range(n):
+            for j in range(m):
+                out[i, j] = sympy.Integer(1 if i == j else 0)
+        return out
+
+    def _pad(a, pad, value=0):
+        a = as_array(a)
+        width = [(0, 0)] * a.ndim
+        for k in range(len(pad) // 2):  # torch: last dim first, (before, after) pairs
+            before, after = pad[2 * k], pad[2 * k + 1]
+            if before < 0 or after < 0:
+                raise Unsupported("negative padding")
+            width[a.ndim - 1 - k] = (before, after)
+        return np.pad(a, width, mode="constant", constant_values=sympy.sympify(value))
+
+    def _diag_embed(a, offset=0, dim1=-2, dim2=-1):
+        a = as_array(a)
+        if (dim1, dim2) not in ((-2, -1), (a.ndim - 1, a.ndim)):
+            raise Unsupported("diag_embed into other dims than the last two")
+        k = a.shape[-1] + abs(offset)
+        out = np.full((*a.shape[:-1], k, k), sympy.Integer(0), dtype=object)
+        for i in range(a.shape[-1]):
+            r, c = (i, i + offset) if offset >= 0 else (i - offset, i)
+            out[..., r, c] = a[..., i]
+        return out
+
     def _scalar_tensor(v, **kw):
         return as_array(v)
 
@@ -334,6 +363,9 @@ def _handlers() -> dict[str, Callable]:
         "zeros": lambda size, **kw: _full(size, 0),
         "ones": lambda size, **kw: _full(size, 1),
         "scalar_tensor": _scalar_tensor,
+        "eye": _eye,
+        "diag_embed": _diag_embed,
+        "constant_pad_nd": _pad,
         "zeros_like": _like(0),
         "ones_like": _like(1),
         "full_like": _full_like,

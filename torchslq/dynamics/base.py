@@ -58,17 +58,65 @@ class Dynamics(nn.Module):
     def has_analytic_vhp(self) -> bool:
         return type(self).vhp is not Dynamics.vhp
 
+    #: Whether :meth:`compiled_step` and the compiled derivatives may be generated from
+    #: :meth:`forward` (:mod:`torchslq.dynamics.codegen`); set False in a subclass to keep
+    #: it on torch ops (``TORCHSLQ_CODEGEN=0`` turns generation off for all models).
+    generate_compiled_code: bool = True
+
     def compiled_step(self):
-        """Optional CPU fast path for rollouts: ``(step, params)`` with ``step`` a
-        numba-compiled function ``step(x, u, params, out, work)`` that writes ``f(x, u)``
-        for one row (1-d arrays ``x (n,)``, ``u (m,)``, ``out (n,)``; ``work`` an
-        ``(8, n)`` scratch array it may use) and ``params`` a 1-d float64 array; or None
-        (the default, and whenever the current parameters cannot be passed that way,
-        e.g. per-element tensors). Closed-loop rollouts without autograd then run as one
-        compiled loop (:func:`torchslq.dynamics.rollout_closed_loop`). It must compute
+        """CPU fast path for rollouts: ``(step, params)`` with ``step`` a numba-compiled
+        function ``step(x, u, params, out, work)`` that writes ``f(x, u)`` for one row
+        (1-d arrays ``x (n,)``, ``u (m,)``, ``out (n,)``; ``work`` an ``(8, n)`` scratch
+        array it may use) and ``params`` a 1-d float64 array; or None where there is none
+        (e.g. per-element parameters). Closed-loop rollouts without autograd then run as
+        one compiled loop (:func:`torchslq.dynamics.rollout_closed_loop`). It must compute
         what :meth:`forward` computes (up to the last bits of library functions such as
-        ``cos``)."""
-        return None
+        ``cos``). By default generated from :meth:`forward`
+        (:mod:`torchslq.dynamics.codegen`, which says when it cannot be)."""
+        from .._backend.bound import bound_kernels
+        from .codegen import generated_hooks
+
+        hooks = generated_hooks(self)
+        if hooks is None:
+            return None
+        return bound_kernels(hooks.rhs).step, hooks.params(self)
+
+    def compiled_jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:
+        """``(A, B)`` on the CPU kernel from the code generated from :meth:`forward`, or
+        None where it does not apply (:func:`torchslq.linearize` then uses
+        :meth:`jacobians` or automatic differentiation). Detached."""
+        hooks = self._generated_kernel_hooks(x, u)
+        if hooks is None:
+            return None
+        from .compiled_rk4 import rk4_jacobians_compiled
+
+        return rk4_jacobians_compiled(hooks, 0.0, x, u)
+
+    def compiled_vhp(self, x: Tensor, u: Tensor, s: Tensor):
+        """:meth:`vhp` on the CPU kernel from the generated code (``s`` may carry extra
+        leading dims), or None where it does not apply. Detached."""
+        hooks = self._generated_kernel_hooks(x, u, s)
+        if hooks is None:
+            return None
+        from .compiled_rk4 import rk4_vhp_compiled
+
+        return rk4_vhp_compiled(hooks, 0.0, x, u, s)
+
+    def _generated_kernel_hooks(self, *tensors: Tensor):
+        """The generated functions as the derivative kernels' arguments, when ``tensors``
+        are CPU float tensors and nothing needs autograd; else None."""
+        from .._backend import can_use_compiled, module_needs_grad
+
+        if not can_use_compiled(*tensors) or module_needs_grad(self):
+            return None
+        from .codegen import generated_hooks
+
+        hooks = generated_hooks(self)
+        if hooks is None:
+            return None
+        from .compiled_rk4 import rk4_hooks
+
+        return rk4_hooks((hooks.rhs, hooks.params(self)), hooks.derivatives)
 
 
 class CompiledDerivatives(NamedTuple):

@@ -173,10 +173,15 @@ def _build(model: nn.Module) -> GeneratedHooks:
             f"{count} parameter entries (more than {MAX_PARAMETERS}): a network runs faster "
             "as batched matrix ops"
         )
+    from .base import ContinuousDynamics
+
+    kind = "continuous" if isinstance(model, ContinuousDynamics) else "discrete"
     gm = _trace(model, n, m, named)
     consts = [getattr(gm, node.target) for node in gm.graph.nodes if node.op == "get_attr"]
     h = hashlib.sha256()
-    h.update(f"v{CODEGEN_VERSION};{n};{m};{[(k, tuple(t.shape)) for k, t in named]}".encode())
+    h.update(
+        f"v{CODEGEN_VERSION};{kind};{n};{m};{[(k, tuple(t.shape)) for k, t in named]}".encode()
+    )
     h.update(gm.code.encode())
     h.update(_kernel_sources_digest())
     for c in consts:
@@ -190,7 +195,7 @@ def _build(model: nn.Module) -> GeneratedHooks:
         except Exception:  # a damaged file: generate it again
             module = None
     if module is None:
-        source = _generate(gm, n, m, named, type(model).__name__)
+        source = _generate(gm, n, m, named, type(model).__name__, kind)
         module = _write_and_import(path, digest, source)
     derivatives = module.derivatives
     if module.CURVED_OUTPUTS:
@@ -229,6 +234,37 @@ def _trace(model: nn.Module, n: int, m: int, named: list[tuple[str, Tensor]]):
     x = torch.zeros(2, n, dtype=torch.float64)
     u = torch.zeros(2, m, dtype=torch.float64)
     ps = [t.detach().to("cpu", torch.float64) for _, t in named]
+    with _state_restored(model):  # a forward that caches tensors must not keep fake ones
+        return _make_graph(fn, x, u, ps, make_fx, functionalize)
+
+
+@contextlib.contextmanager
+def _state_restored(model: nn.Module):
+    """Every module's attributes (and the contents of dict / list attributes, e.g. a
+    cache of constant matrices a ``forward`` fills on first use) as they were before."""
+    saved = []
+    for mod in model.modules():
+        attrs = dict(vars(mod))
+        inner = {k: (dict(v) if isinstance(v, dict) else list(v)) for k, v in attrs.items()
+                 if isinstance(v, (dict, list)) and not k.startswith("_modules")}  # fmt: skip
+        saved.append((mod, attrs, inner))
+    try:
+        yield
+    finally:
+        for mod, attrs, inner in saved:
+            d = vars(mod)
+            for k in [k for k in d if k not in attrs]:
+                del d[k]
+            d.update(attrs)
+            for k, v in inner.items():
+                d[k].clear()
+                if isinstance(v, dict):
+                    d[k].update(v)
+                else:
+                    d[k].extend(v)
+
+
+def _make_graph(fn, x, u, ps, make_fx, functionalize):
     # a model that cannot be traced is an expected outcome here, not an error to log
     quiet = logging.getLogger("torch._subclasses.fake_tensor")
     level = quiet.level
@@ -353,6 +389,10 @@ def _printer():
         def _print_Integer(self, expr):
             return repr(float(expr))
 
+        def _print_DiracDelta(self, expr):
+            # d sign / dx: zero away from 0, and what torch's autograd gives at 0 too
+            return "0.0"
+
         def _print_Pow(self, expr, rational=False):
             base, e = expr.args
             if e.is_Integer and 1 < int(e) <= 4:  # x*x...: what the forward computed
@@ -365,7 +405,7 @@ def _printer():
     return Printer({"fully_qualified_modules": True, "standard": "python3"})
 
 
-def _generate(gm, n: int, m: int, named, model_name: str) -> str:
+def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
     import sympy
 
     f, xs, us, ps = _row_expressions(gm, n, m, named)
@@ -436,58 +476,62 @@ def _generate(gm, n: int, m: int, named, model_name: str) -> str:
             f"            for b in range({nz}):",
             "                H[j, a, b] = 0.0",
         ]
-    src += _kernel_source()
+    src += _kernel_source(kind)
     if printer._not_supported:
         raise _Unsupported(f"cannot print {sorted(map(str, printer._not_supported))[:3]}")
     return "\n".join(src) + "\n"
 
 
-_KERNELS: list[str] = []
+_KERNELS: dict[str, list[str]] = {}
 
 
-def _kernel_source() -> list[str]:
+def _kernel_source(kind: str) -> list[str]:
     """The library's generic kernels that take a model's functions as arguments,
     rewritten to call this module's ``rhs`` / ``derivatives`` / RK4 step directly
     (:mod:`torchslq.dynamics._specialize`), so they are cached with it (see
     :mod:`torchslq._backend.bound`), plus the names the launchers look for."""
-    if not _KERNELS:
+    if kind not in _KERNELS:
         from .._backend import _numba_kernels
-        from . import _numba_rk4
+        from . import _numba_rk4, _numba_step
         from ._specialize import specialised_source
 
-        rk4, rk4_helpers = specialised_source(
-            _numba_rk4,
-            {"rhs", "derivs"},
-            ["rk4_step_with", "rk4_lanes_kernel", "rk4_second_derivatives_kernel"],
-        )
+        if kind == "continuous":  # the RK4 step of rhs and its derivatives
+            derivs, helpers = specialised_source(
+                _numba_rk4,
+                {"rhs", "derivs"},
+                ["rk4_step_with", "rk4_lanes_kernel", "rk4_second_derivatives_kernel"],
+            )
+            source = "torchslq.dynamics._numba_rk4"
+            names = ["step = rk4_step_with", "jacobians_kernel = rk4_lanes_kernel"]
+            names += ["hessians_kernel = rk4_second_derivatives_kernel"]
+        else:  # rhs is the step
+            derivs, helpers = specialised_source(
+                _numba_step, {"rhs", "derivs"}, ["step_derivatives_kernel"]
+            )
+            source = "torchslq.dynamics._numba_step"
+            names = ["jacobians_kernel = step_derivatives_kernel"]
+            names += ["hessians_kernel = step_derivatives_kernel", "", ""]
+            names += ["@numba.njit(nogil=True, cache=True)", "def step(x, u, p, out, work):"]
+            names += ["    rhs(x, u, p, out)"]
         roll, roll_helpers = specialised_source(
             _numba_kernels, {"step"}, ["closed_loop_rollout_kernel"]
         )
         lines = ["", "", "# the library's kernels with this module's functions bound in", ""]
         lines += ["import numpy as np", ""]
-        for mod, names in (
-            ("torchslq.dynamics._numba_rk4", rk4_helpers),
-            ("torchslq._backend._numba_kernels", roll_helpers),
-        ):
-            lines += [f"from {mod} import {name}" for name in names]
-        lines += ["", "derivs = derivatives", "", "", rk4, "", "", "step = rk4_step_with"]
-        lines += ["", "", roll, "", ""]
-        lines += [
-            "rk4_step = rk4_step_with",
-            "rk4_rollout = closed_loop_rollout_kernel",
-            "rk4_lanes = rk4_lanes_kernel",
-            "rk4_second = rk4_second_derivatives_kernel",
-        ]
-        _KERNELS.extend(lines)
-    return _KERNELS
+        for mod, used in ((source, helpers), ("torchslq._backend._numba_kernels", roll_helpers)):
+            lines += [f"from {mod} import {name}" for name in used]
+        lines += ["", "derivs = derivatives", "", "", derivs, "", "", *names, "", "", roll]
+        lines += ["", "", "rollout = closed_loop_rollout_kernel"]
+        _KERNELS[kind] = lines
+    return _KERNELS[kind]
 
 
 def _kernel_sources_digest() -> bytes:
     from .._backend import _numba_kernels
-    from . import _numba_rk4
+    from . import _numba_rk4, _numba_step
 
     h = hashlib.sha256()
-    for mod in (_numba_kernels, _numba_rk4):
+    for mod in (_numba_kernels, _numba_rk4, _numba_step):
         h.update(Path(mod.__file__).read_bytes())
     return h.digest()
 

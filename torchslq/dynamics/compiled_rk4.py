@@ -87,7 +87,7 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
     no_hessians = np.zeros((0, R, n + m, n + m), dtype=xa.dtype)
     bound = bound_kernels(hooks.rhs)
     kernel, fns = (
-        (bound.rk4_lanes, ())
+        (bound.jacobians_kernel, ())
         if bound is not None
         else (_kernels().rk4_lanes_kernel, (hooks.rhs, hooks.derivatives))
     )
@@ -136,7 +136,7 @@ def rk4_vhp_compiled(
     static = hooks.curved_outputs.size > 0
     bound = bound_kernels(hooks.rhs)
     if bound is not None:
-        kernel, fns = (bound.rk4_lanes if static else bound.rk4_second), ()
+        kernel, fns = (bound.jacobians_kernel if static else bound.hessians_kernel), ()
     else:
         kernels = _kernels()
         kernel = kernels.rk4_lanes_kernel if static else kernels.rk4_second_derivatives_kernel

@@ -10,11 +10,9 @@ All parameters may be per-element tensors broadcasting against ``x[..., 0]`` (e.
 ``(B, 1)`` for inputs ``(B, T, n)``).
 
 Each model's equations are written once, in its own module: plain functions of the
-state, control and parameters (:func:`~torchslq.systems._common.row_source`) that the
-torch form calls with batched tensors and that numba compiles for the CPU kernels'
-compiled hooks (:mod:`torchslq.systems._jit`, imported on first use); the curvature
-pattern a compiled hook declares is found from the torch form by automatic
-differentiation (:func:`~torchslq.systems._common.curvature_pattern`).
+state, control and parameters that ``forward``, ``jacobians`` and ``vhp`` call with
+batched tensors. On the CPU the compiled code the kernels run is generated from
+``forward`` (:mod:`torchslq.dynamics.codegen`), exactly as for a user's model.
 """
 
 from .cartpole import CartPole

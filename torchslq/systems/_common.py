@@ -2,13 +2,11 @@
 source of each model's equations.
 
 A model's equations are written once, as plain functions of its state, control and
-parameters that use only arithmetic and :func:`sin` / :func:`cos` (see
-:func:`row_source`): ``forward``, ``jacobians`` and ``vhp`` call them with torch tensors
-(one tensor per component, :func:`components`: batched, broadcasting), and the model's
-compiled hooks (:meth:`torchslq.ContinuousDynamics.compiled_rhs`, ...) are the same
-functions compiled by numba for one row (:mod:`torchslq.systems._jit`). The curvature
-pattern a compiled hook declares is found from the torch form
-(:func:`curvature_pattern`), never kept by hand.
+parameters that use only arithmetic and :func:`sin` / :func:`cos`: ``forward``,
+``jacobians`` and ``vhp`` call them with torch tensors (one tensor per component,
+:func:`components`: batched, broadcasting). On the CPU a model's compiled code is
+generated from its ``forward`` (:mod:`torchslq.dynamics.codegen`), as for any user's
+model: the zoo has no hand-written compiled code.
 
 Parameters are stored as python floats (scalars) or tensors. A tensor parameter is
 registered as a buffer (or kept as an ``nn.Parameter`` when given as one, so it can be
@@ -18,9 +16,6 @@ own mass; for ``x (B, n)`` use shape ``(B,)``.
 """
 
 from __future__ import annotations
-
-import sys
-from collections.abc import Callable
 
 import torch
 from torch import Tensor, nn
@@ -98,23 +93,6 @@ def _full(e: Scalar, lead: torch.Size, like: Tensor) -> Tensor:
     return torch.full(lead, float(e), dtype=like.dtype, device=like.device)
 
 
-def scalar_params_array(module: nn.Module, names: tuple[str, ...]):
-    """The parameters ``names`` as a 1-d float64 numpy array for a model's compiled
-    functions (:meth:`torchslq.ContinuousDynamics.compiled_rhs`), or None when one is a
-    tensor with batch dims (per-element parameters)."""
-    vals = []
-    for name in names:
-        p = getattr(module, name)
-        if isinstance(p, Tensor):
-            if p.ndim > 0:
-                return None
-            p = float(p.detach())
-        vals.append(float(p))
-    import numpy as np
-
-    return np.array(vals, dtype=np.float64)
-
-
 def _is_zero(e) -> bool:
     """Whether ``e`` is the number zero (a structural zero of an equation's source)."""
     return isinstance(e, float | int) and e == 0
@@ -125,36 +103,17 @@ def _is_zero(e) -> bool:
 
 
 def sin(a):
-    """``torch.sin`` in the torch form of a model's equations, ``math.sin`` in their
-    numba form (:mod:`torchslq.systems._jit` registers that)."""
+    """``torch.sin`` (the equations read as plain arithmetic on their components)."""
     return torch.sin(a)
 
 
 def cos(a):
-    """``torch.cos`` in the torch form, ``math.cos`` in the numba form (as :func:`sin`)."""
+    """``torch.cos``."""
     return torch.cos(a)
 
 
-_SOURCES: list[Callable] = []
-
-
-def row_source(fn: Callable) -> Callable:
-    """Mark ``fn`` as (part of) a model's equations: a plain function of indexable
-    state, control and parameters (``x[i]``, ``u[i]``, ``p[i]``) using only arithmetic,
-    :func:`sin`, :func:`cos` and other such functions, returning numbers or tuples of
-    them (``0.0`` where an entry is zero whatever the inputs). The torch form calls it
-    with tuples of tensors (:func:`components`), the numba form compiles it for one row
-    of 1-d arrays (numba is imported only then: :mod:`torchslq.systems._jit` registers
-    every marked function as callable from compiled code)."""
-    _SOURCES.append(fn)
-    jit = sys.modules.get(__package__ + "._jit")
-    if jit is not None:
-        jit.register(fn)
-    return fn
-
-
 def components(t: Tensor) -> tuple[Tensor, ...]:
-    """``t (..., k)`` as ``k`` tensors ``(...)``: what a :func:`row_source` indexes."""
+    """``t (..., k)`` as ``k`` tensors ``(...)``: what a model's equations index."""
     return t.unbind(-1)
 
 
@@ -185,44 +144,3 @@ def weighted_hessians(H, s: Tensor, n: int, lead: torch.Size, like: Tensor):
     Huu = stack_matrix([row[n:] for row in E[n:]], lead, like)
     Hux = stack_matrix([row[:n] for row in E[n:]], lead, like)
     return Hxx, Huu, Hux
-
-
-_PATTERNS: dict = {}
-
-
-def curvature_pattern(
-    key, make: Callable[[tuple[float, ...]], nn.Module], n_params: int
-) -> tuple[tuple[int, ...], tuple[int, ...]]:
-    """A model's curvature pattern, found from its torch form: the outputs whose Hessian
-    in ``z = (x, u)`` is nonzero and the ``z`` entries where any of them is, by
-    automatic differentiation of ``make(params).forward`` at a few random points and random
-    positive parameters (float64), so that it holds for every parameter value. Cached
-    under ``key`` (the model's class and structural sizes).
-
-    (Autograd's double backward rather than ``torch.func.hessian``: the first call of a
-    ``torch.func`` transform imports ``torch._dynamo``, seconds on a busy machine.)"""
-    got = _PATTERNS.get(key)
-    if got is not None:
-        return got
-    g = torch.Generator().manual_seed(0)
-    curved = None
-    with torch.inference_mode(False), torch.enable_grad():
-        for _ in range(3):
-            params = tuple(float(v) for v in 0.5 + torch.rand(n_params, generator=g))
-            model = make(params).double()
-            n, m = model.state_dim, model.control_dim
-            z = torch.randn(n + m, generator=g, dtype=torch.float64)
-            H = _hessians(lambda z, model=model, n=n: model(z[:n], z[n:]), z)
-            nonzero = H.detach() != 0  # (NaN counts as nonzero)
-            curved = nonzero if curved is None else curved | nonzero
-    outs = tuple(int(j) for j in torch.nonzero(curved.flatten(1).any(1)).flatten())
-    ents = tuple(int(a) for a in torch.nonzero(curved.any(0).any(0)).flatten())
-    _PATTERNS[key] = (outs, ents)
-    return outs, ents
-
-
-def _hessians(f: Callable[[Tensor], Tensor], z: Tensor) -> Tensor:
-    """Every output's Hessian ``(n_out, k, k)`` of ``f`` at ``z (k,)``."""
-    from torch.autograd.functional import jacobian
-
-    return jacobian(lambda z: jacobian(f, z, create_graph=True), z)

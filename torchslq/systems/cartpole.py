@@ -9,11 +9,8 @@ from ..dynamics import ContinuousDynamics
 from ._common import (
     components,
     cos,
-    curvature_pattern,
     get_param,
     lead_shape,
-    row_source,
-    scalar_params_array,
     set_param,
     sin,
     split_jacobian,
@@ -25,12 +22,11 @@ __all__ = ["CartPole"]
 
 _PARAMS = ("mc", "mp", "l", "g")
 
-# The equations, written once (see torchslq.systems._common.row_source): x, u, p
-# indexable (p = (mc, mp, l, g)); forward/jacobians/vhp call them with tensors, the
-# compiled hooks are them compiled by numba.
+# The equations, written once: x, u, p indexable (p = (mc, mp, l, g)); forward,
+# jacobians and vhp call them with tensors. On the CPU the compiled code is generated
+# from forward (torchslq.dynamics.codegen), like a user's model's.
 
 
-@row_source
 def _terms(x, u, p):
     """The accelerations as quotients ``s_ddot = N1 / D``, ``theta_ddot = N2 / (l D)``."""
     mc, mp, l, g = p[0], p[1], p[2], p[3]
@@ -42,14 +38,12 @@ def _terms(x, u, p):
     return mc, mp, l, g, thd, F, sn, c, D, N1, N2
 
 
-@row_source
 def cartpole_xdot(x, u, p):
     """``xdot = f(x, u)``."""
     _, _, l, _, thd, _, _, _, D, N1, N2 = _terms(x, u, p)
     return x[2], thd, N1 / D, N2 / (l * D)
 
 
-@row_source
 def _first(x, u, p):
     """With ``q = N1 / D`` and ``r = N2 / D`` (``= l theta_ddot``): their derivatives in
     ``(a, b, F) = (theta, theta_dot, F)`` (``D`` depends on ``theta`` only), and the terms
@@ -67,7 +61,6 @@ def _first(x, u, p):
     return mc, mp, l, g, thd, F, sn, c, D, c2, dD, q, r, qa, qb, qF, ra, rb, rF
 
 
-@row_source
 def cartpole_jacobian(x, u, p):
     """The rows of ``[f_x | f_u]``."""
     _, _, l, _, _, _, _, _, _, _, _, _, _, qa, qb, qF, ra, rb, rF = _first(x, u, p)
@@ -80,7 +73,6 @@ def cartpole_jacobian(x, u, p):
     )
 
 
-@row_source
 def cartpole_hessians(x, u, p):
     """Each output's Hessian in ``z = (x, u)``: only the accelerations are curved, in
     ``(theta, theta_dot, F)``. For a quotient ``q = N / D``, ``q_ab = (N_ab - q_a D_b -
@@ -163,30 +155,6 @@ class CartPole(ContinuousDynamics):
         set_param(self, "mp", mp, positive=True)
         set_param(self, "l", l, positive=True)
         set_param(self, "g", g)
-
-    def compiled_rhs(self):
-        """``xdot`` as a numba function (see :meth:`torchslq.ContinuousDynamics.compiled_rhs`):
-        :func:`cartpole_xdot` compiled; None when a parameter is a tensor with batch dims."""
-        params = scalar_params_array(self, _PARAMS)
-        if params is None:
-            return None
-        from ._jit import compiled_rhs
-
-        return compiled_rhs(cartpole_xdot), params
-
-    def compiled_derivatives(self):
-        """:meth:`jacobians` and the per-output Hessians of :meth:`vhp` as a numba
-        function (see :meth:`torchslq.ContinuousDynamics.compiled_derivatives`): the same
-        sources compiled, with the curvature pattern found from the torch form; None
-        when a parameter is a tensor with batch dims."""
-        if scalar_params_array(self, _PARAMS) is None:
-            return None
-        from ..dynamics import CompiledDerivatives
-        from ._jit import compiled_derivatives
-
-        outs, ents = curvature_pattern((CartPole,), lambda p: CartPole(*p), len(_PARAMS))
-        fn = compiled_derivatives(cartpole_jacobian, cartpole_hessians, (4, 1, 4), outs, ents)
-        return CompiledDerivatives(fn, outs, ents)
 
     def _params(self, x: Tensor):
         return tuple(get_param(self, k, x) for k in _PARAMS)

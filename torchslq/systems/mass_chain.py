@@ -7,96 +7,34 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from ..dynamics import ContinuousDynamics
-from ._common import curvature_pattern, get_param, row_source, scalar_params_array, set_param
+from ._common import get_param, set_param
 
 __all__ = ["MassChain"]
 
 _PARAMS = ("mass", "k", "k3", "damping")
 
-# The laws, written once (see torchslq.systems._common.row_source): the torch form
-# applies them to every spring and mass at once, the numba form (below) row by row.
+# The laws, written once: the torch form applies them to every spring and mass at once;
+# on the CPU the compiled code is generated from forward (torchslq.dynamics.codegen).
 
 
-@row_source
 def spring_tension(e, k, k3):
     """Tension ``s(e) = k e + k3 e^3`` of a spring extended by ``e``."""
     return e * (k + k3 * e * e)
 
 
-@row_source
 def spring_stiffness(e, k, k3):
     """``s'(e)``."""
     return k + 3.0 * k3 * e * e
 
 
-@row_source
 def spring_curvature(e, k3):
     """``s''(e)``."""
     return 6.0 * k3 * e
 
 
-@row_source
 def acceleration(net, v, F, m, c):
     """Newton's law for one mass: ``(net spring force - c v + F) / m``."""
     return (net - c * v + F) / m
-
-
-# The chain row by row for the compiled hooks (plain Python over 1-d arrays, compiled by
-# numba on first use; tests check them against the torch form). p = (mass, k, k3, damping)
-
-
-def mass_chain_rhs(x, u, p, out):
-    """``xdot`` of one row (:meth:`torchslq.ContinuousDynamics.compiled_rhs`)."""
-    N = u.shape[0]
-    m, k, k3, c = p[0], p[1], p[2], p[3]
-    s_next = 0.0  # the tension of spring i + 1 (none beyond the last mass)
-    for i in range(N - 1, -1, -1):
-        e = x[i] - x[i - 1] if i > 0 else x[0]
-        si = spring_tension(e, k, k3)
-        out[N + i] = acceleration(s_next - si, x[N + i], u[i], m, c)
-        out[i] = x[N + i]
-        s_next = si
-
-
-def mass_chain_derivatives(x, u, p, fz, H):
-    """``[f_x | f_u]`` of one row into ``fz (2N, 3N)`` and, when ``H`` is not empty, the
-    Hessians of the accelerations (outputs ``N..2N-1``) in the positions (entries
-    ``0..N-1``), the other entries untouched
-    (:meth:`torchslq.ContinuousDynamics.compiled_derivatives`)."""
-    N = u.shape[0]
-    m, k, k3, c = p[0], p[1], p[2], p[3]
-    for a in range(2 * N):
-        for b in range(3 * N):
-            fz[a, b] = 0.0
-    for i in range(N):
-        fz[i, N + i] = 1.0
-        fz[N + i, N + i] = -c / m
-        fz[N + i, 2 * N + i] = 1.0 / m
-        e = x[i] - x[i - 1] if i > 0 else x[0]
-        ds = spring_stiffness(e, k, k3) / m
-        fz[N + i, i] -= ds
-        if i > 0:  # spring i pulls masses i - 1 and i
-            fz[N + i, i - 1] += ds
-            fz[N + i - 1, i - 1] -= ds
-            fz[N + i - 1, i] += ds
-    if H.shape[0] == 0:
-        return
-    for i in range(N):
-        for a in range(N):
-            for b in range(N):
-                H[N + i, a, b] = 0.0
-    for i in range(N):
-        e = x[i] - x[i - 1] if i > 0 else x[0]
-        d = spring_curvature(e, k3) / m  # in a_i with sign -, in a_{i-1} with +
-        H[N + i, i, i] -= d
-        if i > 0:
-            H[N + i, i - 1, i - 1] -= d
-            H[N + i, i, i - 1] += d
-            H[N + i, i - 1, i] += d
-            H[N + i - 1, i, i] += d
-            H[N + i - 1, i - 1, i - 1] += d
-            H[N + i - 1, i, i - 1] -= d
-            H[N + i - 1, i - 1, i] -= d
 
 
 class MassChain(ContinuousDynamics):
@@ -146,30 +84,6 @@ class MassChain(ContinuousDynamics):
         set_param(self, "k", k)
         set_param(self, "k3", k3)
         set_param(self, "damping", damping, nonneg=True)
-
-    def compiled_rhs(self):
-        """``xdot`` as a numba function (see :meth:`torchslq.ContinuousDynamics.compiled_rhs`);
-        None when a parameter is a tensor with batch dims."""
-        params = scalar_params_array(self, _PARAMS)
-        if params is None:
-            return None
-        from ._jit import jit
-
-        return jit(mass_chain_rhs), params
-
-    def compiled_derivatives(self):
-        """:meth:`jacobians` and the spring Hessians of :meth:`vhp` as a numba function
-        with the curvature pattern found from the torch form (see
-        :meth:`torchslq.ContinuousDynamics.compiled_derivatives`); None when a parameter
-        is a tensor with batch dims."""
-        if scalar_params_array(self, _PARAMS) is None:
-            return None
-        from ..dynamics import CompiledDerivatives
-        from ._jit import jit
-
-        N = self.n_masses
-        outs, ents = curvature_pattern((MassChain, N), lambda p: MassChain(N, *p), len(_PARAMS))
-        return CompiledDerivatives(jit(mass_chain_derivatives), outs, ents)
 
     def _params(self, x: Tensor):
         out = []

@@ -7,15 +7,14 @@ from torch import Tensor
 
 from .._shapes import broadcast_shapes
 from ..dynamics import Dynamics
-from ._common import components, cos, row_source, sin
+from ._common import components, cos, sin
 
 __all__ = ["Unicycle"]
 
 
-@row_source
 def unicycle_next(x, u, p):
-    """The next state (written once: :meth:`Unicycle.forward` calls it with tensors, its
-    compiled step is it compiled by numba); ``p = (dt,)``."""
+    """The next state (written once: :meth:`Unicycle.forward` calls it with tensors; its
+    compiled step is generated from ``forward``); ``p = (dt,)``."""
     dt = p[0]
     vdt = u[0] * dt
     th = x[2]
@@ -50,15 +49,6 @@ class Unicycle(Dynamics):
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         return torch.stack(unicycle_next(components(x), components(u), (self.dt,)), -1)
-
-    def compiled_step(self):
-        """The step as a numba function (see :meth:`torchslq.Dynamics.compiled_step`):
-        :func:`unicycle_next` compiled."""
-        import numpy as np
-
-        from ._jit import compiled_step
-
-        return compiled_step(unicycle_next), np.array([self.dt], dtype=np.float64)
 
     def jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
         th, v = x[..., 2], u[..., 0]
