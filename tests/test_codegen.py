@@ -376,3 +376,43 @@ def test_discrete_model_ddp_solve_equals_the_torch_path(monkeypatch):
     assert fast.converged.all() and slow.converged.all()
     torch.testing.assert_close(fast.cost, slow.cost, rtol=1e-10, atol=0)
     torch.testing.assert_close(fast.u, slow.u, rtol=0, atol=1e-7)
+
+
+class FloatBranch(ts.ContinuousDynamics):
+    """A float attribute in Python control flow: traced as a constant (not an input)."""
+
+    state_dim, control_dim = 1, 1
+
+    def __init__(self, k):
+        super().__init__()
+        self.k = k
+
+    def forward(self, x, u, t=None):
+        if self.k > 0:
+            return -self.k * x + u
+        return torch.sin(x) + u
+
+
+def test_float_attributes_are_inputs_unless_they_steer_control_flow():
+    from torchslq.systems import CartPole
+
+    a, b = CartPole(mc=1.0), CartPole(mc=2.5, l=0.3)
+    ha, hb = codegen.generated_hooks(a), codegen.generated_hooks(b)
+    assert ha.source_path == hb.source_path and "@mc" in ha.tensor_names  # one module
+    x = torch.tensor([[0.1, 0.7, -0.2, 0.4]], dtype=torch.float64)
+    u = torch.tensor([[0.3]], dtype=torch.float64)
+    for model in (a, b):
+        rhs, p = model.compiled_rhs()
+        out = np.zeros(4)
+        rhs(x[0].numpy(), u[0].numpy(), p, out)
+        np.testing.assert_allclose(out, model(x, u)[0].detach().numpy(), rtol=1e-13)
+
+    model = FloatBranch(2.0)
+    x1, u1 = torch.tensor([[0.5]], dtype=torch.float64), torch.tensor([[0.1]], dtype=torch.float64)
+    for k in (2.0, 3.0, -1.0):  # each value its own constants (and branch)
+        model.k = k
+        assert codegen.explain(model) == "compiled"
+        rhs, p = model.compiled_rhs()
+        out = np.zeros(1)
+        rhs(x1[0].numpy(), u1[0].numpy(), p, out)
+        np.testing.assert_allclose(out, model(x1, u1)[0].numpy(), rtol=1e-13)

@@ -78,15 +78,36 @@ class GeneratedHooks(NamedTuple):
     source_path: str | None
 
     def params(self, model: nn.Module) -> np.ndarray:
-        """The current values of the model's tensors, flattened into one float64 array
-        (the ``p`` the generated functions read)."""
+        """The current values of the model's tensors and float attributes (named
+        ``@path.attr``), flattened into one float64 array (the ``p`` the generated
+        functions read)."""
         tensors = dict(_named_tensors(model))
-        parts = [
-            tensors[k].detach().to("cpu", torch.float64).reshape(-1) for k in self.tensor_names
-        ]
+        parts = []
+        for k in self.tensor_names:
+            if k.startswith("@"):
+                parts.append(torch.tensor([_get_attr(model, k[1:])], dtype=torch.float64))
+            else:
+                parts.append(tensors[k].detach().to("cpu", torch.float64).reshape(-1))
         if not parts:
             return np.zeros(0, dtype=np.float64)
         return torch.cat(parts).numpy()
+
+
+def _get_attr(model: nn.Module, path: str):
+    mod, _, name = path.rpartition(".")
+    return getattr(model.get_submodule(mod) if mod else model, name)
+
+
+def _float_attrs(model: nn.Module) -> list[str]:
+    """``path.attr`` of every module's public float attributes (a mass, a time step):
+    traced as inputs, so the code reads their current values and a change or a sweep
+    does not generate new code."""
+    out = []
+    for name, mod in model.named_modules():
+        for k, v in vars(mod).items():
+            if type(v) is float and not k.startswith("_"):
+                out.append(f"{name}.{k}" if name else k)
+    return out
 
 
 _LOCK = threading.Lock()
@@ -110,15 +131,22 @@ def generated_hooks(model: nn.Module) -> GeneratedHooks | None:
     key = _structure_key(model)
     cached = _BUILT.get(model)
     if cached is not None and cached[0] == key:
-        return cached[1]
+        baked = cached[3]  # float attributes traced as constants: their values matter
+        if baked is None or baked == tuple(_get_attr(model, a) for a in _float_attrs(model)):
+            return cached[1]
     with _LOCK:
+        baked = None
         try:
-            hooks, reason = _build(model), ""
+            try:
+                hooks, reason = _build(model, lift_floats=True), ""
+            except _Unsupported:  # e.g. a float attribute in an `if`: trace it as a constant
+                hooks, reason = _build(model, lift_floats=False), ""
+                baked = tuple(_get_attr(model, a) for a in _float_attrs(model))
         except _Unsupported as e:
             hooks, reason = None, str(e)
         except Exception as e:  # a model the tracer does not understand: torch path
             hooks, reason = None, f"{type(e).__name__}: {e}"
-        _BUILT[model] = (key, hooks, reason)
+        _BUILT[model] = (key, hooks, reason, baked)
     return hooks
 
 
@@ -153,7 +181,9 @@ def _structure_key(model: nn.Module) -> tuple:
     attrs = []
     for name, mod in model.named_modules():
         for k, v in vars(mod).items():
-            if not k.startswith("_") and _simple(v):
+            if type(v) is float and not k.startswith("_"):
+                attrs.append((name, k, "float"))  # its value: see generated_hooks
+            elif not k.startswith("_") and _simple(v):
                 attrs.append((name, k, repr(v)))
             elif torch.is_tensor(v) and not k.startswith("_") and v.numel() <= MAX_PARAMETERS:
                 # a plain tensor attribute is traced as a constant: key on its value
@@ -162,11 +192,16 @@ def _structure_key(model: nn.Module) -> tuple:
 
 
 # ------------------------------------------------------------------------- build
-def _build(model: nn.Module) -> GeneratedHooks:
+def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
     from .base import state_control_dims
 
     n, m = state_control_dims(model)
     named = _named_tensors(model)
+    if lift_floats:
+        named += [
+            ("@" + a, torch.tensor(_get_attr(model, a), dtype=torch.float64))
+            for a in _float_attrs(model)
+        ]
     count = sum(t.numel() for _, t in named)
     if count > MAX_PARAMETERS:
         raise _Unsupported(
@@ -229,7 +264,14 @@ def _trace(model: nn.Module, n: int, m: int, named: list[tuple[str, Tensor]]):
     names = [k for k, _ in named]
 
     def fn(x, u, *ps):
-        return functional_call(model, dict(zip(names, ps, strict=True)), (x, u))
+        tensors = {}
+        for k, p in zip(names, ps, strict=True):
+            if k.startswith("@"):  # a float attribute, traced as an input
+                mod, _, attr = k[1:].rpartition(".")
+                vars(model.get_submodule(mod) if mod else model)[attr] = p
+            else:
+                tensors[k] = p
+        return functional_call(model, tensors, (x, u))
 
     x = torch.zeros(2, n, dtype=torch.float64)
     u = torch.zeros(2, m, dtype=torch.float64)
