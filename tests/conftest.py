@@ -2,8 +2,29 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
 import torch
+
+
+@pytest.fixture(autouse=True)
+def _generated_code_for_the_zoo(request, monkeypatch):
+    """Generated compiled code (:mod:`torchslq.dynamics.codegen`, on by default for every
+    model) for three of the zoo's models only, unless a module tests it
+    (``pytestmark = pytest.mark.codegen``): the suite defines many small models of its
+    own, each of which would be traced and compiled once (seconds each) for tests about
+    other things, which the torch path serves. ``TORCHSLQ_TEST_CODEGEN=1`` runs every
+    test with it."""
+    if request.node.get_closest_marker("codegen") or os.environ.get("TORCHSLQ_TEST_CODEGEN"):
+        return
+    import torchslq.systems as zoo
+    from torchslq.dynamics import ContinuousDynamics, Dynamics
+
+    monkeypatch.setattr(ContinuousDynamics, "generate_compiled_code", False)
+    monkeypatch.setattr(Dynamics, "generate_compiled_code", False)
+    for cls in (zoo.CartPole, zoo.MassChain, zoo.Unicycle):  # the compiled paths' models
+        monkeypatch.setattr(cls, "generate_compiled_code", True, raising=False)
 
 
 @pytest.fixture

@@ -15,6 +15,8 @@ from torch import nn
 import torchslq as ts
 from torchslq.dynamics import CompiledDerivatives, codegen
 
+pytestmark = pytest.mark.codegen  # generated compiled code on (tests/conftest.py)
+
 
 @pytest.fixture(autouse=True)
 def _cache(tmp_path_factory, monkeypatch):

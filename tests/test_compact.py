@@ -154,6 +154,7 @@ def test_finished_elements_do_not_hold_up_the_line_search(module, monkeypatch):
     assert int(n_active.min()) < act.shape[0]  # someone finished before the last search
 
 
+@pytest.mark.codegen
 @pytest.mark.parametrize("compact", [False, True])
 @pytest.mark.parametrize("solver", ["ddp", "ilqr-bounds", "slq"])
 def test_skipping_settled_trials_changes_no_solve(solver, compact, monkeypatch):

@@ -14,6 +14,8 @@ import torchslq as ts
 from torchslq._backend import dispatch as compiled
 from torchslq.lq.riccati import riccati_homogeneous
 
+pytestmark = pytest.mark.codegen  # generated compiled code on (tests/conftest.py)
+
 F64 = torch.float64
 
 

@@ -17,9 +17,10 @@ from torchslq.systems import CartPole, MassChain
 
 F64 = torch.float64
 
-pytestmark = pytest.mark.skipif(
-    not compiled.compiled_available(), reason="numba kernels not available"
-)
+pytestmark = [
+    pytest.mark.codegen,
+    pytest.mark.skipif(not compiled.compiled_available(), reason="numba kernels not available"),
+]
 
 _disc = sys.modules["torchslq.dynamics.discretize"]
 

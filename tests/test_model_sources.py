@@ -13,6 +13,8 @@ from torch.func import hessian, jacrev
 import torchslq as ts
 from torchslq.systems import CartPole, MassChain, Unicycle
 
+pytestmark = pytest.mark.codegen  # generated compiled code on (tests/conftest.py)
+
 F64 = torch.float64
 
 numba = pytest.importorskip("numba")

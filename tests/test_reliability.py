@@ -3,6 +3,7 @@ a per-element status, never a crash or a silent wrong answer."""
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import tempfile
@@ -98,7 +99,11 @@ def test_a_model_with_a_wrong_output_shape_is_an_error_not_a_crash(solver):
             print("VALUE_ERROR")
         """
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    # the torch path's check (generated code would compute each row as traced instead)
+    env = {**os.environ, "TORCHSLQ_CODEGEN": "0"}
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env
+    )
     assert out.returncode == 0, out.stderr[-2000:]
     assert "VALUE_ERROR" in out.stdout
 

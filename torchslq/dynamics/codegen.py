@@ -43,6 +43,7 @@ import logging
 import os
 import sys
 import threading
+import time
 import warnings
 import weakref
 from collections.abc import Callable
@@ -64,6 +65,13 @@ CODEGEN_VERSION = 1
 MAX_GRAPH_NODES = 600
 MAX_PARAMETERS = 256
 MAX_EXPRESSION_OPS = 4000
+#: larger models keep the torch path: their second derivatives (n (n+m)^2 / 2 entries)
+#: take long to differentiate symbolically and to compile as straight-line code
+MAX_STATE_PLUS_CONTROL = 20
+MAX_GENERATED_LINES = 2500
+#: seconds of symbolic differentiation before a model is left on the torch path (the
+#: verdict is kept on disk beside the cache, so no later process tries again)
+DEFAULT_BUDGET_S = 20.0
 
 
 class GeneratedHooks(NamedTuple):
@@ -196,6 +204,11 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
     from .base import state_control_dims
 
     n, m = state_control_dims(model)
+    if n + m > MAX_STATE_PLUS_CONTROL:
+        raise _Unsupported(
+            f"state_dim + control_dim = {n + m} (more than {MAX_STATE_PLUS_CONTROL}): its "
+            "second derivatives are too many to generate as straight-line code"
+        )
     named = _named_tensors(model)
     if lift_floats:
         named += [
@@ -230,7 +243,16 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
         except Exception:  # a damaged file: generate it again
             module = None
     if module is None:
-        source = _generate(gm, n, m, named, type(model).__name__, kind)
+        refused = None if path is None else path.with_suffix(".unsupported")
+        if refused is not None and refused.exists():
+            raise _Unsupported(refused.read_text())
+        try:
+            source = _generate(gm, n, m, named, type(model).__name__, kind)
+        except _Unsupported as e:
+            if refused is not None:
+                with contextlib.suppress(OSError):
+                    refused.write_text(str(e))
+            raise
         module = _write_and_import(path, digest, source)
     derivatives = module.derivatives
     if module.CURVED_OUTPUTS:
@@ -455,7 +477,13 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
     nz = n + m
     J = [[sympy.diff(fi, zc) for zc in z] for fi in f]
     H = {}
+    budget = float(os.environ.get("TORCHSLQ_CODEGEN_BUDGET", DEFAULT_BUDGET_S))
+    start = time.perf_counter()
     for i in range(n):
+        if time.perf_counter() - start > budget:
+            raise _Unsupported(
+                f"its symbolic second derivatives took over {budget:g} s (TORCHSLQ_CODEGEN_BUDGET)"
+            )
         for a in range(nz):
             for b in range(a, nz):
                 h = sympy.diff(J[i][a], z[b])
@@ -519,6 +547,11 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
             "                H[j, a, b] = 0.0",
         ]
     src += _kernel_source(kind)
+    if len(src) > MAX_GENERATED_LINES + len(_kernel_source(kind)):
+        raise _Unsupported(
+            f"{len(src) - len(_kernel_source(kind))} lines of generated code (more than "
+            f"{MAX_GENERATED_LINES}): too long to compile quickly"
+        )
     if printer._not_supported:
         raise _Unsupported(f"cannot print {sorted(map(str, printer._not_supported))[:3]}")
     return "\n".join(src) + "\n"
