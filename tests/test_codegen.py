@@ -418,3 +418,36 @@ def test_float_attributes_are_inputs_unless_they_steer_control_flow():
         out = np.zeros(1)
         rhs(x1[0].numpy(), u1[0].numpy(), p, out)
         np.testing.assert_allclose(out, model(x1, u1)[0].numpy(), rtol=1e-13)
+
+
+def test_discretized_forward_called_from_python_runs_the_compiled_step():
+    """A discretised model called directly (e.g. inside a user's own model, a learned
+    residual on the step) runs the generated step in one kernel call without autograd;
+    with autograd, the torch ops (and the graph)."""
+    step = ts.discretize(UserCartPole(), 0.05)
+    gen = torch.Generator().manual_seed(6)
+    x = torch.randn(3, 5, 4, generator=gen, dtype=torch.float64)
+    u = torch.randn(5, 1, generator=gen, dtype=torch.float64)  # broadcast against x
+    with torch.no_grad():
+        fast = step(x, u)
+    xg = x.clone().requires_grad_(True)
+    slow = step(xg, u)  # autograd: the torch path
+    assert slow.grad_fn is not None and fast.grad_fn is None
+    torch.testing.assert_close(fast, slow.detach(), rtol=1e-13, atol=1e-13)
+    from torchslq._backend import bound
+
+    calls = []
+    module = bound.bound_kernels(step.compiled_step()[0])
+    original = module.step_rows
+
+    def counting(*args):
+        calls.append(1)
+        return original(*args)
+
+    module.step_rows = counting
+    try:
+        with torch.no_grad():
+            step(x, u)
+    finally:
+        module.step_rows = original
+    assert calls == [1]

@@ -906,3 +906,16 @@ def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, skip, u, x):
                     s = min(max(s, lo[b, t, i]), hi[b, t, i])
                 ur[i] = s
             step(xr, ur, p, x[r, t + 1], work)
+
+
+@numba.njit(nogil=True)
+def step_rows_kernel(r0, r1, step, p, x, u, out):
+    """``out[r] = step(x[r], u[r])`` for rows ``r0 <= r < r1`` (``x (R, n)``, ``u (R, m)``,
+    ``out (R, n)``): one call of a model's compiled step on a batch of rows, for a
+    ``forward`` called from Python (e.g. inside a user's own model) without autograd.
+    (Not cached on disk: it takes the step function as an argument; a generated model's
+    module has its own copy, bound and cached.)"""
+    n = x.shape[1]
+    work = np.empty((8, n), dtype=x.dtype)
+    for r in range(r0, r1):
+        step(x[r], u[r], p, out[r], work)

@@ -20,7 +20,7 @@ def register(module: ModuleType) -> None:
     """Register a generated module under its ``rhs`` and ``step``; it defines
     ``step(x, u, p, out, work)`` (the model's discrete step: the RK4 step of a
     continuous model's ``rhs``, or ``rhs`` itself), ``rollout`` (the closed-loop rollout
-    kernel with ``step`` bound), and ``jacobians_kernel`` / ``hessians_kernel`` (the
+    kernel with ``step`` bound), ``step_rows`` (``step`` on a batch of rows), and ``jacobians_kernel`` / ``hessians_kernel`` (the
     step's derivatives, with the argument list of
     :func:`torchslq.dynamics._numba_rk4.rk4_lanes_kernel` less ``rhs`` and ``derivs``)."""
     _BOUND[module.rhs] = module

@@ -589,14 +589,14 @@ def _kernel_source(kind: str) -> list[str]:
             names += ["@numba.njit(nogil=True, cache=True)", "def step(x, u, p, out, work):"]
             names += ["    rhs(x, u, p, out)"]
         roll, roll_helpers = specialised_source(
-            _numba_kernels, {"step"}, ["closed_loop_rollout_kernel"]
+            _numba_kernels, {"step"}, ["closed_loop_rollout_kernel", "step_rows_kernel"]
         )
         lines = ["", "", "# the library's kernels with this module's functions bound in", ""]
         lines += ["import numpy as np", ""]
         for mod, used in ((source, helpers), ("torchslq._backend._numba_kernels", roll_helpers)):
             lines += [f"from {mod} import {name}" for name in used]
         lines += ["", "derivs = derivatives", "", "", derivs, "", "", *names, "", "", roll]
-        lines += ["", "", "rollout = closed_loop_rollout_kernel"]
+        lines += ["", "", "rollout = closed_loop_rollout_kernel", "step_rows = step_rows_kernel"]
         _KERNELS[kind] = lines
     return _KERNELS[kind]
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._backend import can_use_compiled, module_needs_grad, stage_congruence_compiled
+from .._backend import _launch, can_use_compiled, module_needs_grad, stage_congruence_compiled
 from .._shapes import broadcast_shapes
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
@@ -41,6 +41,13 @@ class DiscretizedDynamics(Dynamics):
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         f, dt = self.continuous, self.dt
+        if self.method == "rk4" and can_use_compiled(x, u) and not module_needs_grad(self):
+            # called from Python outside the library's kernels (e.g. inside a user's own
+            # model, a learned residual on this step): one kernel call for the whole
+            # batch instead of the RK4 stages' ~70 small torch ops
+            out = self._compiled_forward(x, u)
+            if out is not None:
+                return out
         if self.method == "euler":
             return x + dt * f(x, u)
         # torch.add(a, b, alpha=c) is a + c b in one op: rollouts are dispatch-bound
@@ -50,6 +57,22 @@ class DiscretizedDynamics(Dynamics):
         k4 = f(torch.add(x, k3, alpha=dt), u)
         incr = torch.add(torch.add(k1, k2, alpha=2.0), torch.add(k4, k3, alpha=2.0))
         return torch.add(x, incr, alpha=dt / 6.0)
+
+    def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
+        """:meth:`forward` by the generated module's bound step (None without one)."""
+        from .._backend.bound import bound_kernels
+
+        step = self.compiled_step()
+        bound = None if step is None else bound_kernels(step[0])
+        if bound is None:
+            return None
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        n, m = x.shape[-1], u.shape[-1]
+        xr = x.detach().expand(*lead, n).reshape(-1, n).contiguous()
+        ur = u.detach().expand(*lead, m).reshape(-1, m).contiguous()
+        out = torch.empty_like(xr)
+        _launch(bound.step_rows, xr.shape[0], 1, step[1], xr.numpy(), ur.numpy(), out.numpy())
+        return out.view(*lead, n)
 
     @property
     def has_analytic_jacobians(self) -> bool:
