@@ -28,10 +28,19 @@ with hand-written compiled code:
    ``torch.func`` derivatives at random points; a mismatch leaves the model on the
    torch path with a warning.
 
-The parameters travel as numbers (``params``), read from the module at each call, so a
-model whose parameters change (training, a sweep) uses the same compiled code. Models
-this cannot take (unsupported ops, per-element parameters, too large, value-dependent
-control flow, time-varying) keep the torch path; :func:`explain` says why.
+A discrete :class:`~torchslq.Dynamics` is generated the same way: its step, its
+Jacobians and its Hessian blocks (:meth:`~torchslq.Dynamics.compiled_step`,
+``compiled_jacobians``, ``compiled_vhp``). The module also holds the library's kernels
+that take a model's functions as arguments, rewritten to call this model's directly
+(:mod:`torchslq.dynamics._specialize`), so they are cached with it
+(:mod:`torchslq._backend.bound`).
+
+The parameters travel as numbers (``params``), read from the module at each call: its
+tensors, and its float attributes (a mass, a time step; one that steers Python control
+flow is traced as a constant instead), so a model whose parameters change (training, a
+sweep) uses the same compiled code. Models this cannot take (unsupported ops,
+per-element parameters, networks, too large, value-dependent control flow) keep the
+torch path; :func:`explain` says why.
 """
 
 from __future__ import annotations
@@ -129,8 +138,9 @@ def _enabled() -> bool:
 
 
 def generated_hooks(model: nn.Module) -> GeneratedHooks | None:
-    """The generated compiled functions of ``model`` (a time-invariant
-    :class:`~torchslq.ContinuousDynamics`), or None when it cannot be compiled (see
+    """The generated compiled functions of ``model`` (a :class:`~torchslq.ContinuousDynamics`
+    called without ``t``, or a discrete :class:`~torchslq.Dynamics`: ``rhs`` is then the
+    step), or None when it cannot be compiled (see
     :func:`explain`) or code generation is off (``TORCHSLQ_CODEGEN=0``, or the model's
     class sets ``generate_compiled_code = False``). Computed once per model instance
     and structure (parameter shapes, non-tensor attributes)."""
