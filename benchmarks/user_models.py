@@ -62,6 +62,11 @@ import torchslq as ts  # noqa: E402
 from torchslq.dynamics import codegen  # noqa: E402
 from torchslq.systems import CartPole  # noqa: E402
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "examples"))
+# the cart-pole's equations as a user writes them (torch ops only), shared with the
+# constrained example
+from constrained_cartpole import UserCartPole  # noqa: E402
+
 DT, T, MC, MP, L, G = 0.05, 50, 1.0, 0.1, 0.5, 9.81
 R_U, W_F = 0.01, 100.0  # sum_t R_U u_t^2 + W_F |x_T - GOAL|^2
 GOAL = (0.0, math.pi, 0.0, 0.0)
@@ -70,20 +75,6 @@ F64 = torch.float64
 
 
 # ---------------------------------------------------------------------------- models
-class UserCartPole(ts.ContinuousDynamics):
-    """The cart-pole's equations as a user would write them (torch ops only)."""
-
-    state_dim, control_dim = 4, 1
-
-    def forward(self, x, u, t=None):
-        th, sd, thd, F = x[..., 1], x[..., 2], x[..., 3], u[..., 0]
-        s, c = torch.sin(th), torch.cos(th)
-        D = MC + MP * s * s
-        sdd = (F + MP * s * (L * thd * thd + G * c)) / D
-        thdd = (-F * c - MP * L * thd * thd * c * s - (MC + MP) * G * s) / (L * D)
-        return torch.stack([sd, thd, sdd, thdd], -1)
-
-
 class UserCartPoleTorchPath(UserCartPole):
     """:class:`UserCartPole` kept on torch ops (no generated compiled code): what a user's
     model cost before :mod:`torchslq.dynamics.codegen`."""
