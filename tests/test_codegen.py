@@ -451,3 +451,36 @@ def test_discretized_forward_called_from_python_runs_the_compiled_step():
     finally:
         module.step_rows = original
     assert calls == [1]
+
+
+class WrappedStep(ts.Dynamics):
+    """A user's discrete model around a discretised one (small enough to be generated
+    itself): building its code calls the inner model's, which is built in turn."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.inner = ts.discretize(UserCartPole(), 0.05)
+
+    def forward(self, x, u):
+        return self.inner(x, u) + 0.01 * torch.tanh(x)
+
+
+def test_a_model_wrapping_a_generated_model_is_generated_too():
+    import threading
+
+    model = WrappedStep()
+    result = {}
+    worker = threading.Thread(target=lambda: result.update(why=codegen.explain(model)))
+    worker.start()
+    worker.join(timeout=240)  # a non-reentrant lock used to deadlock here
+    assert not worker.is_alive() and result["why"] == "compiled"
+    x = torch.randn(5, 4, generator=torch.Generator().manual_seed(8), dtype=torch.float64)
+    u = torch.randn(5, 1, generator=torch.Generator().manual_seed(9), dtype=torch.float64)
+    A, B = model.compiled_jacobians(x, u)
+    Ar, Br = torch.func.vmap(torch.func.jacrev(lambda a, b: model.forward(a, b), argnums=(0, 1)))(
+        x, u
+    )
+    torch.testing.assert_close(A, Ar, rtol=1e-11, atol=1e-12)
+    torch.testing.assert_close(B, Br, rtol=1e-11, atol=1e-12)

@@ -127,7 +127,8 @@ def _float_attrs(model: nn.Module) -> list[str]:
     return out
 
 
-_LOCK = threading.Lock()
+_LOCK = threading.RLock()  # reentrant: a model whose forward calls another (a wrapped
+# discretised model) builds the inner model's code while its own is being checked
 # per model instance (weakly: a dropped model takes its entry with it, and the entry is
 # not copied or pickled with the model): (structure key, hooks or None, reason)
 _BUILT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
