@@ -484,3 +484,33 @@ def test_a_model_wrapping_a_generated_model_is_generated_too():
     )
     torch.testing.assert_close(A, Ar, rtol=1e-11, atol=1e-12)
     torch.testing.assert_close(B, Br, rtol=1e-11, atol=1e-12)
+
+
+class OwnJacobians(UserCartPole):
+    """A user's analytic Jacobians (here deliberately scaled): they are what the model is
+    linearised with, not the generated ones; its rollouts still run generated code."""
+
+    calls = 0
+
+    def jacobians(self, x, u, t=None):
+        OwnJacobians.calls += 1
+        n = x.shape[-1]
+        z = torch.cat([x, u], -1)
+        J = torch.func.vmap(torch.func.jacrev(lambda r: UserCartPole.forward(self, r[:n], r[n:])))(
+            z.reshape(-1, z.shape[-1])
+        )
+        J = 2.0 * J.reshape(*z.shape[:-1], n, z.shape[-1])
+        return J[..., :n], J[..., n:]
+
+
+def test_a_models_own_analytic_jacobians_override_the_generated_ones():
+    model = OwnJacobians()
+    assert model.compiled_rhs() is not None and model.compiled_derivatives() is None
+    step = ts.discretize(model, 0.05)
+    x = torch.tensor([[0.1, 0.5, -0.2, 0.3]], dtype=torch.float64)
+    u = torch.tensor([[0.4]], dtype=torch.float64)
+    before = OwnJacobians.calls
+    A, B = ts.linearize(step, x, u)
+    assert OwnJacobians.calls == before + 4  # chained through the four RK4 stages
+    A0, B0 = ts.linearize(ts.discretize(UserCartPole(), 0.05), x, u)
+    assert not torch.allclose(B, B0, rtol=1e-3)  # the scaled analytic Jacobians were used

@@ -62,6 +62,10 @@ class Dynamics(nn.Module):
     #: :meth:`forward` (:mod:`torchslq.dynamics.codegen`); set False in a subclass to keep
     #: it on torch ops (``TORCHSLQ_CODEGEN=0`` turns generation off for all models).
     generate_compiled_code: bool = True
+    #: Whether generated derivatives replace the model's own analytic :meth:`jacobians` /
+    #: :meth:`vhp` on the CPU (the zoo's models, whose analytic forms are the same
+    #: equations); by default a model's own derivatives are what it is linearised with.
+    prefer_generated_derivatives: bool = False
 
     def compiled_step(self):
         """CPU fast path for rollouts: ``(step, params)`` with ``step`` a numba-compiled
@@ -109,6 +113,10 @@ class Dynamics(nn.Module):
 
         if not can_use_compiled(*tensors) or module_needs_grad(self):
             return None
+        if (self.has_analytic_jacobians or self.has_analytic_vhp) and not (
+            self.prefer_generated_derivatives
+        ):
+            return None  # the model's own derivatives (see linearize)
         from .codegen import generated_hooks
 
         hooks = generated_hooks(self)
@@ -170,6 +178,10 @@ class ContinuousDynamics(nn.Module):
     #: :meth:`forward` (:mod:`torchslq.dynamics.codegen`); set False in a subclass to keep
     #: it on torch ops (``TORCHSLQ_CODEGEN=0`` turns generation off for all models).
     generate_compiled_code: bool = True
+    #: Whether generated derivatives replace the model's own analytic :meth:`jacobians` /
+    #: :meth:`vhp` in :func:`torchslq.discretize`'s CPU kernels (the zoo's models); by
+    #: default a model's own derivatives are chained through the scheme.
+    prefer_generated_derivatives: bool = False
 
     def compiled_rhs(self):
         """Optional: ``(rhs, params)`` with ``rhs(x, u, params, out)`` a numba function
@@ -200,6 +212,10 @@ class ContinuousDynamics(nn.Module):
         when nothing needs autograd. It must agree with :meth:`jacobians` and
         :meth:`vhp`. By default generated from :meth:`forward` with
         :meth:`compiled_rhs`."""
+        if (self.has_analytic_jacobians or self.has_analytic_vhp) and not (
+            self.prefer_generated_derivatives
+        ):
+            return None  # the model's own derivatives, chained by discretize
         from .codegen import generated_hooks
 
         hooks = generated_hooks(self)

@@ -144,6 +144,8 @@ class CartPole(ContinuousDynamics):
     ``F``) and so is :meth:`energy`.
     """
 
+    prefer_generated_derivatives = True  # the same equations as jacobians / vhp
+
     state_dim = 4
     control_dim = 1
     state_names = ("s [m]", "theta [rad]", "s_dot [m/s]", "theta_dot [rad/s]")

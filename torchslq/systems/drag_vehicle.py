@@ -36,6 +36,8 @@ class DragVehicle(Dynamics):
     which is why the paper's ``beta = 1`` case does not converge.
     """
 
+    prefer_generated_derivatives = True  # the same equations as jacobians / vhp
+
     state_dim = 2
     control_dim = 1
     state_names = ("x [m]", "v [m/s]")

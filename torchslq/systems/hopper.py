@@ -44,6 +44,8 @@ class Hopper(Dynamics):
     NaN-free gradients.
     """
 
+    prefer_generated_derivatives = True  # the same equations as jacobians / vhp
+
     state_dim = 3
     control_dim = 1
     state_names = ("y [in]", "y_dot [in/s]", "y_p [in]")

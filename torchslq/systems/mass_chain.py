@@ -62,6 +62,8 @@ class MassChain(ContinuousDynamics):
     for ``x (B, T, n)``); ``nn.Parameter``s stay learnable.
     """
 
+    prefer_generated_derivatives = True  # the same equations as jacobians / vhp
+
     @property
     def state_names(self) -> tuple[str, ...]:
         """``("p_1 [m]", ..., "p_N [m]", "v_1 [m/s]", ..., "v_N [m/s]")``."""

@@ -33,6 +33,8 @@ class Pendulum(ContinuousDynamics):
     learnable). Analytic Jacobians are provided (:meth:`jacobians`).
     """
 
+    prefer_generated_derivatives = True  # the same equations as jacobians / vhp
+
     state_dim = 2
     control_dim = 1
     state_names = ("theta [rad]", "theta_dot [rad/s]")

@@ -51,6 +51,8 @@ class PendulumCartTrain(ContinuousDynamics):
     Jacobians are provided (dense ``(..., 4N, 4N)``; see :meth:`jacobians`).
     """
 
+    prefer_generated_derivatives = True  # the same equations as jacobians / vhp
+
     control_dim: int
     state_dim: int
 

@@ -37,6 +37,8 @@ class Unicycle(Dynamics):
         dt: time step (s), default 0.1.
     """
 
+    prefer_generated_derivatives = True  # the same equations as jacobians / vhp
+
     state_dim, control_dim = 3, 2
     state_names = ("px [m]", "py [m]", "theta [rad]")
     control_names = ("v [m/s]", "w [rad/s]")
