@@ -98,16 +98,15 @@ class GeneratedHooks(NamedTuple):
         """The current values of the model's tensors and float attributes (named
         ``@path.attr``), flattened into one float64 array (the ``p`` the generated
         functions read)."""
+        # numpy pieces, not tensors: this runs on every rollout and linearisation
         tensors = dict(_named_tensors(model))
-        parts = []
-        for k in self.tensor_names:
-            if k.startswith("@"):
-                parts.append(torch.tensor([_get_attr(model, k[1:])], dtype=torch.float64))
-            else:
-                parts.append(tensors[k].detach().to("cpu", torch.float64).reshape(-1))
-        if not parts:
-            return np.zeros(0, dtype=np.float64)
-        return torch.cat(parts).numpy()
+        parts = [
+            np.array([_get_attr(model, k[1:])], dtype=np.float64)
+            if k.startswith("@")
+            else tensors[k].detach().to("cpu", torch.float64).reshape(-1).numpy()
+            for k in self.tensor_names
+        ]
+        return np.concatenate(parts) if parts else np.zeros(0, dtype=np.float64)
 
 
 def _get_attr(model: nn.Module, path: str):
