@@ -514,3 +514,42 @@ def test_a_models_own_analytic_jacobians_override_the_generated_ones():
     assert OwnJacobians.calls == before + 4  # chained through the four RK4 stages
     A0, B0 = ts.linearize(ts.discretize(UserCartPole(), 0.05), x, u)
     assert not torch.allclose(B, B0, rtol=1e-3)  # the scaled analytic Jacobians were used
+
+
+class CachedElsewhere(ts.ContinuousDynamics):
+    """A model of its own (a module no other test loads)."""
+
+    state_dim, control_dim = 2, 1
+
+    def forward(self, x, u, t=None):
+        return torch.stack([x[..., 1], -2.5 * torch.sin(x[..., 0]) + 0.7 * u[..., 0]], -1)
+
+
+def test_a_cached_file_from_another_library_version_is_generated_again(tmp_path, monkeypatch):
+    """A cache directory shared by several versions of the library: a file named like
+    this version's module but lacking a kernel (another version's generator) is
+    regenerated, not served; and another generator names its files differently."""
+    import sys
+
+    monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path))
+    first = codegen.generated_hooks(CachedElsewhere())
+    path = first.source_path
+    text = open(path).read()
+    assert "step_rows = step_rows_kernel" in text
+    with open(path, "w") as f:  # as an older generator wrote it
+        f.write(text.replace("step_rows = step_rows_kernel", ""))
+    name = next(k for k, v in sys.modules.items() if getattr(v, "__file__", None) == path)
+    monkeypatch.delitem(sys.modules, name)  # as in a new process
+
+    step = ts.discretize(CachedElsewhere(), 0.05)
+    x = torch.randn(6, 2, dtype=torch.float64)
+    u = torch.randn(6, 1, dtype=torch.float64)
+    with torch.no_grad():
+        got = step(x, u)
+    assert "step_rows = step_rows_kernel" in open(path).read()
+    want = step(x.requires_grad_(True), u).detach()  # the torch RK4 step
+    torch.testing.assert_close(got, want, rtol=1e-13, atol=1e-13)
+
+    monkeypatch.setattr(codegen, "_SOURCES_DIGEST", [b"another generator"])
+    other = codegen.generated_hooks(CachedElsewhere())
+    assert other.source_path != path

@@ -379,7 +379,13 @@ def _import(path: Path, digest: str):
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     try:
-        spec.loader.exec_module(module)
+        # compiled from the file's text, not through a .pyc: a file rewritten within
+        # the same second at the same size would pass the .pyc's timestamp check
+        code = compile(path.read_text(), str(path), "exec")
+        exec(code, module.__dict__)
+        missing = [k for k in _MODULE_NAMES if not hasattr(module, k)]
+        if missing:
+            raise ImportError(f"{path} defines no {', '.join(missing)}")
     except Exception:
         del sys.modules[name]
         raise
@@ -611,14 +617,42 @@ def _kernel_source(kind: str) -> list[str]:
     return _KERNELS[kind]
 
 
-def _kernel_sources_digest() -> bytes:
-    from .._backend import _numba_kernels
-    from . import _numba_rk4, _numba_step
+_SOURCES_DIGEST: list[bytes] = []
 
-    h = hashlib.sha256()
-    for mod in (_numba_kernels, _numba_rk4, _numba_step):
-        h.update(Path(mod.__file__).read_bytes())
-    return h.digest()
+
+def _kernel_sources_digest() -> bytes:
+    """A hash of every source the generated module depends on: the kernels written into
+    it and the generator itself (this module, the interpreter, the rewrite), plus the
+    versions of sympy and numba. A cache directory shared by several versions of the
+    library (a CI machine, a user's environments) then never serves one version's
+    module to another (a module without a kernel the other's launchers call)."""
+    if not _SOURCES_DIGEST:
+        import numba
+        import sympy
+
+        from .._backend import _numba_kernels
+        from . import _numba_rk4, _numba_step, _specialize, _symbolic
+
+        h = hashlib.sha256(f"sympy {sympy.__version__}; numba {numba.__version__}".encode())
+        mods = (_numba_kernels, _numba_rk4, _numba_step, _specialize, _symbolic)
+        for mod in (*mods, sys.modules[__name__]):
+            h.update(Path(mod.__file__).read_bytes())
+        _SOURCES_DIGEST.append(h.digest())
+    return _SOURCES_DIGEST[0]
+
+
+#: what the launchers read from a generated module (a file without one is regenerated)
+_MODULE_NAMES = (
+    "CURVED_OUTPUTS",
+    "CURVED_ENTRIES",
+    "rhs",
+    "derivatives",
+    "step",
+    "rollout",
+    "step_rows",
+    "jacobians_kernel",
+    "hessians_kernel",
+)
 
 
 # ------------------------------------------------------------------------- check
