@@ -789,27 +789,30 @@ def feedback_kernel(t, x, xn, K, lo, hi, u):
     not empty): the feedback of a closed-loop rollout at step ``t`` for rows ``r`` of
     ``x (R, n)``, ``b = r % B``; ``u (R, T, m)`` holds the feedforward on entry.
     xn ``(B, T, n)``, K ``(B, T, m, n)``, lo, hi ``(B, T, m)`` or empty."""
-    R, n = x.shape
+    R = x.shape[0]
     B = xn.shape[0]
-    m = u.shape[2]
-    bounded = lo.shape[0] > 0
     for r in range(R):
-        b = r % B
-        Kt = K[b, t]
-        xr = x[r]
-        xnr = xn[b, t]
-        ur = u[r, t]
-        for i in range(m):
-            # the feedback summed first, then the feedforward added: the torch path's
-            # order of operations (ff + (x - xn) @ K')
-            s = 0.0
-            Ki = Kt[i]
-            for j in range(n):
-                s += Ki[j] * (xr[j] - xnr[j])
-            s += ur[i]
-            if bounded:
-                s = min(max(s, lo[b, t, i]), hi[b, t, i])
-            ur[i] = s
+        _feedback_row(x[r], xn, K, lo, hi, r % B, t, u[r, t])
+
+
+@numba.njit(cache=True, nogil=True)
+def _feedback_row(xr, xn, K, lo, hi, b, t, ur):
+    """``ur += K[b, t] (xr - xn[b, t])``, clamped into ``[lo[b, t], hi[b, t]]`` when
+    the bounds are not empty (one row of :func:`feedback_kernel`)."""
+    Kt = K[b, t]
+    xnr = xn[b, t]
+    bounded = lo.shape[0] > 0
+    for i in range(ur.shape[0]):
+        # the feedback summed first, then the feedforward added: the torch path's
+        # order of operations (ff + (x - xn) @ K')
+        s = 0.0
+        Ki = Kt[i]
+        for j in range(xr.shape[0]):
+            s += Ki[j] * (xr[j] - xnr[j])
+        s += ur[i]
+        if bounded:
+            s = min(max(s, lo[b, t, i]), hi[b, t, i])
+        ur[i] = s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -879,9 +882,7 @@ def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, skip, u, x):
     (Not cached on disk: it takes the step function as an argument.)"""
     B = xn.shape[0]
     T = u.shape[1]
-    m = u.shape[2]
     n = x.shape[2]
-    bounded = lo.shape[0] > 0
     skipping = skip.shape[0] > 0
     work = np.empty((8, n), dtype=x.dtype)  # the step's scratch
     for r in range(r0, r1):
@@ -892,19 +893,9 @@ def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, skip, u, x):
             continue
         b = r % B
         for t in range(T):
-            Kt = K[b, t]
             xr = x[r, t]
-            xnr = xn[b, t]
             ur = u[r, t]
-            for i in range(m):
-                s = 0.0
-                Ki = Kt[i]
-                for j in range(n):
-                    s += Ki[j] * (xr[j] - xnr[j])
-                s += ur[i]
-                if bounded:
-                    s = min(max(s, lo[b, t, i]), hi[b, t, i])
-                ur[i] = s
+            _feedback_row(xr, xn, K, lo, hi, b, t, ur)
             step(xr, ur, p, x[r, t + 1], work)
 
 
