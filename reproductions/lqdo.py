@@ -10,7 +10,9 @@ paper's profile is not published with it), horizon 3 s, initial design ``p = (1e
 so Table 4's objective values are not comparable, its iterations and times are.
 
 Each row: objective ``v``, iterations and wall time of ours (QLIN = Algorithm 1;
-QLIN+merit = the safeguarded variant; TLFP = two-level with exact ``dv/dp``; IPOPT =
+QLIN+merit / QLIN+TR = the safeguarded variants (merit line search / trust region on the
+parameters with a second-order correction); SQP+TR = the trust region with the
+Lagrangian's Hessian; TLFP = two-level with exact ``dv/dp``; IPOPT =
 CasADi + IPOPT on the same transcription, exact Hessian, written independently of the
 torch code), beside the paper's. Times include building the problem and the
 transcription (the paper's ``T = T_int + T_opt``), best of ``repeat`` runs after one
@@ -127,7 +129,7 @@ def _timed(fn: Callable[[], Any], repeat: int) -> tuple[Any, float]:
 
 def _row(table, case, label, v, iters, status, t, extra=None) -> dict[str, Any]:
     pv, pi, pt = PAPER.get((table, case, label), (None, None, None))
-    if label.startswith("QLIN+merit"):  # compared with the paper's IP rows
+    if "+" in label.split("-", 1)[0]:  # safeguarded rows: compared with the paper's IP rows
         pv, pi, pt = PAPER.get((table, case, "IP-" + label.split("-", 1)[1]), (None, None, None))
     row = dict(
         table=table,
@@ -157,17 +159,25 @@ def run_qlin(
     repeat: int = 3,
     backend: str = "clarabel",
     max_iter: int = 100,
+    hessian: str = "objective",
 ) -> dict[str, Any]:
-    """One QLIN (or QLIN+merit) row."""
+    """One QLIN row: Algorithm 1 (``QLIN``), with the merit line search
+    (``QLIN+merit``), with the trust region (``QLIN+TR``), or with the trust region and
+    the Lagrangian's Hessian (``SQP+TR``)."""
     kind, N = _split(method)
 
     def go():
         tr = transcribe(CASES[case](), kind, nodes=N)
-        q = Quasilinearization(safeguard=safeguard, max_iter=max_iter, backend=backend)
+        q = Quasilinearization(
+            safeguard=safeguard, max_iter=max_iter, backend=backend, hessian=hessian
+        )
         return q.solve(tr, initial_guess(case, tr))
 
     res, t = _timed(go, repeat)
-    label = ("QLIN+merit-" if safeguard else "QLIN-") + method
+    prefix = {None: "QLIN", "merit": "QLIN+merit", "trust_region": "QLIN+TR"}[safeguard]
+    if hessian == "lagrangian":
+        prefix = "SQP" + prefix[4:]
+    label = prefix + "-" + method
     st = Status(int(res.status[0])).label
     return _row(
         table,
@@ -346,12 +356,20 @@ def table1(methods=("TR20", "TR200", "TR2000", "PS10", "PS40"), ipopt=True, repe
 
 
 def table2(methods=("TR20", "TR200", "TR2000", "PS10", "PS40"), ipopt=True, repeat=3) -> list:
-    """Table 2, Van der Pol V2: QLIN (does not converge), QLIN+merit, IPOPT; and V1 QLIN."""
+    """Table 2, Van der Pol V2: QLIN (does not converge), QLIN+merit, QLIN+TR, SQP+TR,
+    IPOPT; and V1 QLIN."""
     rows = []
     for m in methods:
         r = repeat if "2000" not in m else 1
         rows.append(run_qlin("2", "vdp2", m, repeat=r, max_iter=100))
         rows.append(run_qlin("2", "vdp2", m, safeguard="merit", repeat=r, max_iter=200))
+        rows.append(run_qlin("2", "vdp2", m, safeguard="trust_region", repeat=r, max_iter=200))
+        rows.append(
+            run_qlin(
+                "2", "vdp2", m, safeguard="trust_region", repeat=r, max_iter=200,
+                hessian="lagrangian",
+            )
+        )  # fmt: skip
     rows = _with_ipopt(rows, "2", "vdp2", methods, ipopt, 1)
     rows += [run_qlin("2 (V1)", "vdp1", m, repeat=repeat) for m in ("TR20", "PS10", "TR200")]
     return rows
@@ -369,12 +387,20 @@ def table3(methods=("TR200", "TR2000", "PS10"), ipopt=True, repeat=3) -> list:
 
 def table4(methods=("TR200", "TR2000"), ipopt=True, repeat=1) -> list:
     """Table 4, vehicle suspension (synthetic road): TLFP, QLIN (does not converge),
-    QLIN+merit, IPOPT."""
+    QLIN+merit (fails), QLIN+TR and SQP+TR, IPOPT."""
     rows = []
     for m in methods:
         rows.append(run_tlfp("4", "suspension", m, repeat=repeat))
     rows.append(run_qlin("4", "suspension", "TR200", repeat=repeat, max_iter=50))
     rows.append(run_qlin("4", "suspension", "TR200", safeguard="merit", repeat=repeat, max_iter=50))
+    for m in methods:
+        for hessian in ("objective", "lagrangian"):
+            rows.append(
+                run_qlin(
+                    "4", "suspension", m, safeguard="trust_region", repeat=repeat,
+                    max_iter=200, hessian=hessian,
+                )
+            )  # fmt: skip
     return _with_ipopt(rows, "4", "suspension", methods, ipopt, 1)
 
 

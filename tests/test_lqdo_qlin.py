@@ -60,3 +60,113 @@ def test_float32_transcription_and_dense_qlin():
     res = Quasilinearization(backend="dense").solve(tr, crane_initial_guess(tr))
     assert res.z.dtype == torch.float32 and res.status.tolist() == [0]
     assert round(float(res.objective), 4) == 0.0376  # Table 1, PS10 (float64 test: exact)
+
+
+# --- safeguards beyond the paper ------------------------------------------------------
+
+
+def _dense_objective_model(qp, z):
+    """Value and gradient of the QP's objective ``1/2 z'Hz + f'z + c`` at ``z``."""
+    d = qp.dense(bounds=False)
+    Hz = (d.H @ z.unsqueeze(-1)).squeeze(-1)
+    return 0.5 * (z * Hz).sum(-1) + (d.f * z).sum(-1) + d.c, Hz + d.f, d.H
+
+
+def test_lagrangian_hessian_adds_the_multiplier_weighted_constraint_curvature():
+    """qp(z, multipliers=(lam, mu)): H minus the plain QP's H equals the Hessian of
+    lam' c_E(z) + mu' c_I(z) by autograd on the whole transcription; the value and
+    gradient at z are unchanged (a path inequality with curvature included)."""
+    from torchslq.lqdo.cases import van_der_pol
+
+    torch.manual_seed(0)
+    problem = van_der_pol("V2")
+    problem.path_ineq = lambda t, u, xi, p: (xi[..., :1] ** 2 - 4.0)  # a curved path row
+    tr = transcribe(problem, "TR", nodes=8)
+    assert tr.mi == 8  # one curved inequality row per node
+    z = tr.initial_guess(xif=[0.0, 0.0], p=[1.0, 1.0]) + 0.3 * torch.randn(1, tr.n)
+    lam, mu = torch.randn(1, tr.me), torch.rand(1, tr.mi)
+    v0, g0, H0 = _dense_objective_model(tr.qp(z), z)
+    v1, g1, H1 = _dense_objective_model(tr.qp(z, multipliers=(lam, mu)), z)
+    torch.testing.assert_close(v1, v0, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(g1, g0, rtol=1e-12, atol=1e-12)
+
+    def weighted(zf):
+        zb = zf[None]
+        return (lam * tr.equalities(zb)).sum() + (mu * tr.inequalities(zb)).sum()
+
+    want = torch.autograd.functional.hessian(weighted, z[0])
+    torch.testing.assert_close(H1[0] - H0[0], want, rtol=1e-10, atol=1e-10)
+
+
+def test_convexified_qp_is_convex_with_the_objectives_value_and_gradient():
+    """qp(z, convexify=True) on the suspension away from the start (its objective's
+    node Hessians are indefinite there): positive semidefinite H, and the QP objective's
+    value and gradient at z equal the transcribed objective's (autograd)."""
+    from torchslq.lqdo.cases import suspension
+
+    torch.manual_seed(1)
+    tr = transcribe(suspension(), "TR", nodes=10)
+    z = tr.initial_guess(p=[1e3, 1e4]) + 0.1 * torch.randn(1, tr.n)
+    _, _, H = _dense_objective_model(tr.qp(z), z)
+    assert float(torch.linalg.eigvalsh(H).min()) < -1e-6  # indefinite as it is
+    v, g, Hc = _dense_objective_model(tr.qp(z, convexify=True), z)
+    assert float(torch.linalg.eigvalsh(Hc).min()) > -1e-9 * float(Hc.abs().max())
+    zg = z.clone().requires_grad_(True)
+    J = tr.objective(zg)
+    (grad,) = torch.autograd.grad(J.sum(), zg)
+    torch.testing.assert_close(v, J.detach(), rtol=1e-10, atol=1e-10)
+    torch.testing.assert_close(g, grad, rtol=1e-9, atol=1e-9)
+
+
+def test_trust_region_solves_the_suspension_where_qlin_and_the_line_search_fail():
+    """The quarter-car co-design (synthetic road, TR40): Algorithm 1 does not converge,
+    the merit line search fails at once (the first QP leaves p free: its step is huge),
+    the trust region on p converges to the two-level method's optimum (an independent
+    solve: exact QPs in (u, xi) for fixed p, an outer search over p)."""
+    from torchslq import Status
+    from torchslq.lqdo import TwoLevel
+    from torchslq.lqdo.cases import suspension
+
+    tr = transcribe(suspension(), "TR", nodes=40)
+    z0 = tr.initial_guess(p=[1e3, 1e4])
+    plain = Quasilinearization(max_iter=30).solve(tr, z0)
+    assert plain.status.tolist() == [int(Status.MAX_ITER)]
+    merit = Quasilinearization(safeguard="merit", max_iter=30).solve(tr, z0)
+    assert merit.status.tolist() == [int(Status.LINE_SEARCH_FAILED)]
+    res = Quasilinearization(safeguard="trust_region", max_iter=200).solve(tr, z0)
+    ref = TwoLevel().solve(tr, torch.tensor([[1e3, 1e4]]))
+    assert res.status.tolist() == [int(Status.CONVERGED)]
+    assert float(res.violation) < 1e-6
+    torch.testing.assert_close(res.objective, ref.objective, rtol=1e-6, atol=0)
+    torch.testing.assert_close(res.p, ref.p, rtol=1e-4, atol=0)
+    # monotone in the merit function: the objective never rises once feasible
+    cost = res.history["cost"][0, 2 : int(res.iterations) + 1]
+    assert bool((cost[1:] <= cost[:-1] + 1e-9).all())
+
+
+@pytest.mark.parametrize("method,N,v_ip", [("TR", 20, 1.9809), ("PS", 10, 1.9649)])
+def test_trust_region_and_lagrangian_hessian_on_van_der_pol_v2(method, N, v_ip):
+    """Van der Pol V2 (QLIN oscillates, tests/test_lqdo_paper.py): the trust region
+    reaches the paper's interior-point value, and with the Lagrangian's Hessian in at
+    most 8 iterations (sequential quadratic programming; the paper's IP: 15-17)."""
+    from torchslq import Status
+    from torchslq.lqdo.cases import van_der_pol
+
+    tr = transcribe(van_der_pol("V2"), method, nodes=N)
+    z0 = tr.initial_guess(xif=[0.0, 0.0], p=[1.0, 1.0])
+    for hessian, most in (("objective", 40), ("lagrangian", 8)):
+        q = Quasilinearization(safeguard="trust_region", hessian=hessian, max_iter=100)
+        res = q.solve(tr, z0)
+        assert res.status.tolist() == [int(Status.CONVERGED)], hessian
+        assert round(float(res.objective), 4) == v_ip, hessian
+        assert int(res.iterations) <= most, hessian
+        assert float(res.violation) < 1e-6
+
+
+def test_qlin_options_are_validated():
+    with pytest.raises(ValueError, match="safeguard"):
+        Quasilinearization(safeguard="trust-region")
+    with pytest.raises(ValueError, match="hessian"):
+        Quasilinearization(hessian="exact")
+    with pytest.raises(TypeError, match="convexify"):
+        Quasilinearization(convexify="yes")

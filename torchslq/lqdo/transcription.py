@@ -407,9 +407,77 @@ class Transcription:
         P._pattern[name] = pat
         return pat
 
-    def qp(self, z_ref: Tensor) -> SparseQP:
+    def _curvature(self, name: str, z: Tensor, path: bool, weights: Tensor) -> Tensor:
+        """``(B, R, nz, nz)`` the Hessian of ``sum_a weights[b, r, a] e_a`` of element
+        ``name`` at each node (path elements) or at the boundary rows, in the node-local
+        variables: a constraint's curvature weighted by its multipliers."""
+        P, B = self.problem, z.shape[0]
+        t, zz = self._path_rows(z) if path else (None, self._bnd_rows(z))
+        R = zz.shape[0] // B
+        wf = weights.reshape(B * R, -1).to(zz)
+
+        def fn(x: Tensor) -> Tensor:
+            return (P.call(name, t, x) * wf).sum(-1, keepdim=True)
+
+        hess = row_derivatives(fn, zz, hessian=True)[2]
+        return hess.reshape(B, R, *hess.shape[1:])
+
+    def _constraint_curvature(self, z: Tensor, lam: Tensor, mu: Tensor) -> tuple[Tensor, Tensor]:
+        """The constraints' curvature weighted by the multipliers ``lam (B, me)``, ``mu
+        (B, mi)`` (the QP's convention ``H z + f + A'lam + G'mu = 0``), summed per node:
+        ``(B, nt, nz, nz)`` on the path variables and ``(B, 1, nzb, nzb)`` on the
+        boundary variables."""
+        B, nt, nx = z.shape[0], self.nt, self.problem.nx
+        lam_d = lam[:, : self.nd * nx].reshape(B, self.nd, nx)
+        # defect i = sum_k M1[i,k] xi_k - M2[i,k] f(z_k): node k's weights on f
+        w = z.new_zeros(B, nt, nx).index_add(
+            1, self.pair_k, -self.pair_m2[:, None] * lam_d[:, self.pair_i]
+        )
+        Hp = self._curvature("dynamics", z, True, w)
+        Hb = None
+        row_e, row_i = self.nd * nx, 0
+        for name, path, mult, row in (
+            ("path_eq", True, lam, "e"),
+            ("boundary_eq", False, lam, "e"),
+            ("path_ineq", True, mu, "i"),
+            ("boundary_ineq", False, mu, "i"),
+        ):
+            k = self.k[name]
+            if not k:
+                continue
+            R = nt if path else 1
+            r0 = row_e if row == "e" else row_i
+            wk = mult[:, r0 : r0 + R * k].reshape(B, R, k)
+            if row == "e":
+                row_e += R * k
+            else:
+                row_i += R * k
+            Hk = self._curvature(name, z, path, wk)
+            if path:
+                Hp = Hp + Hk
+            else:
+                Hb = Hk if Hb is None else Hb + Hk
+        return Hp, Hb
+
+    def qp(
+        self,
+        z_ref: Tensor,
+        convexify: bool = False,
+        multipliers: tuple[Tensor, Tensor] | None = None,
+    ) -> SparseQP:
         """The QP of the reference LQDO problem about ``z_ref (B, n)`` (Prob. 14 in the
-        form of Prob. 18). For an OLQ problem it is the transcribed problem itself."""
+        form of Prob. 18). For an OLQ problem it is the transcribed problem itself.
+
+        Beyond the paper (for the safeguarded quasilinearization):
+
+        * ``multipliers = (lam (B, me), mu (B, mi))``: the constraints' curvature
+          weighted by these multipliers is added to the objective's Hessian (the
+          Lagrangian's Hessian of sequential quadratic programming, centred at
+          ``z_ref``: the QP's value and gradient there are unchanged).
+        * ``convexify``: each node's Hessian block projected onto the positive
+          semidefinite cone (negative eigenvalues set to zero), keeping the value and
+          gradient at ``z_ref``: the QP is then convex, its step a descent direction of
+          the l1 merit function."""
         self._check_z(z_ref)
         z = z_ref.detach()
         P, B, nt, nx = self.problem, z.shape[0], self.nt, self.problem.nx
@@ -419,16 +487,27 @@ class Transcription:
         H_idx, H_val = [], []
         f = z.new_zeros(B, n)
         c = z.new_zeros(B)
-        for name, path, loc, w in (
-            ("lagrange", True, self.loc_path, self.w),
-            ("mayer", False, self.loc_bnd[None], None),
+        curv = (None, None) if multipliers is None else self._constraint_curvature(z, *multipliers)
+        for name, path, loc, w, Hc in (
+            ("lagrange", True, self.loc_path, self.w, curv[0]),
+            ("mayer", False, self.loc_bnd[None], None, curv[1]),
         ):
-            if P.element(name) is None:
+            zz = (self._path_rows(z)[1] if path else self._bnd_rows(z)).reshape(B, loc.shape[0], -1)
+            if P.element(name) is not None:
+                Hk, gk, ck = self._quadratic(name, z, path)
+                if w is not None:
+                    Hk, gk, ck = Hk * w[:, None, None], gk * w[:, None], ck * w
+            elif Hc is not None or convexify:  # no objective term here: a zero model
+                Hk = zz.new_zeros(*zz.shape, zz.shape[-1])
+                gk, ck = torch.zeros_like(zz), zz.new_zeros(zz.shape[:2])
+            else:
                 continue
-            Hk, gk, ck = self._quadratic(name, z, path)
-            if w is not None:
-                Hk, gk, ck = Hk * w[:, None, None], gk * w[:, None], ck * w
-            ii, jj = self._widen(name, Hk).nonzero().T
+            if Hc is not None or convexify:
+                Hk, gk, ck = _recentred(Hk, gk, ck, zz, Hc, convexify)
+            if P.element(name) is not None:
+                ii, jj = self._widen(name, Hk).nonzero().T
+            else:
+                ii, jj = (Hk != 0).any(0).any(0).nonzero().T
             H_idx.append(torch.stack([loc[:, ii].reshape(-1), loc[:, jj].reshape(-1)]))
             H_val.append(Hk[:, :, ii, jj].reshape(B, -1))
             f = f.index_add(1, loc.reshape(-1), gk.reshape(B, -1))
@@ -531,3 +610,35 @@ def transcribe(
         qp = tr.qp(tr.initial_guess())     # the reference LQDO QP (Prob. 14)
     """
     return Transcription(problem, method=method, nodes=nodes, mesh=mesh, dtype=dtype, device=device)
+
+
+def _psd_part(H: Tensor) -> Tensor:
+    """The nearest positive semidefinite matrices (Frobenius norm) to the symmetric
+    ``H (..., k, k)``: negative eigenvalues set to zero (matrices without one unchanged)."""
+    H = 0.5 * (H + H.mT)
+    if H.numel() == 0:
+        return H
+    lam, V = torch.linalg.eigh(H)
+    neg = (lam < 0).any(-1)
+    if not bool(neg.any()):
+        return H
+    proj = (V * lam.clamp_min(0).unsqueeze(-2)) @ V.mT
+    return torch.where(neg[..., None, None], proj, H)
+
+
+def _recentred(
+    H: Tensor, g: Tensor, c: Tensor, zz: Tensor, extra: Tensor | None, convexify: bool
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The quadratic model ``1/2 z'Hz + g'z + c`` (per node, ``H (B, R, k, k)``, ``zz
+    (B, R, k)`` the reference) with ``extra`` added to its Hessian and, if
+    ``convexify``, the Hessian projected onto the PSD cone, both centred at ``zz``: the
+    model's value and gradient at ``zz`` are kept."""
+    Hz = (H @ zz.unsqueeze(-1)).squeeze(-1)
+    grad = Hz + g
+    value = 0.5 * (zz * Hz).sum(-1) + (g * zz).sum(-1) + c
+    if extra is not None:
+        H = H + extra
+    if convexify:
+        H = _psd_part(H)
+    Hz = (H @ zz.unsqueeze(-1)).squeeze(-1)
+    return H, grad - Hz, value - (grad * zz).sum(-1) + 0.5 * (zz * Hz).sum(-1)
