@@ -90,6 +90,12 @@ def discrete_problem(name: str, N: int):
     return ts.Problem(ts.discretize(Pendulum(), dt), cost, N), torch.zeros(1, 2, dtype=D)
 
 
+def _warm_up(solver, problem, x0) -> None:
+    """Two iterations of the same solver first, untimed: a first call compiles (numba,
+    the model's generated code)."""
+    solver.with_options(max_iter=2).solve(problem, x0)
+
+
 def convergence(name: str, rtols, grids, max_iter: int) -> list[dict]:
     rows = []
     for N in grids:
@@ -97,6 +103,7 @@ def convergence(name: str, rtols, grids, max_iter: int) -> list[dict]:
         solver = ts.ILQR(
             max_iter=max_iter, tol=1e-8, hessian_floor=torch.finfo(D).eps ** 0.5, progress=False
         )
+        _warm_up(solver, problem, x0)
         t0 = time.perf_counter()
         res = solver.solve(problem, x0)
         rows.append(
@@ -111,6 +118,7 @@ def convergence(name: str, rtols, grids, max_iter: int) -> list[dict]:
     for rtol in rtols:
         problem, x0 = continuous_problem(name)
         solver = ts.ContinuousILQR(max_iter=max_iter, rtol=rtol, atol=rtol * 1e-2, progress=False)
+        _warm_up(solver, problem, x0)
         t0 = time.perf_counter()
         res = solver.solve(problem, x0)
         h = res.history
@@ -134,6 +142,7 @@ def convergence(name: str, rtols, grids, max_iter: int) -> list[dict]:
 def batch(name: str, B: int, singles: int, rtol: float, max_iter: int) -> list[dict]:
     problem, x0 = continuous_problem(name, B)
     solver = ts.ContinuousILQR(max_iter=max_iter, rtol=rtol, atol=rtol * 1e-2, progress=False)
+    _warm_up(solver, problem, x0[:1])
     t0 = time.perf_counter()
     res = solver.solve(problem, x0)
     t_batch = time.perf_counter() - t0

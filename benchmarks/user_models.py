@@ -335,8 +335,8 @@ def row_of(model, B, solver, res, problem, x0) -> dict:
     J, gn = evaluate(problem, x0, res["u"])
     it = res["iters"]
     f = getattr(problem.dynamics, "continuous", None)
-    path = "hand-written" if isinstance(f, CartPole) else (
-        "torch ops" if f is None else codegen.explain(f))  # fmt: skip
+    # "compiled": code generated from the model's forward (the zoo's too)
+    path = "torch ops" if f is None else codegen.explain(f)
     best = min(res["times"])
     return {
         "model": model, "B": B, "solver": solver, "first_s": res["first"],
