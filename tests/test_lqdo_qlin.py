@@ -80,7 +80,7 @@ def test_lagrangian_hessian_adds_the_multiplier_weighted_constraint_curvature():
 
     torch.manual_seed(0)
     problem = van_der_pol("V2")
-    problem.path_ineq = lambda t, u, xi, p: (xi[..., :1] ** 2 - 4.0)  # a curved path row
+    problem.path_ineq = lambda t, u, xi, p: xi[..., :1] ** 2 - 4.0  # a curved path row
     tr = transcribe(problem, "TR", nodes=8)
     assert tr.mi == 8  # one curved inequality row per node
     z = tr.initial_guess(xif=[0.0, 0.0], p=[1.0, 1.0]) + 0.3 * torch.randn(1, tr.n)
