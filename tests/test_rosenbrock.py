@@ -158,7 +158,8 @@ def test_accuracy_follows_the_tolerance():
     assert errs[2] < 1e-6
 
 
-def test_piecewise_cubic_is_exact_on_cubics():
+def test_piecewise_cubic_is_exact_on_cubics(backend):
+    """On both CPU backends (the kernel and the torch form)."""
     grid = torch.tensor([[0.0, 0.3, 1.0, 2.5], [1.0, 1.5, 1.5, 1.5]], dtype=D)
     n_steps = torch.tensor([3, 1])
     p = lambda t: 1.0 - 2.0 * t + 0.5 * t**2 - 0.25 * t**3  # noqa: E731
@@ -167,6 +168,33 @@ def test_piecewise_cubic_is_exact_on_cubics():
     cub = PiecewiseCubic(grid=grid, n_steps=n_steps, values=p(nodes)[..., None])
     tq = torch.stack([torch.linspace(0, 2.5, 17, dtype=D), torch.linspace(1.0, 1.5, 17, dtype=D)])
     torch.testing.assert_close(cub(tq)[..., 0], p(tq), rtol=1e-12, atol=1e-12)
+
+
+def test_piecewise_cubic_kernel_equals_the_torch_form():
+    """The CPU kernel against the torch form on padded per-element grids (queries
+    outside the grid, on grid points, matrix values, one query per element)."""
+    from torchslq.lq import set_compiled
+
+    g = torch.Generator().manual_seed(0)
+    B, N = 5, 7
+    h = torch.rand(B, N, generator=g, dtype=D) + 0.1
+    grid = torch.cat([torch.zeros(B, 1, dtype=D), h.cumsum(1)], 1)
+    n_steps = torch.tensor([7, 3, 1, 7, 5])
+    pad = torch.arange(N + 1)[None] > n_steps[:, None]
+    grid = torch.where(pad, grid.gather(1, n_steps[:, None]), grid)
+    cub = PiecewiseCubic(
+        grid=grid, n_steps=n_steps, values=torch.randn(B, N, 4, 2, 3, generator=g, dtype=D)
+    )
+    tq = torch.cat([torch.rand(B, 9, generator=g, dtype=D) * 8 - 0.5, grid[:, :3]], 1)
+    for t in (tq, tq[:, 0]):
+        fast = cub(t)
+        set_compiled(False)
+        try:
+            slow = cub(t)
+        finally:
+            set_compiled(True)
+        assert fast.shape == slow.shape == (*t.shape, 2, 3)
+        torch.testing.assert_close(fast, slow, rtol=1e-14, atol=1e-14)
 
 
 @pytest.mark.parametrize("bad", ["t1", "shape"])

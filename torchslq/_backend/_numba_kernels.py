@@ -910,3 +910,41 @@ def step_rows_kernel(r0, r1, step, p, x, u, out):
     work = np.empty((8, n), dtype=x.dtype)
     for r in range(r0, r1):
         step(x[r], u[r], p, out[r], work)
+
+
+@numba.njit(cache=True, nogil=True)
+def piecewise_cubic_kernel(b0, b1, grid, n_steps, values, t, out):
+    """:class:`torchslq.ode.dense.PiecewiseCubic` at the query times: ``out[b, q] =`` the
+    cubic through ``values[b, i, 0..3]`` (at ``theta = 0, 1/3, 2/3, 1``) on the interval
+    ``i`` of ``grid[b]`` holding ``t[b, q]`` (the end intervals outside the grid), for
+    ``b0 <= b < b1``. grid ``(B, N+1)`` sorted per row, n_steps ``(B,)`` intervals in
+    use, values ``(B, N, 4, D)``, t ``(B, Q)``, out ``(B, Q, D)``: the torch form's
+    ``searchsorted``, gathers and Lagrange weights in one pass."""
+    Q = t.shape[1]
+    D = values.shape[3]
+    L = grid.shape[1]
+    for b in range(b0, b1):
+        last = max(n_steps[b] - 1, 0)
+        g = grid[b]
+        for q in range(Q):
+            tq = t[b, q]
+            lo, hi = 0, L  # first index with g > tq (searchsorted, right=True)
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if g[mid] > tq:
+                    hi = mid
+                else:
+                    lo = mid + 1
+            i = min(max(lo - 1, 0), last)
+            h = g[i + 1] - g[i]
+            th = (tq - g[i]) / h if h > 0 else 0.0
+            a = th - 1.0 / 3.0
+            c2 = th - 2.0 / 3.0
+            c = th - 1.0
+            w0 = -4.5 * a * c2 * c
+            w1 = 13.5 * th * c2 * c
+            w2 = -13.5 * th * a * c
+            w3 = 4.5 * th * a * c2
+            v = values[b, i]
+            for d in range(D):
+                out[b, q, d] = w0 * v[0, d] + w1 * v[1, d] + w2 * v[2, d] + w3 * v[3, d]
