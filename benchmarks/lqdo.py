@@ -112,8 +112,10 @@ def main(argv: list[str] | None = None) -> int:
         "Ours: wall time of the whole solve (problem, transcription, OLQ detection, all QPs), "
         "best of 3 after a warm-up (1 run for TR2000 and the suspension). QLIN = Algorithm 1 "
         "(Clarabel QPs; the dense torch interior point where Clarabel fails on an LGL QP); "
-        "QLIN+merit = with the l1-merit line search (compared with the paper's interior-point "
-        "rows); TLFP = two-level with exact dv/dp; IPOPT = CasADi + IPOPT, exact Hessian, on "
+        "QLIN+merit = with the l1-merit line search, QLIN+TR = with the trust region on the "
+        "parameters (and a second-order correction), SQP+TR = the trust region with the "
+        "Lagrangian's Hessian (the safeguarded rows are compared with the paper's "
+        "interior-point rows); TLFP = two-level with exact dv/dp; IPOPT = CasADi + IPOPT, exact Hessian, on "
         "the same transcription. Paper: AMD 3970X, MATLAB 2020a. `speedup` = paper time / ours "
         "(different machines). The suspension's road is synthetic (the paper's is not "
         "published), so its objective values are not comparable.",
