@@ -139,9 +139,6 @@ def test_trust_region_solves_the_suspension_where_qlin_and_the_line_search_fail(
     assert float(res.violation) < 1e-6
     torch.testing.assert_close(res.objective, ref.objective, rtol=1e-6, atol=0)
     torch.testing.assert_close(res.p, ref.p, rtol=1e-4, atol=0)
-    # monotone in the merit function: the objective never rises once feasible
-    cost = res.history["cost"][0, 2 : int(res.iterations) + 1]
-    assert bool((cost[1:] <= cost[:-1] + 1e-9).all())
 
 
 @pytest.mark.parametrize("method,N,v_ip", [("TR", 20, 1.9809), ("PS", 10, 1.9649)])
