@@ -96,29 +96,38 @@ def _warm_up(solver, problem, x0) -> None:
     solver.with_options(max_iter=2).solve(problem, x0)
 
 
-def convergence(name: str, rtols, grids, max_iter: int, discrete_max_iter: int) -> list[dict]:
+def convergence(
+    name: str, rtols, grids, max_iter: int, discrete_max_iter: int, reused: list[dict]
+) -> list[dict]:
+    """The discrete solvers on each grid, then ContinuousILQR at each rtol (or its rows
+    ``reused`` from an earlier run's JSON)."""
     rows = []
+    floor = torch.finfo(D).eps ** 0.5  # the continuous solver's regularisation (11)
+    discrete = {
+        "ILQR": lambda: ts.ILQR(
+            max_iter=discrete_max_iter, tol=1e-8, hessian_floor=floor, progress=False
+        ),
+        # second-order: on the coarse cart-pole grids ILQR stalls far from the optimum
+        "DDP": lambda: ts.DDP(max_iter=discrete_max_iter, tol=1e-8, progress=False),
+    }
     for N in grids:
         problem, x0 = discrete_problem(name, N)
-        solver = ts.ILQR(
-            max_iter=discrete_max_iter,
-            tol=1e-8,
-            hessian_floor=torch.finfo(D).eps ** 0.5,
-            progress=False,
-        )
-        _warm_up(solver, problem, x0)
-        t0 = time.perf_counter()
-        res = solver.solve(problem, x0)
-        rows.append(
-            {
-                "method": f"ILQR RK4 N={N}",
-                "cost": float(res.cost[0]),
-                "iterations": int(res.iterations[0]),
-                "status": res.status_names()[0],
-                "seconds": time.perf_counter() - t0,
-            }
-        )
-    for rtol in rtols:
+        for label, make in discrete.items():
+            solver = make()
+            _warm_up(solver, problem, x0)
+            t0 = time.perf_counter()
+            res = solver.solve(problem, x0)
+            rows.append(
+                {
+                    "method": f"{label} RK4 N={N}",
+                    "cost": float(res.cost[0]),
+                    "iterations": int(res.iterations[0]),
+                    "status": res.status_names()[0],
+                    "seconds": time.perf_counter() - t0,
+                }
+            )
+    rows += reused
+    for rtol in rtols if not reused else ():
         problem, x0 = continuous_problem(name)
         solver = ts.ContinuousILQR(max_iter=max_iter, rtol=rtol, atol=rtol * 1e-2, progress=False)
         _warm_up(solver, problem, x0)
@@ -138,6 +147,7 @@ def convergence(name: str, rtols, grids, max_iter: int, discrete_max_iter: int) 
         )
     ref = rows[-1]["cost"]  # the tightest continuous solve
     for r in rows:
+        r.pop("error_vs_tightest", None)
         r["error_vs_tightest"] = abs(r["cost"] - ref)
     return rows
 
@@ -203,22 +213,36 @@ def main(argv=None) -> int:
         default=1000,
         help="ILQR's limit (it takes more, cheaper iterations: 245 on the convex cart-pole)",
     )
+    p.add_argument(
+        "--reuse-continuous",
+        action="store_true",
+        help="convergence: take the ContinuousILQR rows (an hour on the cart-pole) from the "
+        "existing result file and rerun the discrete rows only",
+    )
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
     a = p.parse_args(argv)
     torch.set_num_threads(1)
+    out = Path(a.out)
+    stem = f"continuous_ilqr_{a.bench}_{a.problem}"
+    reused, note = [], ""
+    if a.reuse_continuous:
+        old = json.loads((out / f"{stem}.json").read_text())
+        reused = [r for r in old["rows"] if r["method"].startswith("ContinuousILQR")]
+        note = f" (ContinuousILQR rows from the earlier run `{old['command']}`)"
     if a.bench == "convergence":
-        rows = convergence(a.problem, a.rtols, a.grids, a.max_iter, a.discrete_max_iter)
+        rows = convergence(a.problem, a.rtols, a.grids, a.max_iter, a.discrete_max_iter, reused)
     else:
         rows = batch(a.problem, a.batch, a.singles, a.rtol, a.max_iter)
     cmd = "OMP_NUM_THREADS=1 python benchmarks/continuous_ilqr.py " + " ".join(
         argv if argv is not None else sys.argv[1:]
     )
-    md = f"Command: `{cmd}` (torch.set_num_threads(1))\n\n{_md(rows)}\n"
+    md = f"Command: `{cmd}`{note} (torch.set_num_threads(1))\n\n{_md(rows)}\n"
     print(md)
-    out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    stem = f"continuous_ilqr_{a.bench}_{a.problem}"
-    (out / f"{stem}.json").write_text(json.dumps({"command": cmd, "rows": rows}, indent=1))
+    record = {"command": cmd, "rows": rows}
+    if reused:
+        record["continuous_rows_from"] = old["command"]
+    (out / f"{stem}.json").write_text(json.dumps(record, indent=1))
     (out / f"{stem}.md").write_text(md)
     return 0
 
