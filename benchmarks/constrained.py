@@ -78,18 +78,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "examples"))
 
 import constrained_cartpole as cpx  # noqa: E402
 import constrained_unicycle as unx  # noqa: E402
+from _env import load, package_versions  # noqa: E402
 
 from torchslq.constraints.spec import ConstraintSet, max_violation  # noqa: E402
 
 RTOL = 1e-6  # cost agreement
 SAME_TOL = 1e-3  # state trajectories this close: the same local optimum
-
-
-def load() -> list[float]:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return []
 
 
 # ---------------------------------------------------------------------------- problems
@@ -631,15 +625,7 @@ def markdown(meta: dict, rows: list) -> str:
 
 
 def versions() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for p in ("torch", "casadi", "jax", "jaxlib", "numpy"):
-        try:
-            out[p] = version(p)
-        except PackageNotFoundError:
-            out[p] = "not installed"
-    return out
+    return package_versions("torch", "casadi", "jax", "jaxlib", "numpy")
 
 
 def merge(paths: list[str], out: Path, name: str, note: str | None = None) -> int:

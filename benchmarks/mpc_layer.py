@@ -77,6 +77,7 @@ import warnings  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 import torch  # noqa: E402
+from _env import load, package_versions  # noqa: E402
 from torch import nn  # noqa: E402
 
 from torchslq import DDP, ILQR, MPC, QuadraticCost, discretize  # noqa: E402
@@ -380,23 +381,10 @@ def _pstats_text(prof, n=30):
 
 
 # ---------------------------------------------------------------------------- report
-def load():
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return []
 
 
-def versions():
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for p in ("mpc", "numpy"):
-        try:
-            out[p] = version(p)
-        except PackageNotFoundError:
-            out[p] = "not installed"
-    return out
+def versions() -> dict[str, str]:
+    return package_versions("mpc", "numpy")
 
 
 def compare_rows(rows):

@@ -87,6 +87,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _env import load, package_versions  # noqa: E402
 
 from torchslq import DDP, ILQR, SLQ, Problem, QuadraticCost  # noqa: E402
 from torchslq.systems import Unicycle  # noqa: E402
@@ -102,11 +103,6 @@ TH_STOP = 1e-12  # crocoddyl: stop when the expected improvement |d1 + d2/2| < T
 
 
 # ---------------------------------------------------------------------------- helpers
-def load() -> list[float]:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return []
 
 
 def match(J: np.ndarray, Jref: np.ndarray) -> tuple[int, float]:
@@ -647,15 +643,7 @@ def markdown(meta, rows, rat) -> str:
 
 
 def versions() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for p in ("torch", "mpc", "crocoddyl", "casadi", "numpy"):
-        try:
-            out[p] = version(p)
-        except PackageNotFoundError:
-            out[p] = "not installed"
-    return out
+    return package_versions("torch", "mpc", "crocoddyl", "casadi", "numpy")
 
 
 def main(argv=None) -> int:

@@ -56,6 +56,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from _env import load, package_versions  # noqa: E402
 from torch import nn  # noqa: E402
 
 import torchslq as ts  # noqa: E402
@@ -313,22 +314,7 @@ def markdown(meta: dict, rows: list) -> str:
 
 
 def versions() -> dict[str, str]:
-    from importlib.metadata import PackageNotFoundError, version
-
-    out = {}
-    for p in ("torch", "jax", "jaxlib", "numpy"):
-        try:
-            out[p] = version(p)
-        except PackageNotFoundError:
-            out[p] = "not installed"
-    return out
-
-
-def load() -> list[float]:
-    try:
-        return [round(v, 2) for v in os.getloadavg()]
-    except OSError:  # pragma: no cover
-        return []
+    return package_versions("torch", "jax", "jaxlib", "numpy")
 
 
 def row_of(model, B, solver, res, problem, x0) -> dict:
