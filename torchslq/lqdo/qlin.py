@@ -164,14 +164,9 @@ class _Rule:
         ``G z <= h - e_I`` with ``e = c(z_trial) - c_lin(z_trial)``. It removes the
         second-order constraint violation that makes an l1 merit reject good steps (the
         Maratos effect; here the products of the parameters and the states)."""
-        tr, B = self.tr, z_trial.shape[0]
-
-        def lin(idx, val, rows):
-            out = z_trial.new_zeros(B, rows)
-            return out.index_add(1, idx[0], val * z_trial[:, idx[1]])
-
-        e_eq = tr.equalities(z_trial).detach() - (lin(qp.A_idx, qp.A_val, qp.me) - qp.b)
-        e_in = tr.inequalities(z_trial).detach() - (lin(qp.G_idx, qp.G_val, qp.mi) - qp.h)
+        lin_eq, lin_in = qp.residuals(z_trial)  # the linearised constraints there
+        e_eq = self.tr.equalities(z_trial).detach() - lin_eq
+        e_in = self.tr.inequalities(z_trial).detach() - lin_in
         return self._solve(replace(qp, b=qp.b - e_eq, h=qp.h - e_in))
 
     def advance(self, problem, state: _State, m: Measure, running: Tensor) -> Advance:
@@ -190,13 +185,16 @@ class _Rule:
         alpha = torch.ones_like(state.J)
         rho, radius, inside = state.rho, state.radius, state.inside
         if trust:
-            ok, rho, ratio = self._ratio_test(state, d, sol, state.z + d)
+            rho = self._penalty(state, sol)
+            phi0 = self._merit(state.z, rho)
+            pred = phi0 - sol.value  # the QP's model: its objective, its constraints met
+            ok, ratio = self._ratio_test(phi0, pred, rho, state.z + d)
             retry = qp_ok & running & ~ok
             if bool(retry.any()):  # a second-order correction of the rejected steps
                 soc = self._second_order_correction(qp, state.z + d)
                 soc_ok = retry & (soc.status == int(Status.CONVERGED))
                 d_soc = torch.where(soc_ok[:, None], soc.z - state.z, d)
-                ok2, _, ratio2 = self._ratio_test(state, d, sol, state.z + d_soc)
+                ok2, ratio2 = self._ratio_test(phi0, pred, rho, state.z + d_soc)
                 use = soc_ok & ok2
                 d = torch.where(use[:, None], d_soc, d)
                 ok, ratio = ok | use, torch.where(use, ratio2, ratio)
@@ -247,21 +245,17 @@ class _Rule:
         mult = torch.cat([sol.lam.abs(), sol.mu.abs(), state.J.new_zeros(B, 1)], 1).amax(1)
         return torch.maximum(state.rho, 2.0 * mult + 1e-8)
 
-    def _ratio_test(self, state: _State, d: Tensor, sol: QPSolution, z_trial: Tensor):
-        """``(ok, rho, ratio)``: the trial point is accepted where the l1 merit decreases
-        by at least a tenth of the decrease the QP predicts for its step ``d`` (its
-        objective, its linearised constraints met) (Nocedal & Wright 2006, Alg. 4.1 on
-        the merit function, Sec. 18.5)."""
-        rho = self._penalty(state, sol)
-        phi0 = self._merit(state.z, rho)
+    def _ratio_test(self, phi0: Tensor, pred: Tensor, rho: Tensor, z_trial: Tensor):
+        """``(ok, ratio)``: the trial point is accepted where the l1 merit (``phi0`` at
+        the reference) decreases by at least a tenth of the predicted decrease ``pred``
+        (Nocedal & Wright 2006, Alg. 4.1 on the merit function, Sec. 18.5)."""
         phi1 = self._merit(z_trial, rho)
-        pred = phi0 - sol.value
         actual = phi0 - phi1
         ratio = torch.where(pred > 0, actual / pred.clamp_min(1e-300), torch.zeros_like(pred))
         # a step the model predicts no decrease for (at a stationary point) is taken if
         # the merit does not increase
         ok = torch.where(pred > 0, ratio >= 0.1, actual >= 0) & torch.isfinite(phi1)
-        return ok, rho, ratio
+        return ok, ratio
 
     def _new_radius(self, state: _State, d: Tensor, ratio: Tensor) -> tuple[Tensor, Tensor]:
         """The parameters' radius shrinks to a quarter of the step where the ratio is

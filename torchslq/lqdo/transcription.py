@@ -403,7 +403,10 @@ class Transcription:
         """The element's derivative pattern, widened by the nonzeros of ``D (B, R, a, b)``
         (a derivative that is zero at the random probe points but not here)."""
         P = self.problem
-        pat = P.pattern(name).to(D.device) | (D != 0).any(0).any(0)
+        pat = (D != 0).any(0).any(0)
+        if P.element(name) is None:  # a block of constraint curvature only
+            return pat
+        pat = P.pattern(name).to(D.device) | pat
         P._pattern[name] = pat
         return pat
 
@@ -504,10 +507,7 @@ class Transcription:
                 continue
             if Hc is not None or convexify:
                 Hk, gk, ck = _recentred(Hk, gk, ck, zz, Hc, convexify)
-            if P.element(name) is not None:
-                ii, jj = self._widen(name, Hk).nonzero().T
-            else:
-                ii, jj = (Hk != 0).any(0).any(0).nonzero().T
+            ii, jj = self._widen(name, Hk).nonzero().T
             H_idx.append(torch.stack([loc[:, ii].reshape(-1), loc[:, jj].reshape(-1)]))
             H_val.append(Hk[:, :, ii, jj].reshape(B, -1))
             f = f.index_add(1, loc.reshape(-1), gk.reshape(B, -1))
