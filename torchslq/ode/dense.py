@@ -56,8 +56,12 @@ class _Piecewise:
     def __call__(self, t: Tensor) -> Tensor:
         squeeze = t.ndim == 1
         tq = t[:, None] if squeeze else t
-        out = self._eval(*locate(self.grid, self.n_steps, tq))
+        out = self._at(tq)
         return out[:, 0] if squeeze else out
+
+    def _at(self, t: Tensor) -> Tensor:
+        """The interpolant at ``t (B, Q)``."""
+        return self._eval(*locate(self.grid, self.n_steps, t))
 
     def _eval(self, idx: Tensor, theta: Tensor, h: Tensor) -> Tensor:  # pragma: no cover
         raise NotImplementedError
@@ -94,27 +98,22 @@ class PiecewiseCubic(_Piecewise):
 
     values: Tensor
 
-    def __call__(self, t: Tensor) -> Tensor:
+    def _at(self, t: Tensor) -> Tensor:
         # on the CPU without autograd: one kernel call instead of ~30 small torch ops
         # (the continuous-time solver reads its policy and linearisation this way at
         # every stage of every integration step)
         from .._backend.dispatch import _kernels, _launch, can_use_compiled
 
         v = self.values
-        if can_use_compiled(v, t, self.grid):
-            squeeze = t.ndim == 1
-            tq = (t[:, None] if squeeze else t).contiguous()
-            B, N = v.shape[:2]
-            shape = v.shape[3:]
-            vals = v.reshape(B, N, 4, -1).contiguous()
-            out = v.new_empty(B, tq.shape[1], vals.shape[-1])
-            grid, steps = self.grid.contiguous(), self.n_steps.contiguous()
-            kernel = _kernels().piecewise_cubic_kernel
-            args = (grid.numpy(), steps.numpy(), vals.numpy(), tq.numpy(), out.numpy())
-            _launch(kernel, B, tq.shape[1], *args)
-            out = out.reshape(B, tq.shape[1], *shape)
-            return out[:, 0] if squeeze else out
-        return super().__call__(t)
+        if not can_use_compiled(v, t, self.grid):
+            return super()._at(t)
+        B, N, Q = v.shape[0], v.shape[1], t.shape[1]
+        vals = v.reshape(B, N, 4, -1).contiguous()
+        out = v.new_empty(B, Q, vals.shape[-1])
+        grid, steps, tq = self.grid.contiguous(), self.n_steps.contiguous(), t.contiguous()
+        args = (grid.numpy(), steps.numpy(), vals.numpy(), tq.numpy(), out.numpy())
+        _launch(_kernels().piecewise_cubic_kernel, B, Q, *args)
+        return out.reshape(B, Q, *v.shape[3:])
 
     def _eval(self, idx, theta, h):
         v = _gather_steps(self.values, idx)  # (B, Q, 4, *shape)
