@@ -96,6 +96,21 @@ def _warm_up(solver, problem, x0) -> None:
     solver.with_options(max_iter=2).solve(problem, x0)
 
 
+def _timed_row(label: str, solver, problem, x0) -> tuple[dict, object]:
+    """One solve after a warm-up: its row (cost, iterations, status, seconds) and result."""
+    _warm_up(solver, problem, x0)
+    t0 = time.perf_counter()
+    res = solver.solve(problem, x0)
+    row = {
+        "method": label,
+        "cost": float(res.cost[0]),
+        "iterations": int(res.iterations[0]),
+        "status": res.status_names()[0],
+        "seconds": time.perf_counter() - t0,
+    }
+    return row, res
+
+
 def convergence(
     name: str, rtols, grids, max_iter: int, discrete_max_iter: int, reused: list[dict]
 ) -> list[dict]:
@@ -113,38 +128,15 @@ def convergence(
     for N in grids:
         problem, x0 = discrete_problem(name, N)
         for label, make in discrete.items():
-            solver = make()
-            _warm_up(solver, problem, x0)
-            t0 = time.perf_counter()
-            res = solver.solve(problem, x0)
-            rows.append(
-                {
-                    "method": f"{label} RK4 N={N}",
-                    "cost": float(res.cost[0]),
-                    "iterations": int(res.iterations[0]),
-                    "status": res.status_names()[0],
-                    "seconds": time.perf_counter() - t0,
-                }
-            )
+            rows.append(_timed_row(f"{label} RK4 N={N}", make(), problem, x0)[0])
     rows += reused
     for rtol in rtols if not reused else ():
         problem, x0 = continuous_problem(name)
         solver = ts.ContinuousILQR(max_iter=max_iter, rtol=rtol, atol=rtol * 1e-2, progress=False)
-        _warm_up(solver, problem, x0)
-        t0 = time.perf_counter()
-        res = solver.solve(problem, x0)
+        row, res = _timed_row(f"ContinuousILQR rtol={rtol:g}", solver, problem, x0)
         h = res.history
-        rows.append(
-            {
-                "method": f"ContinuousILQR rtol={rtol:g}",
-                "cost": float(res.cost[0]),
-                "iterations": int(res.iterations[0]),
-                "status": res.status_names()[0],
-                "seconds": time.perf_counter() - t0,
-                "n_fwd_last": int(h["n_fwd"][0, -1]),
-                "n_bwd_last": int(h["n_bwd"][0, -1]),
-            }
-        )
+        row.update(n_fwd_last=int(h["n_fwd"][0, -1]), n_bwd_last=int(h["n_bwd"][0, -1]))
+        rows.append(row)
     ref = rows[-1]["cost"]  # the tightest continuous solve
     for r in rows:
         r.pop("error_vs_tightest", None)
