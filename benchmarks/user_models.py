@@ -16,7 +16,9 @@ step per dt = 0.05, T = 50; cost ``sum_t 0.01 u_t^2 + 100 |x_T - [0, pi, 0, 0]|^
   compiled hooks): a reference row.
 
 Solvers: torchslq ``ILQR`` and ``DDP`` (``max_iter = 500``, ``tol = 1e-6`` on
-``||dJ/dU||``, ``compact=True``, ``progress=False``), one batched call; the first call
+``||dJ/dU||``, ``compact=True``, ``progress=False``), each with the default single
+shooting and with ``shooting="multiple"`` (rows ``ILQR-MS``, ``DDP-MS``: every model call
+one batched call over all nodes, :mod:`torchslq.solvers.shooting`), one batched call; the first call
 of each configuration is timed apart ("first call": one-time compilation and caches),
 then ``--repeats`` timed solves. trajax ``optimizers.ilqr`` (``maxiter = 500``,
 ``grad_norm_threshold = 1e-6``) under ``jax.jit(jax.vmap(...))`` with x64, compiled
@@ -150,8 +152,9 @@ def evaluate(problem: ts.Problem, x0: torch.Tensor, u) -> tuple[np.ndarray, np.n
 
 # ---------------------------------------------------------------------------- solvers
 def run_torchslq(name: str, problem: ts.Problem, x0: torch.Tensor, repeats: int) -> dict:
-    cls = {"ilqr": ts.ILQR, "ddp": ts.DDP}[name]
-    solver = cls(max_iter=MAX_ITER, tol=TOL, compact=True, progress=False)
+    cls = {"ilqr": ts.ILQR, "ddp": ts.DDP}[name.removesuffix("-ms")]
+    shooting = "multiple" if name.endswith("-ms") else "single"
+    solver = cls(max_iter=MAX_ITER, tol=TOL, compact=True, progress=False, shooting=shooting)
     t0 = time.perf_counter()
     solver.solve(problem, x0)
     first, times = time.perf_counter() - t0, []
@@ -393,7 +396,11 @@ def print_row(r: dict) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--models", default="user,user-torch,learned,zoo")
-    ap.add_argument("--solvers", default="ilqr,ddp")
+    ap.add_argument(
+        "--solvers",
+        default="ilqr,ddp,ilqr-ms,ddp-ms",
+        help="ilqr, ddp; -ms: with shooting='multiple'",
+    )
     ap.add_argument("--batches", default="1,64,512")
     ap.add_argument("--repeats", type=int, default=1, help="timed solves; the best is kept")
     ap.add_argument("--threads", type=int, default=1)

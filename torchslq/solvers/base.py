@@ -195,7 +195,7 @@ class DescentSolver(Solver):
                 options=loggable(record),
                 start_status=extra.get("start_status"),
             )
-        s = out.state
+            s = self.final_state(problem, out.state)
         result = SolverResult(
             x=s.x,
             u=s.u,
@@ -213,6 +213,10 @@ class DescentSolver(Solver):
         if logger is not None:
             logger.log_result(result, problem)
         return result.squeeze_batch() if unbatched else result
+
+    def final_state(self, problem: Problem, state: DescentState) -> DescentState:
+        """The state the result is made of (the loop's last state here)."""
+        return state
 
     def finish(self, result: SolverResult, extra: dict) -> SolverResult:
         """The result with solver-specific fields (e.g. ``active_bounds``)."""

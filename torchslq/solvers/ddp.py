@@ -26,7 +26,6 @@ from typing import TYPE_CHECKING, Any, ClassVar
 from torch import Tensor
 
 from .base import Solver
-from .descent import descent_rule
 from .ilqr import ILQR
 from .options import DDPOptions
 
@@ -76,6 +75,8 @@ class DDP(ILQR):
         constraint_hessian: str = "exact",
         second_order: str = "value",
         vhp_memory_limit: int | None = 256 * 2**20,
+        shooting: str = "single",
+        defect_tol: float | None = None,
         rtol: float = 0.0,
         stop: str = "grad",
         step_tol: float | None = None,
@@ -98,4 +99,4 @@ class DDP(ILQR):
     def rule(self):
         o = self.options
         newton = self._newton(second_order=o.second_order, vhp_memory_limit=o.vhp_memory_limit)
-        return descent_rule(newton, o, quadratic_model=True)
+        return self._descent_rule(newton)

@@ -60,6 +60,8 @@ class DescentState(ElementState):
             (iLQR/DDP; None otherwise).
         prev_step ``(B,)``: last accepted step (GradientMethod's search range).
         lo, hi ``(B, T, m)``: control bounds (None: unbounded).
+        penalty ``(B,)``, defects ``(B, T, n)``: multiple shooting's merit penalty and
+            the defects ``f(x_t, u_t) - x_{t+1}`` of the nodes (None otherwise).
     """
 
     K: Tensor = None
@@ -69,6 +71,8 @@ class DescentState(ElementState):
     prev_step: Tensor | None = None
     lo: Tensor | None = None
     hi: Tensor | None = None
+    penalty: Tensor | None = None
+    defects: Tensor | None = None
 
 
 class Direction(Protocol):
@@ -282,6 +286,8 @@ class DescentRule:
             "either": small_grad | small_step,
             "both": small_grad & small_step,
         }[self.stop]
+        if "feasible" in d:  # multiple shooting: converged only with the defects closed
+            done = done & d["feasible"]
         fail = torch.full_like(gn, int(Status.RUNNING), dtype=torch.int64)
         fail = fail.masked_fill(d["failed"], int(Status.NOT_POSITIVE_DEFINITE))
         fail = fail.masked_fill(~torch.isfinite(d["slope"]), int(Status.NON_FINITE))
@@ -292,8 +298,13 @@ class DescentRule:
 
     def advance(self, problem, state: DescentState, m: Measure, running: Tensor):
         d = m.direction
-        alpha, J_new, ok, x_new, u_new = self.search(problem, state, d, running)
+        alpha, J_new, ok, x_new, u_new, *extra = self.search(problem, state, d, running)
         accept = running & ok
+        # a search may also return per-element state fields of its trials (a dict)
+        moved = {
+            k: torch.where(accept.view(-1, *([1] * (v.ndim - 1))), v, getattr(state, k))
+            for k, v in (extra[0] if extra else {}).items()
+        }
         if state.prev_step is not None:
             state = replace(state, prev_step=torch.where(ok, alpha, state.prev_step))
         state, ended = self.direction.after_search(state, running, ok)
@@ -303,14 +314,18 @@ class DescentRule:
             x=torch.where(accept[:, None, None], x_new, state.x),
             u=torch.where(accept[:, None, None], u_new, state.u),
             J=torch.where(accept, J_new, state.J),
+            **moved,
         )
         return _Advance(state=state, accept=accept, step=alpha, end=end)
 
 
-def descent_rule(direction: Any, o: DescentOptions, *, quadratic_model: bool = False):
+def descent_rule(
+    direction: Any, o: DescentOptions, *, quadratic_model: bool = False, search: Any = None
+):
     """The :class:`DescentRule` of ``direction`` with the options ``o`` (an
-    :class:`~torchslq.solvers.options.SLQOptions`-like object)."""
-    search = LineSearch(
+    :class:`~torchslq.solvers.options.SLQOptions`-like object) and the line search
+    ``search`` (by default the :class:`LineSearch` of the options)."""
+    search = search or LineSearch(
         kind=o.line_search,
         rollout=o.rollout,
         quadratic_model=quadratic_model,

@@ -13,11 +13,13 @@ from typing import TYPE_CHECKING, Any, ClassVar
 import torch
 from torch import Tensor
 
+from ..dynamics.rollout import rollout
 from ..lq.regularization import RegularizationSchedule
 from .base import DescentSolver
 from .descent import descent_rule
 from .newton import RegularizedNewton, active_bounds, bounds_with_faults, resolve_bounds
 from .options import ILQROptions
+from .shooting import MeritLineSearch, MultipleShootingNewton, node_defects
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..constraints import Constraints
@@ -71,6 +73,17 @@ class ILQR(DescentSolver):
             ``"exact"`` (plus the rows' curvature weighted by their multipliers; DDP's
             default: with the dynamics' curvature it makes the subproblem steps Newton
             steps, e.g. 4x fewer iterations on a unicycle around an obstacle).
+        shooting: ``"single"`` (default: the iterate is ``U``, every trial step a
+            feedback rollout of the model) or ``"multiple"`` (every time step a shooting
+            node, :mod:`torchslq.solvers.shooting`: the iterate is the node states and
+            controls, the LQ step closes their defects and a merit line search accepts
+            lifted steps; every model call is one batched call over all ``B T`` nodes,
+            no step-by-step rollout, which is what a learned model or any model on the
+            torch path needs). With ``"multiple"`` an ``x_init`` may be any state guess
+            (its first state must be ``x0``), the result's ``x`` is the rollout of its
+            ``u``, and bounds and constraints are not supported.
+        defect_tol: ``shooting="multiple"``: the largest defect ``|f(x_t, u_t) -
+            x_{t+1}|`` of a converged element (None: ``tol``).
         rtol, stop, step_tol, stall_iters, armijo_c1, armijo_beta, max_backtracks,
             armijo_passes, linearize_method, progress, compact: as for
             :class:`torchslq.SLQ`.
@@ -104,6 +117,8 @@ class ILQR(DescentSolver):
         polish: bool = False,
         penalty_update: str = "progress",
         constraint_hessian: str = "gauss_newton",
+        shooting: str = "single",
+        defect_tol: float | None = None,
         rtol: float = 0.0,
         stop: str = "grad",
         step_tol: float | None = None,
@@ -149,22 +164,51 @@ class ILQR(DescentSolver):
     def _newton(self, **second_order: Any) -> RegularizedNewton:
         o = self.options
         schedule = RegularizationSchedule(o.mu_factor, o.mu_min, o.mu_max)
-        return RegularizedNewton(
+        common = dict(
             schedule=schedule,
             mu_init=o.mu_init,
             hessian_floor=o.hessian_floor,
-            skip_tol=o.tol if o.stop in ("grad", "either") else None,
             linearize_method=o.linearize_method,
             **second_order,
         )
+        if o.shooting == "multiple":
+            defect_tol = o.tol if o.defect_tol is None else o.defect_tol
+            return MultipleShootingNewton(defect_tol=defect_tol, **common)
+        return RegularizedNewton(skip_tol=o.tol if o.stop in ("grad", "either") else None, **common)
+
+    def _descent_rule(self, newton: RegularizedNewton):
+        """The rule of ``newton``: with the feedback rollout, or with multiple shooting's
+        merit line search."""
+        o = self.options
+        search = None
+        if o.shooting == "multiple":
+            search = MeritLineSearch(
+                c1=o.armijo_c1,
+                beta=o.armijo_beta,
+                max_backtracks=o.max_backtracks,
+                passes=o.armijo_passes,
+            )
+        return descent_rule(newton, o, quadratic_model=True, search=search)
 
     def rule(self):
-        return descent_rule(self._newton(), self.options, quadratic_model=True)
+        return self._descent_rule(self._newton())
 
     def initial_state(self, problem, x0, u, x, lo=None, hi=None, bounds=None, start_status=None):
         state = super().initial_state(problem, x0, u, x)
         mu = torch.full_like(state.J, float(self.options.mu_init))
-        return replace(state, mu=mu, delta=torch.ones_like(mu), lo=lo, hi=hi)
+        state = replace(state, mu=mu, delta=torch.ones_like(mu), lo=lo, hi=hi)
+        if self.options.shooting == "multiple":
+            gaps = node_defects(problem.transition, x, u)
+            state = replace(state, penalty=torch.zeros_like(mu), defects=gaps)
+        return state
+
+    def final_state(self, problem, state):
+        """With multiple shooting: the rollout of the controls and its cost (the nodes
+        differ from it by the remaining defects)."""
+        if self.options.shooting != "multiple":
+            return state
+        x = rollout(problem.transition, state.x[:, 0], state.u)
+        return replace(state, x=x, J=problem.cost(x, state.u))
 
     def prepare(self, problem: Problem, x0: Tensor, u: Tensor, x_init: Tensor | None):
         """Clamp ``u`` into the bounds (an ``x_init`` is then used only if ``u`` was

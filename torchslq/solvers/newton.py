@@ -350,10 +350,11 @@ class RegularizedNewton:
         return replace(state, mu=mu, delta=delta), running & ~ok & (mu > sched.reg_max)
 
 
-def _pass(A, B, e, hook, u_bounds, reg, restarts=None):
-    """One Riccati pass: ``(factors, failed)`` (non-finite gains count as a failure)."""
+def _pass(A, B, e, hook, u_bounds, reg, restarts=None, c=None):
+    """One Riccati pass: ``(factors, failed)`` (non-finite gains count as a failure);
+    ``c (B, T, n)``: affine dynamics terms (multiple shooting's defects)."""
     fac = riccati_backward(
-        A, B, e.lxx, e.luu, e.lx, e.lu, e.lux,
+        A, B, e.lxx, e.luu, e.lx, e.lu, e.lux, c,
         reg=reg, stage_hook=hook, u_bounds=u_bounds, restarts=restarts,
     )  # fmt: skip
     return fac, fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)

@@ -194,9 +194,21 @@ class ILQROptions(DescentOptions):
     polish: bool = False
     constraint_hessian: str = "gauss_newton"
     penalty_update: str = "progress"
+    shooting: str = "single"
+    defect_tol: float | None = None
 
     def __post_init__(self) -> None:
         super().__post_init__()
+        check_choice("shooting", self.shooting, ("single", "multiple"))
+        if self.defect_tol is not None:
+            check_real("defect_tol", self.defect_tol, 0.0)
+        if self.shooting == "multiple":
+            given = [k for k in ("u_min", "u_max", "constraints") if getattr(self, k) is not None]
+            if given:
+                raise ValueError(
+                    f"shooting='multiple' does not support {', '.join(given)} (bounds and "
+                    "constraints need shooting='single')"
+                )
         if self.constraints is not None:
             from ..constraints.spec import ConstraintSet
 
@@ -248,5 +260,10 @@ class DDPOptions(ILQROptions):
     def __post_init__(self) -> None:
         super().__post_init__()
         check_choice("second_order", self.second_order, ("value", "costate"))
+        if self.shooting == "multiple":
+            raise ValueError(
+                "DDP supports shooting='single' only (its dynamics curvature needs the "
+                "multipliers at the defects); use ILQR(shooting='multiple')"
+            )
         if self.vhp_memory_limit is not None:
             check_int("vhp_memory_limit", self.vhp_memory_limit, 0)

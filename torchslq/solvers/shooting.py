@@ -1,0 +1,194 @@
+"""Multiple shooting for iLQR/DDP: every time step is a shooting node.
+
+Giftthaler, Neunert, Stäuble, Buchli & Diehl (2018), "A family of iterative Gauss-Newton
+shooting methods for nonlinear optimal control" (GNMS), on the library's Riccati pass.
+The iterate is a pair ``(X, U)`` of node states and controls that need not satisfy the
+dynamics; its *defects* (gaps) are
+
+    d_t = f(x_t, u_t) - x_{t+1},   t = 0 .. T-1,      x_0 = x0 fixed.
+
+One iteration:
+
+1. **Linearise at every node at once** (one batched call of the model's Jacobians over
+   ``B T`` rows) and evaluate the defects (one batched model call).
+2. **LQ step with the defects as affine terms**: ``min`` the cost's second-order model
+   (plus, for DDP, the dynamics' curvature) in ``(δx, δu)`` s.t.
+   ``δx_{t+1} = A_t δx_t + B_t δu_t + d_t``, ``δx_0 = 0``: :func:`riccati_backward` with
+   ``c = d`` and the Levenberg-Marquardt term of iLQR, then the linear rollout of
+   ``δu_t = K_t δx_t + k_t``. A full step closes the linearised defects.
+3. **Lifted update with a merit line search**: ``(X, U) + α (δX, δU)`` (no nonlinear
+   rollout: each trial is one batched model call over all nodes), accepted by Armijo on
+   the exact-penalty merit ``φ = J(X, U) + ρ Σ_t |d_t|_1`` with the expected decrease
+   ``α ∇J·δz + α²/2 δz'∇²J δz - α ρ Σ|d|_1`` (Nocedal & Wright 2006, Section 18.3).
+   The penalty ``ρ`` never decreases and is kept above ``1.1 max|λ|``, the largest
+   multiplier of the subproblem's dynamics (``λ_{t+1} = V_{t+1} δx_{t+1} + v_{t+1}``),
+   so the step is a descent direction of ``φ`` (Nocedal & Wright, Theorem 18.2).
+
+Why: a single-shooting iteration rolls the model out step by step (``T`` dependent
+calls per trial); here every model evaluation is one call over all ``B T`` nodes, which
+is what a learned network or any model on the torch path needs to run fast, and
+unstable systems need fewer iterations because the defects decouple the horizon.
+
+An element is converged when its gradient test passes *and* its largest defect is at
+most ``defect_tol``; the returned trajectory is then the rollout of the returned
+controls (the nodes differ from it by the remaining defects, propagated).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+import torch
+from torch import Tensor
+
+from ..dynamics.rollout import costate_gradient
+from ..lq.riccati import rollout_linear
+from .descent import DescentState, nonfinite_rows
+from .line_search import TrialRecorder, armijo_search
+from .newton import RegularizedNewton, _merge_factors, _pass
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..problem import Problem
+
+__all__ = ["MeritLineSearch", "MultipleShootingNewton", "node_defects"]
+
+#: the penalty is kept at least this factor above the largest subproblem multiplier
+PENALTY_MARGIN = 1.1
+
+
+def node_defects(f, x: Tensor, u: Tensor) -> Tensor:
+    """``d_t = f(x_t, u_t) - x_{t+1}`` ``(..., T, n)`` for nodes ``x (..., T+1, n)`` and
+    controls ``u (..., T, m)``: one model call over all nodes."""
+    T = u.shape[-2]
+    return f(x[..., :T, :], u) - x[..., 1:, :]
+
+
+def _quadratic_form(e, dx: Tensor, du: Tensor) -> Tensor:
+    """``δz' ∇²J δz`` ``(b,)`` of the cost expansion ``e`` along ``(dx, du)``."""
+    T = du.shape[-2]
+    lxx = e.lxx.expand(dx.shape[0], *e.lxx.shape[1:])
+    luu = e.luu.expand(du.shape[0], *e.luu.shape[1:])
+    out = torch.einsum("bti,btij,btj->b", dx, lxx, dx)
+    out = out + torch.einsum("bti,btij,btj->b", du, luu, du)
+    if e.lux is not None:
+        lux = e.lux.expand(du.shape[0], *e.lux.shape[1:])
+        out = out + 2.0 * torch.einsum("bti,btij,btj->b", du, lux, dx[:, :T])
+    return out
+
+
+def _linear_form(e, dx: Tensor, du: Tensor) -> Tensor:
+    """``∇J·δz`` ``(b,)``."""
+    lx = e.lx.expand(dx.shape[0], *e.lx.shape[1:])
+    lu = e.lu.expand(du.shape[0], *e.lu.shape[1:])
+    return (lx * dx).sum(dim=(-1, -2)) + (lu * du).sum(dim=(-1, -2))
+
+
+@dataclass(frozen=True)
+class MultipleShootingNewton(RegularizedNewton):
+    """The regularised Newton step of :class:`RegularizedNewton` at shooting nodes with
+    defects (module docstring, steps 1-2). Same options; ``defect_tol`` is the largest
+    defect a converged element may have. The direction adds ``dx`` (the subproblem's
+    state step), ``defects (b, T, n)``, ``violation (b,)`` (``Σ|d|_1``), ``penalty``
+    ``(b,)`` and ``feasible (b,)`` (``max|d| <= defect_tol``) to the keys of a
+    direction; ``slope``/``curvature`` are the cost model's along ``(δx, δu)``."""
+
+    defect_tol: float = 1e-6
+
+    def __call__(self, problem: Problem, state: DescentState, running: Tensor, it: int):
+        x, u = state.x, state.u
+        T, n = problem.horizon, problem.state_dim
+        A, B, vhp = self._linearize(problem, x[:, :T], u)
+        gaps = state.defects  # kept from the line search's trial at the accepted step
+        e = self._expansion(problem, x, u)
+        # the gradient of J(U) along the nodes: that of the rollout when the defects are 0
+        grad, lam = costate_gradient(A, B, e.lx, e.lu)
+        hook = self._second_order(problem, x, u, lam, e, vhp)
+        restarts = self.schedule.restarts(state.delta, running)
+        fac, bad = _pass(A, B, e, hook, None, state.mu, restarts=restarts, c=gaps)
+        mu, delta = fac.reg, fac.reg_delta
+        if hook is not None and bool((bad & running).any()):
+            # as RegularizedNewton: the Gauss-Newton step where the curvature made it fail
+            fac_gn, bad_gn = _pass(A, B, e, None, None, mu, c=gaps)
+            fac = _merge_factors(bad & running, fac_gn, fac)
+            bad = torch.where(bad & running, bad_gn, bad)
+        failed = bad | (mu > self.schedule.reg_max)
+        nonfinite = nonfinite_rows(A, B, e.lx, e.lu, gaps) if bool(failed.any()) else None
+        dx, du = rollout_linear(A, B, fac.K, fac.k, torch.zeros_like(x[:, 0]), c=gaps)
+        V, v = fac.Vh[:, 1:, :n, :n], fac.Vh[:, 1:, :n, n]
+        multipliers = (V @ dx[:, 1:].unsqueeze(-1)).squeeze(-1) + v  # λ_{t+1}, (b, T, n)
+        lam_max = multipliers.abs().flatten(1).amax(1)
+        penalty = torch.maximum(state.penalty, PENALTY_MARGIN * lam_max)
+        penalty = torch.where(torch.isfinite(penalty), penalty, state.penalty)
+        slope = _linear_form(e, dx, du)
+        curv = _quadratic_form(e, dx, du)
+        d = {
+            "du": du,
+            "dx": dx,
+            "K": fac.K,
+            "k": fac.k,
+            "grad": grad,
+            "slope": slope,
+            "curvature": curv,
+            "failed": failed,
+            "defects": gaps,
+            "violation": gaps.abs().flatten(1).sum(1),
+            "penalty": penalty,
+            "feasible": gaps.abs().flatten(1).amax(1) <= self.defect_tol,
+        }
+        if nonfinite is not None:
+            d["nonfinite"] = nonfinite
+        return d, replace(state, mu=mu, delta=delta, penalty=penalty)
+
+
+@dataclass(frozen=True)
+class MeritLineSearch:
+    """Armijo on the exact-penalty merit of multiple shooting (module docstring, step 3):
+    the lifted trials ``(X, U) + α (δX, δU)``, each one batched model call over all
+    nodes. Same constants as :class:`~torchslq.solvers.descent.LineSearch`; returns the
+    accepted steps, the *costs* ``J`` of the new iterates (the merit only decides), the
+    success flags, the new nodes and controls, and ``{"defects": ...}`` of the new
+    nodes (the state keeps them for the next direction: no model call to recompute)."""
+
+    c1: float = 1e-4
+    beta: float = 0.5
+    max_backtracks: int = 20
+    passes: tuple[int, int | None] | None = None
+
+    def __call__(
+        self, problem: Problem, state: DescentState, d: dict[str, Tensor], running: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        f, cost_fn = problem.transition, problem.cost
+        x, u = state.x, state.u
+        dx, du = d["dx"], d["du"]
+        rho = d["penalty"]
+        phi0 = state.J + rho * d["violation"]
+        trials = TrialRecorder()
+
+        def evaluate(alphas: Tensor) -> Tensor:  # (Na, b) -> merit (Na, b)
+            a = alphas[..., None, None]
+            xc, uc = x + a * dx, u + a * du
+            J = cost_fn(xc, uc)
+            gaps = node_defects(f, xc, uc)
+            trials.record(alphas, xc, uc, J, gaps)
+            return J + rho * gaps.abs().flatten(2).sum(2)
+
+        if self.passes is not None:
+            first_trials, pass_size = self.passes
+        else:
+            first_trials, pass_size = (1, 3) if x.device.type == "cpu" else (4, None)
+        alpha, _, ok = armijo_search(
+            evaluate,
+            phi0,
+            d["slope"] - rho * d["violation"],
+            curvature=d["curvature"],
+            c1=self.c1,
+            beta=self.beta,
+            max_backtracks=self.max_backtracks,
+            active=running,
+            skip_settled=True,
+            first_trials=first_trials,
+            pass_size=pass_size,
+        )
+        x_new, u_new, J_new, gaps = trials.select(alpha)
+        return alpha, torch.where(ok, J_new, state.J), ok, x_new, u_new, {"defects": gaps}
