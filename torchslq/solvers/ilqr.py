@@ -173,7 +173,8 @@ class ILQR(DescentSolver):
         )
         if o.shooting == "multiple":
             defect_tol = o.tol if o.defect_tol is None else o.defect_tol
-            return MultipleShootingNewton(defect_tol=defect_tol, **common)
+            verify = o.tol if o.stop in ("grad", "either", "both") else None
+            return MultipleShootingNewton(defect_tol=defect_tol, verify_tol=verify, **common)
         return RegularizedNewton(skip_tol=o.tol if o.stop in ("grad", "either") else None, **common)
 
     def _descent_rule(self, newton: RegularizedNewton):

@@ -219,17 +219,7 @@ class RegularizedNewton:
         e = problem.cost.quadratize(x, u)
         if self.hessian_floor is None:
             return e
-        n, m, T = problem.state_dim, problem.control_dim, problem.horizon
-        lux = e.lux if e.lux is not None else e.luu.new_zeros(*e.luu.shape[:-1], n)
-        lxx = e.lxx.expand(x.shape[0], *e.lxx.shape[1:])
-        luu = e.luu.expand(x.shape[0], T, m, m)
-        lux = lux.expand(x.shape[0], T, m, n)
-        H = torch.cat([torch.cat([lxx[:, :T], lux.mT], -1), torch.cat([lux, luu], -1)], -2)
-        H = project_psd(H, self.hessian_floor)
-        lxxT = project_psd(lxx[:, T], self.hessian_floor)
-        e.lxx = torch.cat([H[..., :n, :n], lxxT.unsqueeze(1)], 1)
-        e.luu, e.lux = H[..., n:, n:], H[..., n:, :n]
-        return e
+        return _floored(problem, e, self.hessian_floor)
 
     def _all_hessians(self, problem: Problem, x: Tensor) -> bool:
         """Whether the value mode takes all ``n`` output Hessians of every step at once."""
@@ -348,6 +338,24 @@ class RegularizedNewton:
         mu, delta = sched.decrease(state.mu, state.delta, running & ok)
         mu, delta = sched.increase(mu, delta, running & ~ok)
         return replace(state, mu=mu, delta=delta), running & ~ok & (mu > sched.reg_max)
+
+
+def _floored(problem: Problem, e, floor: float):
+    """The cost expansion ``e`` with the eigenvalues of every joint stage Hessian
+    ``[[l_xx, l_ux'], [l_ux, l_uu]]`` and of the terminal ``l_xx`` clipped to at least
+    ``floor`` (a Hessian shared by the batch is projected once)."""
+    n, m, T = problem.state_dim, problem.control_dim, problem.horizon
+    lux = e.lux if e.lux is not None else e.luu.new_zeros(*e.luu.shape[:-1], n)
+    nb = broadcast_shapes(e.lxx.shape[:-3], e.luu.shape[:-3], lux.shape[:-3]).numel()
+    lxx = e.lxx.expand(nb, *e.lxx.shape[-3:])
+    luu = e.luu.expand(nb, T, m, m)
+    lux = lux.expand(nb, T, m, n)
+    H = torch.cat([torch.cat([lxx[:, :T], lux.mT], -1), torch.cat([lux, luu], -1)], -2)
+    H = project_psd(H, floor)
+    lxxT = project_psd(lxx[:, T], floor)
+    e.lxx = torch.cat([H[..., :n, :n], lxxT.unsqueeze(1)], 1)
+    e.luu, e.lux = H[..., n:, n:], H[..., n:, :n]
+    return e
 
 
 def _pass(A, B, e, hook, u_bounds, reg, restarts=None, c=None):

@@ -42,11 +42,11 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
-from ..dynamics.rollout import costate_gradient
+from ..dynamics.rollout import costate_gradient, rollout
 from ..lq.riccati import rollout_linear
 from .descent import DescentState, nonfinite_rows
 from .line_search import TrialRecorder, armijo_search
-from .newton import RegularizedNewton, _merge_factors, _pass
+from .newton import RegularizedNewton, _floored, _merge_factors, _pass
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -91,18 +91,50 @@ class MultipleShootingNewton(RegularizedNewton):
     defect a converged element may have. The direction adds ``dx`` (the subproblem's
     state step), ``defects (b, T, n)``, ``violation (b,)`` (``Σ|d|_1``), ``penalty``
     ``(b,)`` and ``feasible (b,)`` (``max|d| <= defect_tol``) to the keys of a
-    direction; ``slope``/``curvature`` are the cost model's along ``(δx, δu)``."""
+    direction; ``slope``/``curvature`` are the cost model's along ``(δx, δu)``.
+    ``verify_tol``: the gradient tolerance of the stopping test (None: no check): an
+    element that passes it with its defects within ``defect_tol`` has its nodes replaced
+    by the rollout of its controls and is measured there (it goes on from there if the
+    rollout's gradient does not pass)."""
 
     defect_tol: float = 1e-6
+    verify_tol: float | None = None
 
-    def __call__(self, problem: Problem, state: DescentState, running: Tensor, it: int):
-        x, u = state.x, state.u
-        T, n = problem.horizon, problem.state_dim
+    def _expansion(self, problem: Problem, x: Tensor, u: Tensor):
+        """The cost expansion with every stage Hessian projected onto the PSD cone
+        (eigenvalues clipped at ``hessian_floor``, or at 0 when it is None): the merit
+        line search needs a convex subproblem (along a direction of negative curvature
+        of an indefinite one the lifted step is not a descent direction of the merit,
+        where single shooting's feedback rollout still makes progress)."""
+        e = problem.cost.quadratize(x, u)
+        return _floored(problem, e, 0.0 if self.hessian_floor is None else self.hessian_floor)
+
+    def _at_nodes(self, problem: Problem, x: Tensor, u: Tensor):
+        T = problem.horizon
         A, B, vhp = self._linearize(problem, x[:, :T], u)
-        gaps = state.defects  # kept from the line search's trial at the accepted step
         e = self._expansion(problem, x, u)
         # the gradient of J(U) along the nodes: that of the rollout when the defects are 0
         grad, lam = costate_gradient(A, B, e.lx, e.lu)
+        return A, B, vhp, e, grad, lam
+
+    def __call__(self, problem: Problem, state: DescentState, running: Tensor, it: int):
+        x, u = state.x, state.u
+        n = problem.state_dim
+        gaps = state.defects  # kept from the line search's trial at the accepted step
+        A, B, vhp, e, grad, lam = self._at_nodes(problem, x, u)
+        if self.verify_tol is not None:
+            # an element that passes the tests at its nodes is measured again on the
+            # rollout of its controls (what the result returns): tiny defects, amplified
+            # along an unstable horizon, can still move the gradient by a few percent
+            feasible = gaps.abs().flatten(1).amax(1) <= self.defect_tol
+            near = running & feasible & (grad.flatten(1).norm(dim=1) < self.verify_tol)
+            if bool(near.any()):
+                idx = near.nonzero().squeeze(1)
+                xr = rollout(problem.take(idx, x.shape[0]).transition, x[idx, 0], u[idx])
+                x = x.index_copy(0, idx, xr)
+                gaps = gaps.index_fill(0, idx, 0.0)
+                state = replace(state, x=x, defects=gaps, J=problem.cost(x, u))
+                A, B, vhp, e, grad, lam = self._at_nodes(problem, x, u)
         hook = self._second_order(problem, x, u, lam, e, vhp)
         restarts = self.schedule.restarts(state.delta, running)
         fac, bad = _pass(A, B, e, hook, None, state.mu, restarts=restarts, c=gaps)
