@@ -453,6 +453,59 @@ def test_discretized_forward_called_from_python_runs_the_compiled_step():
     assert calls == [1]
 
 
+class ResidualOnStep(ts.Dynamics):
+    """A learned residual on a discretised model: too many parameters to be generated
+    itself, so it is linearised by autograd, where its inner step stands in by its
+    compiled Jacobians."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.step = ts.discretize(UserCartPole(), 0.05)
+        torch.manual_seed(4)
+        self.net = nn.Sequential(nn.Linear(5, 32), nn.Tanh(), nn.Linear(32, 4)).double()
+
+    def forward(self, x, u):
+        return self.step(x, u) + 0.1 * self.net(torch.cat([x, u], -1))
+
+
+def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch):
+    model = ResidualOnStep()
+    gen = torch.Generator().manual_seed(12)
+    x = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
+    u = torch.randn(3, 7, 1, generator=gen, dtype=torch.float64)
+    calls = []
+    original = ts.DiscretizedDynamics.linear_standin
+
+    def counting(self, *args):
+        out = original(self, *args)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(ts.DiscretizedDynamics, "linear_standin", counting)
+    A, B = ts.linearize(model, x, u)
+    assert calls == [True]  # the step entered once, by its kernels
+    # torch.func's pullback of the whole model (the step on its torch ops)
+    Ar, Br = ts.linearize(model, x, u, method="vjp")
+    assert calls == [True]
+    torch.testing.assert_close(A, Ar, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(B, Br, rtol=1e-12, atol=1e-12)
+    # and central differences
+    h = 1e-6
+    with torch.no_grad():
+        for j in range(4):
+            e = torch.zeros(4, dtype=torch.float64)
+            e[j] = h
+            fd = (model(x + e, u) - model(x - e, u)) / (2 * h)
+            torch.testing.assert_close(A[..., j], fd, rtol=1e-7, atol=1e-8)
+        fd = (model(x, u + h) - model(x, u - h)) / (2 * h)
+        torch.testing.assert_close(B[..., 0], fd, rtol=1e-7, atol=1e-8)
+    # second derivatives (DDP) and graphs through the Jacobians keep the torch ops
+    A2, _ = ts.linearize(model, x, u, create_graph=True)
+    assert A2.requires_grad and calls == [True]
+
+
 class WrappedStep(ts.Dynamics):
     """A user's discrete model around a discretised one (small enough to be generated
     itself): building its code calls the inner model's, which is built in turn."""

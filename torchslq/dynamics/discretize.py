@@ -9,6 +9,7 @@ from .._backend import _launch, can_use_compiled, module_needs_grad, stage_congr
 from .._shapes import broadcast_shapes
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
+from .linearize import first_order_only
 
 __all__ = ["discretize", "DiscretizedDynamics"]
 
@@ -41,6 +42,10 @@ class DiscretizedDynamics(Dynamics):
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         f, dt = self.continuous, self.dt
+        if first_order_only() and (x.requires_grad or u.requires_grad):
+            out = self.linear_standin(x, u)
+            if out is not None:
+                return out
         if self.method == "rk4" and can_use_compiled(x, u) and not module_needs_grad(self):
             # called from Python outside the library's kernels (e.g. inside a user's own
             # model, a learned residual on this step): one kernel call for the whole
@@ -57,6 +62,28 @@ class DiscretizedDynamics(Dynamics):
         k4 = f(torch.add(x, k3, alpha=dt), u)
         incr = torch.add(torch.add(k1, k2, alpha=2.0), torch.add(k4, k3, alpha=2.0))
         return torch.add(x, incr, alpha=dt / 6.0)
+
+    def linear_standin(self, x: Tensor, u: Tensor) -> Tensor | None:
+        """Inside :func:`torchslq.linearize`'s Jacobian pass of a model that calls this
+        step (:func:`~torchslq.dynamics.linearize.first_order_only`): the step's value
+        plus ``A (x - x̄) + B (u - ū)`` with its compiled Jacobians at ``(x̄, ū)``, the
+        detached inputs. Same value and first derivatives as :meth:`forward` for one
+        kernel call each instead of the RK4 stages' torch ops forward and backward; None
+        where the compiled path does not apply."""
+        if self.method != "rk4" or module_needs_grad(self):
+            return None
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        xd = x.detach().expand(*lead, x.shape[-1])
+        ud = u.detach().expand(*lead, u.shape[-1])
+        if not can_use_compiled(xd, ud):
+            return None
+        value = self._compiled_forward(xd, ud)
+        jac = None if value is None else self.compiled_jacobians(xd, ud)
+        if jac is None:
+            return None
+        A, B = jac
+        dx, du = (x - x.detach()).unsqueeze(-1), (u - u.detach()).unsqueeze(-1)
+        return value + (A @ dx).squeeze(-1) + (B @ du).squeeze(-1)
 
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
         """:meth:`forward` by the generated module's bound step (None without one)."""

@@ -5,6 +5,7 @@ This is the single linearisation used by every solver.
 
 from __future__ import annotations
 
+import contextvars
 import inspect
 import operator
 from collections.abc import Callable
@@ -28,6 +29,48 @@ __all__ = [
 ]
 
 _METHODS = ("auto", "vjp", "jacrev", "jacfwd")
+
+_FIRST_ORDER = contextvars.ContextVar("torchslq_first_order", default=False)
+
+
+def first_order_only() -> bool:
+    """Whether the model is being called by :func:`linearize`'s Jacobian pass: only
+    first derivatives are taken and no graph is kept, so a submodule may stand in for
+    its output by its value plus the linear map of its Jacobians (what
+    :class:`torchslq.DiscretizedDynamics` does with generated compiled derivatives)."""
+    return _FIRST_ORDER.get()
+
+
+def _has_linear_standins(f: Callable) -> bool:
+    """Whether a submodule of ``f`` can stand in by its compiled Jacobians (see
+    :func:`first_order_only`); the Jacobian pass then uses plain autograd, where the
+    submodule sees real tensors (inside ``torch.func`` transforms it cannot call its
+    compiled code)."""
+    if not isinstance(f, nn.Module) or torch._C._functorch.peek_interpreter_stack() is not None:
+        return False
+    return any(getattr(mod, "linear_standin", None) is not None for mod in f.modules())
+
+
+def _jacobians_by_autograd(f: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
+    """``(Jx (n_out, ..., n), Ju (n_out, ..., m))``: the output basis pulled back through
+    one call of ``f`` on the whole batch, by autograd with :func:`first_order_only` set."""
+    token = _FIRST_ORDER.set(True)
+    try:
+        with torch.enable_grad():
+            xg, ug = x.detach().requires_grad_(True), u.detach().requires_grad_(True)
+            out = f(xg, ug)
+            n_out = out.shape[-1]
+            basis = torch.eye(n_out, dtype=out.dtype, device=out.device)
+            basis = basis.reshape(n_out, *([1] * (out.ndim - 1)), n_out)
+            basis = basis.expand(n_out, *out.shape)
+            Jx, Ju = torch.autograd.grad(
+                out, (xg, ug), basis, is_grads_batched=True, allow_unused=True
+            )
+    finally:
+        _FIRST_ORDER.reset(token)
+    Jx = torch.zeros(n_out, *x.shape, dtype=x.dtype, device=x.device) if Jx is None else Jx
+    Ju = torch.zeros(n_out, *u.shape, dtype=u.dtype, device=u.device) if Ju is None else Ju
+    return Jx, Ju
 
 
 class LearnedDynamics(Dynamics):
@@ -164,7 +207,12 @@ def linearize(
         x, u = x.detach(), u.detach()
     ctx = nullcontext() if create_graph else torch.no_grad()
     with ctx:
-        if method in ("auto", "vjp"):
+        if method == "auto" and not create_graph and _has_linear_standins(dynamics):
+            # a submodule with compiled derivatives (e.g. a discretised physics model
+            # under a learned residual) enters by its Jacobians, not its torch ops
+            Jx, Ju = _jacobians_by_autograd(f, x, u)
+            A, B = Jx.movedim(0, -2), Ju.movedim(0, -2)
+        elif method in ("auto", "vjp"):
             # one call on the full (..., n) batch keeps per-element parameters aligned
             out, pullback = vjp(f, x, u)
             n_out = out.shape[-1]
