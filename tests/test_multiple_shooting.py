@@ -262,3 +262,22 @@ def test_status_of_a_non_finite_element():
     assert int(rb.status[0]) == int(rb.status[2]) == Status.CONVERGED
     for i in (0, 2):
         assert rel_err(rb.u[i], ref.u[i]) < 1e-10
+
+
+def test_learned_residual_example():
+    """``examples/learned_residual_swingup.py --quick``: the grey-box model fits the real
+    system, and both shootings reach the same optimum, whose plan swings the real
+    cart-pole up with its feedback gains."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "examples" / "learned_residual_swingup.py"
+    spec = importlib.util.spec_from_file_location("_example_learned_residual", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    out = mod.main(["--quick"])
+    assert out["fit_mse"] < 1e-4
+    for shooting in ("single", "multiple"):
+        assert out[shooting]["converged"] == out["B"], shooting
+        assert out[shooting]["real_final_error_max"] < 0.3, shooting
+    assert out["max_rel_cost_gap"] < 1e-8
