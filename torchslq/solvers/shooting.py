@@ -169,6 +169,24 @@ class MultipleShootingNewton(RegularizedNewton):
         return d, replace(state, mu=mu, delta=delta, penalty=penalty)
 
 
+def _on_rows(problem: Problem, live: Tensor, xc: Tensor, uc: Tensor) -> tuple[Tensor, Tensor]:
+    """Cost ``(Na, b)`` and defects ``(Na, b, T, n)`` of the trials ``xc (Na, b, T+1, n)``,
+    ``uc (Na, b, T, m)`` where ``live (Na, b)``, NaN elsewhere: the live rows only go
+    through the model and the cost, with the problem's per-element data taken for them."""
+    Na, b = live.shape
+    T, n = uc.shape[-2], xc.shape[-1]
+    rows = live.reshape(-1).nonzero().squeeze(1)
+    J = xc.new_full((Na * b,), float("nan"))
+    gaps = xc.new_full((Na * b, T, n), float("nan"))
+    if rows.numel() > 0:
+        sub = problem.take(rows % b, b)
+        xr = xc.reshape(Na * b, *xc.shape[2:]).index_select(0, rows)
+        ur = uc.reshape(Na * b, *uc.shape[2:]).index_select(0, rows)
+        J = J.index_copy(0, rows, sub.cost(xr, ur))
+        gaps = gaps.index_copy(0, rows, node_defects(sub.transition, xr, ur))
+    return J.reshape(Na, b), gaps.reshape(Na, b, T, n)
+
+
 @dataclass(frozen=True)
 class MeritLineSearch:
     """Armijo on the exact-penalty merit of multiple shooting (module docstring, step 3):
@@ -196,8 +214,13 @@ class MeritLineSearch:
         def evaluate(alphas: Tensor) -> Tensor:  # (Na, b) -> merit (Na, b)
             a = alphas[..., None, None]
             xc, uc = x + a * dx, u + a * du
-            J = cost_fn(xc, uc)
-            gaps = node_defects(f, xc, uc)
+            live = torch.isfinite(alphas)
+            if bool(live.all()):
+                J, gaps = cost_fn(xc, uc), node_defects(f, xc, uc)
+            else:
+                # a later pass: only the elements still searching are evaluated (the
+                # NaN steps of settled ones would cost a full batch of model calls)
+                J, gaps = _on_rows(problem, live, xc, uc)
             trials.record(alphas, xc, uc, J, gaps)
             return J + rho * gaps.abs().flatten(2).sum(2)
 
