@@ -81,7 +81,9 @@ class ILQR(DescentSolver):
             no step-by-step rollout, which is what a learned model or any model on the
             torch path needs). With ``"multiple"`` an ``x_init`` may be any state guess
             (its first state must be ``x0``), the result's ``x`` is the rollout of its
-            ``u``, and bounds and constraints are not supported.
+            ``u``, its Armijo trials go in passes of 2 then 2 on the CPU (unless
+            ``armijo_passes`` says otherwise), and bounds and constraints are not
+            supported.
         defect_tol: ``shooting="multiple"``: the largest defect ``|f(x_t, u_t) -
             x_{t+1}|`` of a converged element (None: ``tol``).
         rtol, stop, step_tol, stall_iters, armijo_c1, armijo_beta, max_backtracks,

@@ -126,11 +126,23 @@ class MultipleShootingNewton(RegularizedNewton):
             near = running & feasible & (grad.flatten(1).norm(dim=1) < self.verify_tol)
             if bool(near.any()):
                 idx = near.nonzero().squeeze(1)
-                xr = rollout(problem.take(idx, x.shape[0]).transition, x[idx, 0], u[idx])
+                b = x.shape[0]
+                sub = problem.take(idx, b)
+                xr = rollout(sub.transition, x[idx, 0], u[idx])
                 x = x.index_copy(0, idx, xr)
                 gaps = gaps.index_fill(0, idx, 0.0)
                 state = replace(state, x=x, defects=gaps, J=problem.cost(x, u))
-                A, B, vhp, e, grad, lam = self._at_nodes(problem, x, u)
+                if idx.numel() == b:
+                    A, B, vhp, e, grad, lam = self._at_nodes(problem, x, u)
+                else:  # only those elements are linearised again
+                    new = self._at_nodes(sub, xr, u[idx])
+                    A, B, grad, lam = (
+                        t.index_copy(0, idx, t_new)
+                        for t, t_new in zip(
+                            (A, B, grad, lam), (new[0], new[1], *new[4:]), strict=True
+                        )
+                    )
+                    e = _merged_expansion(e, new[3], idx, b)
         hook = self._second_order(problem, x, u, lam, e, vhp)
         restarts = self.schedule.restarts(state.delta, running)
         fac, bad = _pass(A, B, e, hook, None, state.mu, restarts=restarts, c=gaps)
@@ -167,6 +179,17 @@ class MultipleShootingNewton(RegularizedNewton):
         if nonfinite is not None:
             d["nonfinite"] = nonfinite
         return d, replace(state, mu=mu, delta=delta, penalty=penalty)
+
+
+def _merged_expansion(e, e_rows, idx: Tensor, b: int):
+    """The cost expansion ``e`` of ``b`` elements with the elements ``idx`` replaced by
+    ``e_rows`` (their expansion); a term shared by the batch (leading dim 1) stays."""
+    for name in ("lxx", "luu", "lux", "lx", "lu"):
+        t = getattr(e, name)
+        if t is not None and t.shape[0] == b:
+            rows = getattr(e_rows, name).expand(idx.numel(), *t.shape[1:])
+            setattr(e, name, t.index_copy(0, idx, rows))
+    return e
 
 
 def _on_rows(problem: Problem, live: Tensor, xc: Tensor, uc: Tensor) -> tuple[Tensor, Tensor]:
@@ -227,7 +250,9 @@ class MeritLineSearch:
         if self.passes is not None:
             first_trials, pass_size = self.passes
         else:
-            first_trials, pass_size = (1, 3) if x.device.type == "cpu" else (4, None)
+            # on the CPU 2 then 2: the half step is often the one accepted here (the
+            # cart-pole swing-up, B = 1 / 64 / 512: 13 / 14 / 14% less time than 1 then 3)
+            first_trials, pass_size = (2, 2) if x.device.type == "cpu" else (4, None)
         alpha, _, ok = armijo_search(
             evaluate,
             phi0,
