@@ -281,3 +281,33 @@ def test_learned_residual_example():
         assert out[shooting]["converged"] == out["B"], shooting
         assert out[shooting]["real_final_error_max"] < 0.3, shooting
     assert out["max_rel_cost_gap"] < 1e-8
+
+
+def test_mpc_layer_with_multiple_shooting_has_the_single_shooting_gradients():
+    """The MPC layer's solve by multiple shooting: the same controls and implicit
+    gradients (w.r.t. a model parameter and x0) as with single shooting, whose gradients
+    tests/test_mpc.py checks against finite differences; warm-started steps run too."""
+    from torchslq import MPC
+    from torchslq.systems import Pendulum
+
+    goal = torch.tensor([math.pi, 0.0], dtype=F64)
+    cost = QuadraticCost(
+        Q=torch.diag(torch.tensor([1.0, 0.1], dtype=F64)), R=0.1 * torch.eye(1, dtype=F64),
+        x_ref=goal,
+    )  # fmt: skip
+    x0 = torch.tensor([[0.3, 0.0], [-0.5, 0.2], [0.9, -0.4]], dtype=F64)
+    out = {}
+    for shooting in ("single", "multiple"):
+        mass = torch.nn.Parameter(torch.tensor(0.7, dtype=F64))
+        xg = x0.clone().requires_grad_(True)
+        solver = ILQR(tol=1e-9, max_iter=200, progress=False, shooting=shooting)
+        policy = MPC(discretize(Pendulum(mass=mass), 0.1), cost, horizon=10, solver=solver)
+        x, u = policy(xg)
+        gm, gx = torch.autograd.grad((u**2).sum() + x[:, -1].sum(), (mass, xg))
+        out[shooting] = (u.detach(), gm, gx)
+        policy.step(x0)
+        assert policy.step(x0).shape[0] == 3  # a warm-started second step
+    (u1, gm1, gx1), (u2, gm2, gx2) = out["single"], out["multiple"]
+    assert rel_err(u2, u1) < 1e-8
+    torch.testing.assert_close(gm2, gm1, rtol=1e-7, atol=1e-9)
+    torch.testing.assert_close(gx2, gx1, rtol=1e-7, atol=1e-9)
