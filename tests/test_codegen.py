@@ -606,3 +606,76 @@ def test_a_cached_file_from_another_library_version_is_generated_again(tmp_path,
     monkeypatch.setattr(codegen, "_SOURCES_DIGEST", [b"another generator"])
     other = codegen.generated_hooks(CachedElsewhere())
     assert other.source_path != path
+
+
+def _helper_module(tmp_path, name: str, body: str):
+    """A module file ``name.py`` in ``tmp_path`` (on sys.path), imported afresh."""
+    import importlib
+    import sys
+
+    (tmp_path / f"{name}.py").write_text(body)
+    if str(tmp_path) not in sys.path:
+        sys.path.insert(0, str(tmp_path))
+    sys.modules.pop(name, None)
+    importlib.invalidate_caches()
+    return importlib.import_module(name)
+
+
+def test_a_warm_cache_serves_an_equal_model_without_tracing(tmp_path, monkeypatch):
+    """The second model of a class (another process, in effect: the per-instance memo is
+    bypassed) finds its code through the source index, without the trace that imports
+    torch's compiler stack; its functions equal the forward."""
+    monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path / "cache"))
+    mod = _helper_module(
+        tmp_path,
+        "src_index_model",
+        "import torch\nimport torchslq as ts\n\n"
+        "class Damped(ts.ContinuousDynamics):\n"
+        "    state_dim, control_dim = 2, 1\n"
+        "    def __init__(self, c=0.3):\n"
+        "        super().__init__()\n"
+        "        self.c = c\n"
+        "    def forward(self, x, u, t=None):\n"
+        "        return torch.stack([x[..., 1], u[..., 0] - self.c * x[..., 1]"
+        " - torch.sin(x[..., 0])], -1)\n",
+    )
+    first = codegen.generated_hooks(mod.Damped())
+    assert first is not None
+    traced = []
+    original = codegen._trace
+    monkeypatch.setattr(codegen, "_trace", lambda *a: traced.append(1) or original(*a))
+    second = mod.Damped(c=0.7)  # another value of a float attribute: the same code
+    hooks = codegen.generated_hooks(second)
+    assert traced == [] and hooks.source_path == first.source_path
+    x, u = np.array([0.4, -0.2]), np.array([0.5])
+    out = np.zeros(2)
+    hooks.rhs(x, u, hooks.params(second), out)
+    want = second(torch.tensor(x), torch.tensor(u)).numpy()
+    np.testing.assert_allclose(out, want, rtol=1e-14)
+
+
+def test_a_changed_helper_in_another_file_is_traced_again(tmp_path, monkeypatch):
+    """The source index keys on the model's own class files: a function it calls from
+    elsewhere that changed is caught by the numeric check, and the model is traced."""
+    monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path / "cache"))
+    helper = _helper_module(tmp_path, "src_index_helper", "def k():\n    return 2.0\n")
+    mod = _helper_module(
+        tmp_path,
+        "src_index_user",
+        "import torch\nimport torchslq as ts\nimport src_index_helper\n\n"
+        "class UsesHelper(ts.ContinuousDynamics):\n"
+        "    state_dim, control_dim = 1, 1\n"
+        "    def forward(self, x, u, t=None):\n"
+        "        return -src_index_helper.k() * x + u\n",
+    )
+    first = codegen.generated_hooks(mod.UsesHelper())
+    helper.k = lambda: 5.0  # the helper changes, the model's file does not
+    traced = []
+    original = codegen._trace
+    monkeypatch.setattr(codegen, "_trace", lambda *a: traced.append(1) or original(*a))
+    model = mod.UsesHelper()
+    hooks = codegen.generated_hooks(model)
+    assert traced == [1] and hooks.source_path != first.source_path
+    out = np.zeros(1)
+    hooks.rhs(np.array([1.0]), np.array([0.0]), hooks.params(model), out)
+    assert out[0] == pytest.approx(-5.0)

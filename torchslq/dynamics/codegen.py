@@ -28,6 +28,13 @@ with hand-written compiled code:
    ``torch.func`` derivatives at random points; a mismatch leaves the model on the
    torch path with a warning.
 
+A later process skips step 1 as well when it can: tracing imports torch's compiler
+stack (over a second). A *source index* maps a key of what the traced graph depends on
+and is known without tracing (the source files of the model's classes, its structure,
+the generator's and torch's versions) to the module; a module found that way is used
+when its step equals the model's ``forward`` at random points (a function the model
+calls from another file may have changed), else the model is traced as above.
+
 A discrete :class:`~torchslq.Dynamics` is generated the same way: its step, its
 Jacobians and its Hessian blocks (:meth:`~torchslq.Dynamics.compiled_step`,
 ``compiled_jacobians``, ``compiled_vhp``). The module also holds the library's kernels
@@ -234,6 +241,10 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
     from .base import ContinuousDynamics
 
     kind = "continuous" if isinstance(model, ContinuousDynamics) else "discrete"
+    skey = _source_key(model, kind, n, m, named, lift_floats)
+    hooks = _from_source_index(model, skey, n, m, named)
+    if hooks is not None:
+        return hooks
     gm = _trace(model, n, m, named)
     consts = [getattr(gm, node.target) for node in gm.graph.nodes if node.op == "get_attr"]
     h = hashlib.sha256()
@@ -264,14 +275,7 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
                     refused.write_text(str(e))
             raise
         module = _write_and_import(path, digest, source)
-    derivatives = module.derivatives
-    if module.CURVED_OUTPUTS:
-        from .base import CompiledDerivatives
-
-        derivatives = CompiledDerivatives(
-            module.derivatives, module.CURVED_OUTPUTS, module.CURVED_ENTRIES
-        )
-    hooks = GeneratedHooks(module.rhs, derivatives, tuple(k for k, _ in named), module.__file__)
+    hooks = _hooks_of(module, named)
     # the code is a function of the traced graph: checked once, when first generated
     # (a module that failed its check has no marker and is checked again: same verdict)
     checked = None if path is None else path.with_suffix(".checked")
@@ -280,10 +284,104 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
         if checked is not None:
             with contextlib.suppress(OSError):
                 checked.touch()
+    if skey is not None and path is not None:
+        with contextlib.suppress(OSError):
+            tmp = _cache_dir() / f"s_{skey}.{os.getpid()}.tmp"
+            tmp.write_text(digest)
+            os.replace(tmp, _cache_dir() / f"s_{skey}.txt")
     from .._backend.bound import register
 
     register(module)
     return hooks
+
+
+def _hooks_of(module, named: list[tuple[str, Tensor]]) -> GeneratedHooks:
+    derivatives = module.derivatives
+    if module.CURVED_OUTPUTS:
+        from .base import CompiledDerivatives
+
+        derivatives = CompiledDerivatives(
+            module.derivatives, module.CURVED_OUTPUTS, module.CURVED_ENTRIES
+        )
+    return GeneratedHooks(module.rhs, derivatives, tuple(k for k, _ in named), module.__file__)
+
+
+# ------------------------------------------------------------------------- source index
+def _source_key(model: nn.Module, kind: str, n: int, m: int, named, lift_floats: bool):
+    """A key of what the traced graph depends on that is known without tracing (which
+    imports torch's compiler stack, over a second in a fresh process): the source files
+    of the classes of the model's modules, its structure (tensor names and shapes, plain
+    attributes; the floats' values where they are traced as constants), the generator
+    and torch's version. None without a cache or when a class has no source file. A
+    model's ``forward`` may still call code elsewhere: a hit is checked against it
+    numerically (:func:`_from_source_index`)."""
+    if _cache_dir() is None:
+        return None
+    import inspect
+
+    h = hashlib.sha256()
+    h.update(f"v{CODEGEN_VERSION};{kind};{n};{m};{torch.__version__};{lift_floats}".encode())
+    h.update(repr([(k, tuple(t.shape)) for k, t in named]).encode())
+    h.update(repr(_structure_key(model)[1:]).encode())
+    if not lift_floats:
+        h.update(repr([_get_attr(model, a) for a in _float_attrs(model)]).encode())
+    h.update(_kernel_sources_digest())
+    seen: set = set()
+    for mod in model.modules():
+        for cls in type(mod).__mro__:
+            if cls in seen or cls.__module__.split(".")[0] in ("torch", "builtins", "abc"):
+                continue
+            seen.add(cls)
+            try:
+                text = Path(inspect.getsourcefile(cls)).read_bytes()
+            except (TypeError, OSError):
+                return None
+            h.update(f"{cls.__module__}.{cls.__qualname__}".encode())
+            h.update(hashlib.sha256(text).digest())
+    return h.hexdigest()[:24]
+
+
+def _from_source_index(model: nn.Module, skey: str | None, n: int, m: int, named):
+    """The hooks of the module recorded for ``skey`` when it was generated and checked,
+    and its step still equals the model's ``forward`` at a few random points; else None
+    (the caller traces)."""
+    if skey is None:
+        return None
+    index = _cache_dir() / f"s_{skey}.txt"
+    try:
+        digest = index.read_text().strip()
+        path = _cache_dir() / f"m_{digest}.py"
+        if not path.with_suffix(".checked").exists():
+            return None
+        module = _import(path, digest)
+    except Exception:  # no index, or a damaged file: trace
+        return None
+    hooks = _hooks_of(module, named)
+    if not _same_step(model, hooks, n, m):
+        return None
+    from .._backend.bound import register
+
+    register(module)
+    return hooks
+
+
+def _same_step(model: nn.Module, hooks: GeneratedHooks, n: int, m: int) -> bool:
+    """Whether ``hooks.rhs`` equals the model's ``forward`` (float64) at 3 random points
+    (to 1e-12 relative; NaN where the forward is NaN)."""
+    gen = torch.Generator().manual_seed(1)
+    x = torch.randn(3, n, generator=gen, dtype=torch.float64)
+    u = torch.randn(3, m, generator=gen, dtype=torch.float64)
+    state = {k: t.detach().to("cpu", torch.float64) for k, t in _named_tensors(model)}
+    p = hooks.params(model)
+    with torch.no_grad():
+        ref = torch.func.functional_call(model, state, (x, u)).numpy()
+    out = np.zeros(n)
+    for r in range(3):
+        hooks.rhs(x[r].numpy(), u[r].numpy(), p, out)
+        scale = 1.0 + np.abs(np.nan_to_num(ref[r])).max()
+        if not np.allclose(out, ref[r], rtol=1e-12, atol=1e-12 * scale, equal_nan=True):
+            return False
+    return True
 
 
 def _trace(model: nn.Module, n: int, m: int, named: list[tuple[str, Tensor]]):
@@ -627,16 +725,19 @@ def _kernel_sources_digest() -> bytes:
     library (a CI machine, a user's environments) then never serves one version's
     module to another (a module without a kernel the other's launchers call)."""
     if not _SOURCES_DIGEST:
-        import numba
-        import sympy
+        from importlib.metadata import version
 
-        from .._backend import _numba_kernels
-        from . import _numba_rk4, _numba_step, _specialize, _symbolic
-
-        h = hashlib.sha256(f"sympy {sympy.__version__}; numba {numba.__version__}".encode())
-        mods = (_numba_kernels, _numba_rk4, _numba_step, _specialize, _symbolic)
-        for mod in (*mods, sys.modules[__name__]):
-            h.update(Path(mod.__file__).read_bytes())
+        # versions and files, not imports: sympy alone takes a third of a second to import
+        h = hashlib.sha256(f"sympy {version('sympy')}; numba {version('numba')}".encode())
+        here = Path(__file__).resolve().parent
+        files = (
+            here.parent / "_backend" / "_numba_kernels.py",
+            *(here / f"{name}.py" for name in ("_numba_rk4", "_numba_step", "_specialize")),
+            here / "_symbolic.py",
+            Path(__file__),
+        )
+        for path in files:
+            h.update(path.read_bytes())
         _SOURCES_DIGEST.append(h.digest())
     return _SOURCES_DIGEST[0]
 
