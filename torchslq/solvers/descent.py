@@ -179,6 +179,25 @@ class CostateGradient:
     after_search = staticmethod(_every_failure_ends)
 
 
+def default_passes(
+    device: torch.device, prev_step: Tensor | None = None, running: Tensor | None = None
+) -> tuple[int, int | None]:
+    """Armijo's pass sizes ``(first_trials, pass_size)`` when the options leave them
+    open. Off the CPU ``(4, None)``: each pass costs a host synchronisation. On the CPU
+    each trial costs in proportion, so ``(1, 3)``; but ``(2, 2)`` when most running
+    elements accepted a step shorter than 1 last time (``prev_step (b,)``): the half
+    step is then likely the one accepted again (iLQR on the cart-pole swing-up: 12-15%
+    less time at B = 1 and 64; the pendulum, whose full steps pass, keeps ``(1, 3)``).
+    The accepted steps do not depend on the pass sizes."""
+    if device.type != "cpu":
+        return (4, None)
+    if prev_step is not None and running is not None:
+        short = int(((prev_step < 1) & running).sum())
+        if 2 * short > int(running.sum()):
+            return (2, 2)
+    return (1, 3)
+
+
 @dataclass(frozen=True)
 class LineSearch:
     """The globalisation of a descent solver.
@@ -191,7 +210,7 @@ class LineSearch:
         quadratic_model: Armijo on the expected improvement ``α slope + α²/2 curvature``
             (iLQR/DDP) instead of ``α slope``.
         c1, beta, max_backtracks, passes: Armijo's constants and pass sizes
-            ``(first, then)`` (None: ``(1, 3)`` on the CPU, ``(4, None)`` elsewhere).
+            ``(first, then)`` (None: :func:`default_passes`).
     """
 
     kind: str = "exact"
@@ -202,13 +221,17 @@ class LineSearch:
     max_backtracks: int = 20
     passes: tuple[int, int | None] | None = None
 
-    def pass_sizes(self, device: torch.device) -> tuple[int, int | None]:
+    def pass_sizes(
+        self,
+        device: torch.device,
+        prev_step: Tensor | None = None,
+        running: Tensor | None = None,
+    ) -> tuple[int, int | None]:
         """``(first_trials, pass_size)`` of :func:`armijo_search`: the option, or the
-        device's default (on the CPU each trial rollout costs in proportion; elsewhere
-        each pass costs a host sync)."""
+        device's default (see :func:`default_passes`)."""
         if self.passes is not None:
             return self.passes
-        return (1, 3) if device.type == "cpu" else (4, None)
+        return default_passes(device, prev_step, running)
 
     def __call__(
         self, problem: Problem, state: DescentState, d: dict[str, Tensor], running: Tensor
@@ -237,7 +260,10 @@ class LineSearch:
         if self.kind == "exact":
             alpha, J_new, ok = exact_search(evaluate, J, slope=slope)
         else:
-            first_trials, pass_size = self.pass_sizes(J.device)
+            # the last steps hint at this one's (not for a scaled direction, whose
+            # steps are in other units)
+            prev = state.prev_step if scale is None else None
+            first_trials, pass_size = self.pass_sizes(J.device, prev, running)
             alpha, J_new, ok = armijo_search(
                 evaluate,
                 J,

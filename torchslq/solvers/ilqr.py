@@ -81,9 +81,7 @@ class ILQR(DescentSolver):
             no step-by-step rollout, which is what a learned model or any model on the
             torch path needs). With ``"multiple"`` an ``x_init`` may be any state guess
             (its first state must be ``x0``), the result's ``x`` is the rollout of its
-            ``u``, its Armijo trials go in passes of 2 then 2 on the CPU (unless
-            ``armijo_passes`` says otherwise), and bounds and constraints are not
-            supported.
+            ``u``, and bounds and constraints are not supported.
         defect_tol: ``shooting="multiple"``: the largest defect ``|f(x_t, u_t) -
             x_{t+1}|`` of a converged element (None: ``tol``).
         rtol, stop, step_tol, stall_iters, armijo_c1, armijo_beta, max_backtracks,
@@ -199,7 +197,8 @@ class ILQR(DescentSolver):
     def initial_state(self, problem, x0, u, x, lo=None, hi=None, bounds=None, start_status=None):
         state = super().initial_state(problem, x0, u, x)
         mu = torch.full_like(state.J, float(self.options.mu_init))
-        state = replace(state, mu=mu, delta=torch.ones_like(mu), lo=lo, hi=hi)
+        ones = torch.ones_like(mu)
+        state = replace(state, mu=mu, delta=ones, lo=lo, hi=hi, prev_step=ones)
         if self.options.shooting == "multiple":
             gaps = node_defects(problem.transition, x, u)
             state = replace(state, penalty=torch.zeros_like(mu), defects=gaps)

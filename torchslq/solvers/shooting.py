@@ -44,7 +44,7 @@ from torch import Tensor
 
 from ..dynamics.rollout import costate_gradient, rollout
 from ..lq.riccati import rollout_linear
-from .descent import DescentState, nonfinite_rows
+from .descent import DescentState, default_passes, nonfinite_rows
 from .line_search import TrialRecorder, armijo_search
 from .newton import RegularizedNewton, _floored, _merge_factors, _pass
 
@@ -250,9 +250,7 @@ class MeritLineSearch:
         if self.passes is not None:
             first_trials, pass_size = self.passes
         else:
-            # on the CPU 2 then 2: the half step is often the one accepted here (the
-            # cart-pole swing-up, B = 1 / 64 / 512: 13 / 14 / 14% less time than 1 then 3)
-            first_trials, pass_size = (2, 2) if x.device.type == "cpu" else (4, None)
+            first_trials, pass_size = default_passes(x.device, state.prev_step, running)
         alpha, _, ok = armijo_search(
             evaluate,
             phi0,

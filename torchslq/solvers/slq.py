@@ -57,7 +57,8 @@ class SLQ(DescentSolver):
         armijo_passes: ``(first, then)``: the Armijo trials are rolled out ``first`` at a
             time, then ``then`` at a time (None: all the rest at once) while some element
             has accepted none; the accepted steps are the same for any choice. Default
-            (None): ``(1, 3)`` on the CPU, ``(4, None)`` on other devices.
+            (None): ``(1, 3)`` on the CPU (``(2, 2)`` for ILQR/DDP while most elements'
+            last steps were shorter than 1), ``(4, None)`` on other devices.
         linearize_method: passed to :func:`torchslq.linearize`.
         progress: show a tqdm bar when a solve takes longer than a second.
         compact: compute each iteration only on the elements still running; per-element
