@@ -105,6 +105,26 @@ def my_rollout(step, x0, U):
 
 
 def lq_problem(seed=3, n=3, m=2, T=12, Bsz=3):
+    """A linear-quadratic problem (time-varying weights with cross terms, affine
+    dynamics), ``x0``, ``u_init`` and its :func:`lqr_solve` solution."""
+    problem, x0, u_init, d = lq_case(seed, n, m, T, Bsz)
+    lq = lqr_solve(
+        d["A"].expand(Bsz, T, n, n),
+        d["B"].expand(Bsz, T, n, m),
+        d["Q"].expand(Bsz, T + 1, n, n),
+        d["R"].expand(Bsz, T, m, m),
+        x0,
+        q=d["q"].expand(Bsz, T + 1, n),
+        r=d["r"].expand(Bsz, T, m),
+        S=d["S"].expand(Bsz, T, m, n),
+        c=d["c"].expand(Bsz, T, n),
+    )
+    return problem, x0, u_init, lq
+
+
+def lq_case(seed=3, n=3, m=2, T=12, Bsz=3):
+    """``(problem, x0, u_init, data)``: the problem of :func:`lq_problem` and its data
+    ``A (T,n,n), B, Q (T+1,n,n), R, q, r, S, c`` (shared by the batch)."""
     g = torch.Generator().manual_seed(seed)
     A = torch.eye(n, dtype=F64) + 0.3 * torch.randn(n, n, generator=g, dtype=F64)
     Bm = torch.randn(n, m, generator=g, dtype=F64)
@@ -132,18 +152,11 @@ def lq_problem(seed=3, n=3, m=2, T=12, Bsz=3):
     problem = Problem(Linear(A, Bm, c), Cost(stage, terminal, state_dim=n, control_dim=m), T)
     x0 = torch.randn(Bsz, n, generator=g, dtype=F64)
     u_init = 3.0 * torch.randn(Bsz, T, m, generator=g, dtype=F64)
-    lq = lqr_solve(
-        A.expand(Bsz, T, n, n),
-        Bm.expand(Bsz, T, n, m),
-        torch.cat([Q, Qf[None]]).expand(Bsz, T + 1, n, n),
-        R.expand(Bsz, T, m, m),
-        x0,
-        q=q.expand(Bsz, T + 1, n),
-        r=r.expand(Bsz, T, m),
-        S=S.expand(Bsz, T, m, n),
-        c=c.expand(Bsz, T, n),
-    )
-    return problem, x0, u_init, lq
+    data = dict(
+        A=A.expand(T, n, n), B=Bm.expand(T, n, m), Q=torch.cat([Q, Qf[None]]), R=R, q=q,
+        r=r, S=S, c=c.expand(T, n),
+    )  # fmt: skip
+    return problem, x0, u_init, data
 
 
 @pytest.mark.parametrize("floor", [None, SQRT_EPS])

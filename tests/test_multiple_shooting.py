@@ -13,11 +13,11 @@ import math
 
 import pytest
 import torch
-from test_ilqr import PEND_X0, Linear, pendulum_nonconvex, pendulum_rk4
+from test_ilqr import PEND_X0, lq_case, pendulum_nonconvex, pendulum_rk4
 from test_lq_kernel import dense_kkt
 from torch import nn
 
-from torchslq import DDP, ILQR, Cost, Problem, QuadraticCost, Status, discretize
+from torchslq import DDP, ILQR, Problem, QuadraticCost, Status, discretize
 from torchslq.dynamics import Dynamics
 from torchslq.systems import CartPole
 
@@ -37,55 +37,15 @@ def rel_err(a: torch.Tensor, b: torch.Tensor) -> float:
 # ----------------------------------------------------------------------------- LQ
 
 
-def lq_case(seed=5, n=3, m=2, T=10, Bsz=3):
-    g = torch.Generator().manual_seed(seed)
-    A = torch.eye(n, dtype=F64) + 0.3 * torch.randn(n, n, generator=g, dtype=F64)
-    Bm = torch.randn(n, m, generator=g, dtype=F64)
-    c = 0.1 * torch.randn(n, generator=g, dtype=F64)
-    L = torch.randn(T, n + m, n + m, generator=g, dtype=F64) / (n + m) ** 0.5
-    H = L @ L.mT + 0.1 * torch.eye(n + m, dtype=F64)
-    Q, R, S = H[:, :n, :n], H[:, n:, n:], H[:, n:, :n]
-    Lf = torch.randn(n, n, generator=g, dtype=F64)
-    Qf = Lf @ Lf.T + torch.eye(n, dtype=F64)
-    q = torch.randn(T + 1, n, generator=g, dtype=F64)
-    r = torch.randn(T, m, generator=g, dtype=F64)
-
-    def stage(x, u, t):
-        return (
-            0.5 * torch.einsum("...ti,tij,...tj->...t", x, Q[t], x)
-            + 0.5 * torch.einsum("...ti,tij,...tj->...t", u, R[t], u)
-            + torch.einsum("...ti,tij,...tj->...t", u, S[t], x)
-            + (q[t] * x).sum(-1)
-            + (r[t] * u).sum(-1)
-        )
-
-    def terminal(x):
-        return 0.5 * torch.einsum("...i,ij,...j->...", x, Qf, x) + (q[T] * x).sum(-1)
-
-    problem = Problem(Linear(A, Bm, c), Cost(stage, terminal, state_dim=n, control_dim=m), T)
-    x0 = torch.randn(Bsz, n, generator=g, dtype=F64)
-    data = dict(
-        A=A.expand(T, n, n),
-        B=Bm.expand(T, n, m),
-        Q=torch.cat([Q, Qf[None]]),
-        R=R,
-        q=q,
-        r=r,
-        S=S,
-        c=c.expand(T, n),
-    )
-    return problem, x0, data, g
-
-
 def test_lq_problem_from_nodes_off_the_dynamics_is_solved_in_one_step():
     """Linear dynamics, quadratic cost: the LQ step with the defects as affine terms is
     the optimum, whatever the nodes. Started from random nodes (large defects) and
     random controls, one step reaches the dense KKT solution and closes the defects."""
-    problem, x0, d, g = lq_case()
-    Bsz, T, n, m = x0.shape[0], problem.horizon, problem.state_dim, problem.control_dim
+    problem, x0, u_init, d = lq_case(seed=5, T=10)
+    Bsz, T, n = x0.shape[0], problem.horizon, problem.state_dim
+    g = torch.Generator().manual_seed(6)
     x_init = 2.0 * torch.randn(Bsz, T + 1, n, generator=g, dtype=F64)
     x_init[:, 0] = x0
-    u_init = 3.0 * torch.randn(Bsz, T, m, generator=g, dtype=F64)
     gaps0 = problem.dynamics(x_init[:, :T], u_init) - x_init[:, 1:]
     assert float(gaps0.abs().max()) > 1.0  # really off the dynamics
     res = ILQR(**MS).solve(problem, x0, u_init, x_init=x_init)

@@ -233,6 +233,32 @@ class LineSearch:
             return self.passes
         return default_passes(device, prev_step, running)
 
+    def armijo(
+        self,
+        evaluate,
+        J0: Tensor,
+        slope: Tensor,
+        curvature: Tensor | None,
+        running: Tensor,
+        prev_step: Tensor | None,
+    ) -> tuple[Tensor, Tensor, Tensor]:
+        """:func:`armijo_search` with this search's constants and pass sizes, the trials
+        of settled elements skipped."""
+        first_trials, pass_size = self.pass_sizes(J0.device, prev_step, running)
+        return armijo_search(
+            evaluate,
+            J0,
+            slope,
+            curvature=curvature,
+            c1=self.c1,
+            beta=self.beta,
+            max_backtracks=self.max_backtracks,
+            active=running,
+            skip_settled=True,
+            first_trials=first_trials,
+            pass_size=pass_size,
+        )
+
     def __call__(
         self, problem: Problem, state: DescentState, d: dict[str, Tensor], running: Tensor
     ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -263,20 +289,8 @@ class LineSearch:
             # the last steps hint at this one's (not for a scaled direction, whose
             # steps are in other units)
             prev = state.prev_step if scale is None else None
-            first_trials, pass_size = self.pass_sizes(J.device, prev, running)
-            alpha, J_new, ok = armijo_search(
-                evaluate,
-                J,
-                slope,
-                curvature=d["curvature"] if self.quadratic_model else None,
-                c1=self.c1,
-                beta=self.beta,
-                max_backtracks=self.max_backtracks,
-                active=running,
-                skip_settled=True,
-                first_trials=first_trials,
-                pass_size=pass_size,
-            )
+            curvature = d["curvature"] if self.quadratic_model else None
+            alpha, J_new, ok = self.armijo(evaluate, J, slope, curvature, running, prev)
         x_new, u_new = trials.select(alpha)
         if scale is not None:
             alpha = alpha * scale

@@ -44,8 +44,8 @@ from torch import Tensor
 
 from ..dynamics.rollout import costate_gradient, rollout
 from ..lq.riccati import rollout_linear
-from .descent import DescentState, default_passes, nonfinite_rows
-from .line_search import TrialRecorder, armijo_search
+from .descent import DescentState, LineSearch, nonfinite_rows
+from .line_search import TrialRecorder
 from .newton import RegularizedNewton, _floored, _merge_factors, _pass
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -211,7 +211,7 @@ def _on_rows(problem: Problem, live: Tensor, xc: Tensor, uc: Tensor) -> tuple[Te
 
 
 @dataclass(frozen=True)
-class MeritLineSearch:
+class MeritLineSearch(LineSearch):
     """Armijo on the exact-penalty merit of multiple shooting (module docstring, step 3):
     the lifted trials ``(X, U) + α (δX, δU)``, each one batched model call over all
     nodes. Same constants as :class:`~torchslq.solvers.descent.LineSearch`; returns the
@@ -219,10 +219,8 @@ class MeritLineSearch:
     success flags, the new nodes and controls, and ``{"defects": ...}`` of the new
     nodes (the state keeps them for the next direction: no model call to recompute)."""
 
-    c1: float = 1e-4
-    beta: float = 0.5
-    max_backtracks: int = 20
-    passes: tuple[int, int | None] | None = None
+    kind: str = "armijo"
+    quadratic_model: bool = True
 
     def __call__(
         self, problem: Problem, state: DescentState, d: dict[str, Tensor], running: Tensor
@@ -247,22 +245,7 @@ class MeritLineSearch:
             trials.record(alphas, xc, uc, J, gaps)
             return J + rho * gaps.abs().flatten(2).sum(2)
 
-        if self.passes is not None:
-            first_trials, pass_size = self.passes
-        else:
-            first_trials, pass_size = default_passes(x.device, state.prev_step, running)
-        alpha, _, ok = armijo_search(
-            evaluate,
-            phi0,
-            d["slope"] - rho * d["violation"],
-            curvature=d["curvature"],
-            c1=self.c1,
-            beta=self.beta,
-            max_backtracks=self.max_backtracks,
-            active=running,
-            skip_settled=True,
-            first_trials=first_trials,
-            pass_size=pass_size,
-        )
+        slope = d["slope"] - rho * d["violation"]
+        alpha, _, ok = self.armijo(evaluate, phi0, slope, d["curvature"], running, state.prev_step)
         x_new, u_new, J_new, gaps = trials.select(alpha)
         return alpha, torch.where(ok, J_new, state.J), ok, x_new, u_new, {"defects": gaps}
