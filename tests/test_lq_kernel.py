@@ -603,3 +603,36 @@ def test_costate_is_gradient_of_optimal_cost():
         jp = lqr_solve(**{**args, "x0": args["x0"] + e}).cost
         jm = lqr_solve(**{**args, "x0": args["x0"] - e}).cost
         assert_rel((jp - jm) / (2 * eps), sol.lam[:, 0, i], 1e-8, f"fd d{i}")
+
+
+@pytest.mark.parametrize("shape", ["batched", "shared_data", "unbatched"])
+def test_forward_without_a_graph_takes_the_compiled_data_pass(shape, monkeypatch):
+    """Without autograd on the CPU, ``lqr_solve`` runs the Riccati pass and the rollout
+    from the data (no homogeneous matrices); every output equals the graph path's (an
+    input that requires grad) and the dense KKT solution."""
+    import torchslq.lq.solve as solve_mod
+
+    if not solve_mod.compiled_available():
+        pytest.skip("numba kernels not importable")
+    args = random_problem(seed=21, bsz=3, T=7, n=4, m=2)
+    if shape == "shared_data":  # one problem's data for three initial states
+        args = {k: (v if k == "x0" else v[:1]) for k, v in args.items()}
+    if shape == "unbatched":
+        args = {k: v[0] for k, v in args.items()}
+    calls = []
+    real = solve_mod.lq_rollout_compiled
+    monkeypatch.setattr(solve_mod, "lq_rollout_compiled", lambda *a: calls.append(1) or real(*a))
+    fast = lqr_solve(**args)
+    assert calls == [1]
+    graph = lqr_solve(**{k: v.clone().requires_grad_(k == "A") for k, v in args.items()})
+    assert calls == [1]  # the graph path builds the homogeneous matrices
+    for name in ("x", "u", "K", "k", "V", "v", "lam", "cost"):
+        a, b = getattr(fast, name), getattr(graph, name).detach()
+        assert a.shape == b.shape, name
+        torch.testing.assert_close(a, b, rtol=1e-11, atol=1e-11, msg=name)
+    assert torch.equal(fast.status, graph.status)
+    one = args if shape == "unbatched" else {k: v[0] for k, v in args.items()}
+    x, u, lam, cost = dense_kkt(**one)
+    first = (lambda t: t) if shape == "unbatched" else (lambda t: t[0])
+    torch.testing.assert_close(first(fast.x), x, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(first(fast.cost), cost, rtol=1e-9, atol=1e-10)

@@ -52,6 +52,48 @@ def rollout_kernel(b0, b1, F, Kk, x0, x, u):
 
 
 @numba.njit(cache=True, nogil=True)
+def lq_rollout_kernel(b0, b1, A, Bm, c, Kk, x0, x, u):
+    """``u_t = K_t x_t + k_t``, ``x_{t+1} = A_t x_t + B_t u_t + c_t`` per element, from
+    the LQ data itself (no homogeneous ``F``): A ``(1 or B, 1 or T, n, n)``, Bm ``(.., n,
+    m)``, c ``(.., n)`` (empty: zero), Kk ``(1 or B, T, m, n+1)``, x0 ``(1 or B, n)``;
+    outputs x ``(B, T+1, n)``, u ``(B, T, m)``."""
+    T = u.shape[1]
+    n = x.shape[2]
+    m = u.shape[2]
+    affine = c.shape[0] > 0
+    for b in range(b0, b1):
+        bk = b if Kk.shape[0] > 1 else 0
+        bx = b if x0.shape[0] > 1 else 0
+        for i in range(n):
+            x[b, 0, i] = x0[bx, i]
+        for t in range(T):
+            xt = x[b, t]
+            ut = u[b, t]
+            Kt = Kk[bk, t]
+            for i in range(m):
+                s = Kt[i, n]
+                for j in range(n):
+                    s += Kt[i, j] * xt[j]
+                ut[i] = s
+            ba, ta = _idx(A, b, t)
+            bb, tb = _idx(Bm, b, t)
+            At = A[ba, ta]
+            Bt = Bm[bb, tb]
+            xn = x[b, t + 1]
+            for i in range(n):
+                s = 0.0
+                for j in range(m):
+                    s += Bt[i, j] * ut[j]
+                for j in range(n):
+                    s += At[i, j] * xt[j]
+                xn[i] = s
+            if affine:
+                bc, tc = _idx(c, b, t)
+                for i in range(n):
+                    xn[i] += c[bc, tc, i]
+
+
+@numba.njit(cache=True, nogil=True)
 def adjoint_kernel(b0, b1, F, Kk, Vh, L, gx, gu, dx, du, dlam):
     """The adjoint LQ solve of :func:`torchslq.lq.lq_adjoint_solve` per element.
 

@@ -334,6 +334,38 @@ def rollout_compiled(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]
     return x.reshape(*batch, T + 1, n), u.reshape(*batch, T, m)
 
 
+def lq_rollout_compiled(
+    A: Tensor, B: Tensor, c: Tensor | None, Kk: Tensor, x0: Tensor
+) -> tuple[Tensor, Tensor]:
+    """The LQ rollout ``u_t = K_t x_t + k_t``, ``x_{t+1} = A_t x_t + B_t u_t + c_t`` on
+    the CPU kernel from the data (``A (..., T, n, n)``, ``B (..., T, n, m)``, ``c (...,
+    T, n)`` or None, each with a time dim of ``T``; ``Kk (..., T, m, n+1)``, ``x0 (...,
+    n)``). Returns ``x (*batch, T+1, n)``, ``u (*batch, T, m)``; call only where
+    :func:`can_use_compiled` holds."""
+    T, m, n = Kk.shape[-3], Kk.shape[-2], x0.shape[-1]
+    shapes = [A.shape[:-3], B.shape[:-3], Kk.shape[:-3], x0.shape[:-1]]
+    if c is not None:
+        shapes.append(c.shape[:-2])
+    batch = broadcast_shapes(*shapes)
+    nb = math.prod(batch)
+    x = torch.empty(nb, T + 1, n, dtype=x0.dtype)
+    u = torch.empty(nb, T, m, dtype=x0.dtype)
+    cn = np.zeros((0, 1, n), dtype=x.numpy().dtype) if c is None else _flat(c, batch, 2)
+    _launch(
+        _kernels().lq_rollout_kernel,
+        nb,
+        T,
+        _flat(A, batch, 3),
+        _flat(B, batch, 3),
+        cn,
+        _flat(Kk, batch, 3),
+        _flat(x0, batch, 1),
+        x.numpy(),
+        u.numpy(),
+    )
+    return x.reshape(*batch, T + 1, n), u.reshape(*batch, T, m)
+
+
 def adjoint_compiled(
     F: Tensor, Kk: Tensor, Vh: Tensor, chol: Tensor, gx: Tensor, gu: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:

@@ -26,7 +26,12 @@ import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
 
-from .._backend import adjoint_compiled, can_use_compiled, compiled_available
+from .._backend import (
+    adjoint_compiled,
+    can_use_compiled,
+    compiled_available,
+    lq_rollout_compiled,
+)
 from .._shapes import broadcast_shapes
 from ..status import Status
 from .riccati import (
@@ -383,6 +388,48 @@ def _with_input_faults(status: Tensor, nonfinite: Tensor, not_pd: Tensor) -> Ten
     return status.masked_fill(nonfinite, int(Status.NON_FINITE))
 
 
+def _forward_compiled(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
+    """:func:`lqr_solve` without autograd on the CPU kernels, from the LQ data as given
+    (time dims expanded): the Riccati pass assembles each step's matrices itself and the
+    rollout reads ``A, B, c``; the optimal cost is the value function at ``x0``
+    (``1/2 [x0; 1]' Vh_0 [x0; 1]``). None where this does not apply (a tensor needs
+    grad, not on the CPU, ``auto`` choosing the scan) or where an element failed."""
+    from .riccati import _compiled_pieces_pass
+
+    args = [t for t in (A, B, Q, R, x0, q, r, S, c) if t is not None]
+    if not can_use_compiled(*args) or (
+        torch.is_grad_enabled() and any(t.requires_grad for t in args)
+    ):
+        return None
+    T, n = A.shape[-3], A.shape[-1]
+    nb = max(x0.shape[:-1].numel(), 1)
+    if method == "auto" and choose_method(T, nb, x0.device, x0.dtype) != "sequential":
+        return None
+    fac = _compiled_pieces_pass(A, B, Q, R, q, r, S, c, None, None, None)
+    if fac is None or bool(fac.failed.any()):
+        return None
+    x, u = lq_rollout_compiled(A, B, c, fac.Kk, x0)
+    batch = x.shape[:-2]
+    Kk = fac.Kk.expand(*batch, *fac.Kk.shape[-3:])
+    Vh = fac.Vh.expand(*batch, *fac.Vh.shape[-3:])
+    finite = torch.isfinite(x).flatten(-2).all(-1) & torch.isfinite(u).flatten(-2).all(-1)
+    xh = _homog(x)
+    lam = (Vh[..., :n, :] @ xh.unsqueeze(-1))[..., 0]
+    cost = 0.5 * (xh[..., 0, :].unsqueeze(-2) @ Vh[..., 0, :, :] @ xh[..., 0, :].unsqueeze(-1))
+    cost = cost[..., 0, 0].masked_fill(~finite, float("nan"))
+    return LQRSolution(
+        x=x,
+        u=u,
+        K=Kk[..., :n],
+        k=Kk[..., n],
+        V=Vh[..., :n, :n],
+        v=Vh[..., :n, n],
+        lam=lam,
+        cost=cost,
+        status=lq_status(torch.zeros_like(finite), finite),
+    )
+
+
 def lqr_solve(
     A: Tensor,
     B: Tensor,
@@ -480,6 +527,13 @@ def lqr_solve(
         # make its factorisation fail: no solution, a zero gradient)
         if bool(not_pd.any()):
             R = torch.where(not_pd.reshape(*not_pd.shape, 1, 1, 1), float("nan"), R)
+    if method != "scan" and not (validate and bool((nonfinite | not_pd).any())):
+        # no graph needed: the compiled pass straight from the data, without building
+        # the homogeneous matrices (None where it does not apply, or an element failed:
+        # the path below then classifies the failures)
+        sol = _forward_compiled(A, B, Q, R, x0, q, r, S, c, method)
+        if sol is not None:
+            return sol
     F = homogeneous_dynamics(A, B, c)
     H, VhT = homogeneous_cost(Q, R, q, r, S)
     batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
