@@ -18,11 +18,7 @@ def _feedback_step(Ft, Kt, xt, ut, xn, affine):
     problem's rollout)."""
     m = ut.shape[0]
     n = xt.shape[0]
-    for i in range(m):
-        s = Kt[i, n] if affine else ut[i]
-        for j in range(n):
-            s += Kt[i, j] * xt[j]
-        ut[i] = s
+    _controls(Kt, xt, ut, affine)
     for i in range(n):
         s = Ft[i, m + n] if affine else 0.0
         for j in range(m):
@@ -30,6 +26,17 @@ def _feedback_step(Ft, Kt, xt, ut, xn, affine):
         for j in range(n):
             s += Ft[i, m + j] * xt[j]
         xn[i] = s
+
+
+@numba.njit(cache=True, nogil=True)
+def _controls(Kt, xt, ut, affine):
+    """``ut = Kt[:, :n] xt + f``: ``f = Kt[:, n]`` with ``affine``, else ``ut`` on entry."""
+    n = xt.shape[0]
+    for i in range(ut.shape[0]):
+        s = Kt[i, n] if affine else ut[i]
+        for j in range(n):
+            s += Kt[i, j] * xt[j]
+        ut[i] = s
 
 
 @numba.njit(cache=True, nogil=True)
@@ -56,7 +63,8 @@ def lq_rollout_kernel(b0, b1, A, Bm, c, Kk, x0, x, u):
     """``u_t = K_t x_t + k_t``, ``x_{t+1} = A_t x_t + B_t u_t + c_t`` per element, from
     the LQ data itself (no homogeneous ``F``): A ``(1 or B, 1 or T, n, n)``, Bm ``(.., n,
     m)``, c ``(.., n)`` (empty: zero), Kk ``(1 or B, T, m, n+1)``, x0 ``(1 or B, n)``;
-    outputs x ``(B, T+1, n)``, u ``(B, T, m)``."""
+    outputs x ``(B, T+1, n)``, u ``(B, T, m)``. The sums in :func:`_feedback_step`'s
+    order, so the result is that of :func:`rollout_kernel` on the homogeneous ``F``."""
     T = u.shape[1]
     n = x.shape[2]
     m = u.shape[2]
@@ -69,28 +77,20 @@ def lq_rollout_kernel(b0, b1, A, Bm, c, Kk, x0, x, u):
         for t in range(T):
             xt = x[b, t]
             ut = u[b, t]
-            Kt = Kk[bk, t]
-            for i in range(m):
-                s = Kt[i, n]
-                for j in range(n):
-                    s += Kt[i, j] * xt[j]
-                ut[i] = s
+            _controls(Kk[bk, t], xt, ut, True)
             ba, ta = _idx(A, b, t)
             bb, tb = _idx(Bm, b, t)
+            bc, tc = _idx(c, b, t) if affine else (0, 0)
             At = A[ba, ta]
             Bt = Bm[bb, tb]
             xn = x[b, t + 1]
             for i in range(n):
-                s = 0.0
+                s = c[bc, tc, i] if affine else 0.0
                 for j in range(m):
                     s += Bt[i, j] * ut[j]
                 for j in range(n):
                     s += At[i, j] * xt[j]
                 xn[i] = s
-            if affine:
-                bc, tc = _idx(c, b, t)
-                for i in range(n):
-                    xn[i] += c[bc, tc, i]
 
 
 @numba.njit(cache=True, nogil=True)

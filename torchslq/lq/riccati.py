@@ -33,7 +33,13 @@ from dataclasses import dataclass, fields, replace
 import torch
 from torch import Tensor
 
-from .._backend import PIECE_NDIMS, can_use_compiled, riccati_compiled, rollout_compiled
+from .._backend import (
+    PIECE_NDIMS,
+    can_use_compiled,
+    lq_rollout_compiled,
+    riccati_compiled,
+    rollout_compiled,
+)
 from .._shapes import broadcast_shapes
 from .boxqp import box_qp
 from .regularization import RegularizationSchedule, Restarts
@@ -712,6 +718,9 @@ def rollout_linear(
     ``A (B,T,n,n)``, ``B (B,T,n,m)``, ``K (B,T,m,n)``, ``k (B,T,m)``, ``x0 (B,n)``,
     ``c (B,T,n)``. Returns ``x (B,T+1,n)``, ``u (B,T,m)``.
     """
-    F = homogeneous_dynamics(A, B, with_time(c, 1, K.shape[-3]))
+    c = with_time(c, 1, K.shape[-3])
     Kk = torch.cat([K, k.unsqueeze(-1)], dim=-1)
-    return rollout_homogeneous(F, Kk, x0)
+    if can_use_compiled(A, B, Kk, x0, *(() if c is None else (c,))):
+        # on the CPU kernel from the data: the homogeneous F is not built
+        return lq_rollout_compiled(A, B, c, Kk, x0)
+    return rollout_homogeneous(homogeneous_dynamics(A, B, c), Kk, x0)

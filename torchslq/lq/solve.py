@@ -396,10 +396,8 @@ def _forward_compiled(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | 
     grad, not on the CPU, ``auto`` choosing the scan) or where an element failed."""
     from .riccati import _compiled_pieces_pass
 
-    args = [t for t in (A, B, Q, R, x0, q, r, S, c) if t is not None]
-    if not can_use_compiled(*args) or (
-        torch.is_grad_enabled() and any(t.requires_grad for t in args)
-    ):
+    # (can_use_compiled is also False where autograd would record a graph)
+    if not can_use_compiled(*(t for t in (A, B, Q, R, x0, q, r, S, c) if t is not None)):
         return None
     T, n = A.shape[-3], A.shape[-1]
     nb = max(x0.shape[:-1].numel(), 1)
