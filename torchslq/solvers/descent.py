@@ -192,8 +192,7 @@ def default_passes(
     if device.type != "cpu":
         return (4, None)
     if prev_step is not None and running is not None:
-        short = int(((prev_step < 1) & running).sum())
-        if 2 * short > int(running.sum()):
+        if bool(2 * ((prev_step < 1) & running).sum() > running.sum()):  # one host sync
             return (2, 2)
     return (1, 3)
 

@@ -1,4 +1,4 @@
-"""Multiple shooting for iLQR/DDP: every time step is a shooting node.
+"""Multiple shooting for iLQR: every time step is a shooting node.
 
 Giftthaler, Neunert, Stäuble, Buchli & Diehl (2018), "A family of iterative Gauss-Newton
 shooting methods for nonlinear optimal control" (GNMS), on the library's Riccati pass.
@@ -12,7 +12,7 @@ One iteration:
 1. **Linearise at every node at once** (one batched call of the model's Jacobians over
    ``B T`` rows) and evaluate the defects (one batched model call).
 2. **LQ step with the defects as affine terms**: ``min`` the cost's second-order model
-   (plus, for DDP, the dynamics' curvature) in ``(δx, δu)`` s.t.
+   (its stage Hessians made positive semidefinite) in ``(δx, δu)`` s.t.
    ``δx_{t+1} = A_t δx_t + B_t δu_t + d_t``, ``δx_0 = 0``: :func:`riccati_backward` with
    ``c = d`` and the Levenberg-Marquardt term of iLQR, then the linear rollout of
    ``δu_t = K_t δx_t + k_t``. A full step closes the linearised defects.
@@ -46,7 +46,7 @@ from ..dynamics.rollout import costate_gradient, rollout
 from ..lq.riccati import rollout_linear
 from .descent import DescentState, LineSearch, nonfinite_rows
 from .line_search import TrialRecorder
-from .newton import RegularizedNewton, _floored, _merge_factors, _pass
+from .newton import RegularizedNewton, _floored, _pass
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -82,12 +82,13 @@ def _linear_form(e, dx: Tensor, du: Tensor) -> Tensor:
 
 @dataclass(frozen=True)
 class MultipleShootingNewton(RegularizedNewton):
-    """The regularised Newton step of :class:`RegularizedNewton` at shooting nodes with
-    defects (module docstring, steps 1-2). Same options; ``defect_tol`` is the largest
-    defect a converged element may have. The direction adds ``dx`` (the subproblem's
-    state step), ``defects (b, T, n)``, ``violation (b,)`` (``Σ|d|_1``), ``penalty``
-    ``(b,)`` and ``feasible (b,)`` (``max|d| <= defect_tol``) to the keys of a
-    direction; ``slope``/``curvature`` are the cost model's along ``(δx, δu)``.
+    """iLQR's regularised Newton step (:class:`RegularizedNewton`, without the dynamics'
+    curvature) at shooting nodes with defects (module docstring, steps 1-2). Same
+    options; ``defect_tol`` is the largest defect a converged element may have. The
+    direction adds ``dx`` (the subproblem's state step), ``violation (b,)``
+    (``Σ|d|_1``), ``penalty (b,)`` and ``feasible (b,)`` (``max|d| <= defect_tol``) to
+    the keys of a direction; ``slope``/``curvature`` are the cost model's along
+    ``(δx, δu)``.
     ``verify_tol``: the gradient tolerance of the stopping test (None: no check): an
     element that passes it with its defects within ``defect_tol`` has its nodes replaced
     by the rollout of its controls and is measured there (it goes on from there if the
@@ -106,23 +107,24 @@ class MultipleShootingNewton(RegularizedNewton):
         return _floored(problem, e, 0.0 if self.hessian_floor is None else self.hessian_floor)
 
     def _at_nodes(self, problem: Problem, x: Tensor, u: Tensor):
-        T = problem.horizon
-        A, B, vhp = self._linearize(problem, x[:, :T], u)
+        """``(A, B, e, grad)`` at the nodes: Jacobians, the convex cost expansion and the
+        gradient of ``J(U)`` along the nodes (the rollout's when the defects are 0)."""
+        A, B, _ = self._linearize(problem, x[:, : problem.horizon], u)
         e = self._expansion(problem, x, u)
-        # the gradient of J(U) along the nodes: that of the rollout when the defects are 0
-        grad, lam = costate_gradient(A, B, e.lx, e.lu)
-        return A, B, vhp, e, grad, lam
+        grad, _ = costate_gradient(A, B, e.lx, e.lu)
+        return A, B, e, grad
 
     def __call__(self, problem: Problem, state: DescentState, running: Tensor, it: int):
         x, u = state.x, state.u
         n = problem.state_dim
         gaps = state.defects  # kept from the line search's trial at the accepted step
-        A, B, vhp, e, grad, lam = self._at_nodes(problem, x, u)
+        # (an element measured again on its rollout below was feasible: it stays so)
+        feasible = gaps.abs().flatten(1).amax(1) <= self.defect_tol
+        A, B, e, grad = self._at_nodes(problem, x, u)
         if self.verify_tol is not None:
             # an element that passes the tests at its nodes is measured again on the
             # rollout of its controls (what the result returns): tiny defects, amplified
             # along an unstable horizon, can still move the gradient by a few percent
-            feasible = gaps.abs().flatten(1).amax(1) <= self.defect_tol
             near = running & feasible & (grad.flatten(1).norm(dim=1) < self.verify_tol)
             if bool(near.any()):
                 idx = near.nonzero().squeeze(1)
@@ -133,25 +135,17 @@ class MultipleShootingNewton(RegularizedNewton):
                 gaps = gaps.index_fill(0, idx, 0.0)
                 state = replace(state, x=x, defects=gaps, J=problem.cost(x, u))
                 if idx.numel() == b:
-                    A, B, vhp, e, grad, lam = self._at_nodes(problem, x, u)
+                    A, B, e, grad = self._at_nodes(problem, x, u)
                 else:  # only those elements are linearised again
-                    new = self._at_nodes(sub, xr, u[idx])
-                    A, B, grad, lam = (
-                        t.index_copy(0, idx, t_new)
-                        for t, t_new in zip(
-                            (A, B, grad, lam), (new[0], new[1], *new[4:]), strict=True
-                        )
+                    A_r, B_r, e_r, grad_r = self._at_nodes(sub, xr, u[idx])
+                    A, B, grad = (
+                        t.index_copy(0, idx, t_r)
+                        for t, t_r in zip((A, B, grad), (A_r, B_r, grad_r), strict=True)
                     )
-                    e = _merged_expansion(e, new[3], idx, b)
-        hook = self._second_order(problem, x, u, lam, e, vhp)
+                    e = _merged_expansion(e, e_r, idx, b)
         restarts = self.schedule.restarts(state.delta, running)
-        fac, bad = _pass(A, B, e, hook, None, state.mu, restarts=restarts, c=gaps)
+        fac, bad = _pass(A, B, e, None, None, state.mu, restarts=restarts, c=gaps)
         mu, delta = fac.reg, fac.reg_delta
-        if hook is not None and bool((bad & running).any()):
-            # as RegularizedNewton: the Gauss-Newton step where the curvature made it fail
-            fac_gn, bad_gn = _pass(A, B, e, None, None, mu, c=gaps)
-            fac = _merge_factors(bad & running, fac_gn, fac)
-            bad = torch.where(bad & running, bad_gn, bad)
         failed = bad | (mu > self.schedule.reg_max)
         nonfinite = nonfinite_rows(A, B, e.lx, e.lu, gaps) if bool(failed.any()) else None
         dx, du = rollout_linear(A, B, fac.K, fac.k, torch.zeros_like(x[:, 0]), c=gaps)
@@ -171,10 +165,9 @@ class MultipleShootingNewton(RegularizedNewton):
             "slope": slope,
             "curvature": curv,
             "failed": failed,
-            "defects": gaps,
             "violation": gaps.abs().flatten(1).sum(1),
             "penalty": penalty,
-            "feasible": gaps.abs().flatten(1).amax(1) <= self.defect_tol,
+            "feasible": feasible,
         }
         if nonfinite is not None:
             d["nonfinite"] = nonfinite
