@@ -605,11 +605,21 @@ def test_costate_is_gradient_of_optimal_cost():
         assert_rel((jp - jm) / (2 * eps), sol.lam[:, 0, i], 1e-8, f"fd d{i}")
 
 
-@pytest.mark.parametrize("shape", ["batched", "shared_data", "unbatched"])
-def test_forward_without_a_graph_takes_the_compiled_data_pass(shape, monkeypatch):
-    """Without autograd on the CPU, ``lqr_solve`` runs the Riccati pass and the rollout
-    from the data (no homogeneous matrices); every output equals the graph path's (an
-    input that requires grad) and the dense KKT solution."""
+def _homogeneous_only(monkeypatch):
+    """Make ``lqr_solve`` take the homogeneous path (the gain-form kernels off)."""
+    import torchslq.lq.solve as solve_mod
+
+    monkeypatch.setattr(solve_mod, "_solve_gain", lambda *a, **k: None)
+
+
+@pytest.mark.parametrize("grad", [False, True])
+@pytest.mark.parametrize("shape", ["batched", "shared_data", "unbatched", "broadcast"])
+def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad, monkeypatch):
+    """On the CPU ``lqr_solve`` runs the gain-form kernels straight from the data, with or
+    without a graph. Every output equals the homogeneous path's (the kernels switched
+    off) and the dense KKT solution; with a graph, the gradients of every input equal
+    the homogeneous path's implicit ones (shared data and time-broadcast weights
+    included)."""
     import torchslq.lq.solve as solve_mod
 
     if not solve_mod.compiled_available():
@@ -619,20 +629,43 @@ def test_forward_without_a_graph_takes_the_compiled_data_pass(shape, monkeypatch
         args = {k: (v if k == "x0" else v[:1]) for k, v in args.items()}
     if shape == "unbatched":
         args = {k: v[0] for k, v in args.items()}
+    if shape == "broadcast":  # no batch dim, a time dim of 1, a constant matrix
+        args = {**args, "A": args["A"][0], "R": args["R"][:, :1], "Q": args["Q"][0, 0]}
     calls = []
-    real = solve_mod.lq_rollout_compiled
-    monkeypatch.setattr(solve_mod, "lq_rollout_compiled", lambda *a: calls.append(1) or real(*a))
-    fast = lqr_solve(**args)
+    real = solve_mod.lq_gain_solve
+    monkeypatch.setattr(solve_mod, "lq_gain_solve", lambda *a: calls.append(1) or real(*a))
+    g = torch.Generator().manual_seed(3)
+
+    def run(inputs):
+        leaves = {k: v.clone().requires_grad_(grad) for k, v in inputs.items()}
+        sol = lqr_solve(**leaves)
+        if grad:
+            wx = torch.randn(sol.x.shape, generator=g, dtype=F64)
+            wu = torch.randn(sol.u.shape, generator=g, dtype=F64)
+            ((sol.x * wx).sum() + (sol.u * wu).sum() + sol.cost.sum()).backward()
+        return sol, {k: v.grad for k, v in leaves.items()}
+
+    fast, fast_grads = run(args)
     assert calls == [1]
-    graph = lqr_solve(**{k: v.clone().requires_grad_(k == "A") for k, v in args.items()})
-    assert calls == [1]  # the graph path builds the homogeneous matrices
+    g.manual_seed(3)
+    _homogeneous_only(monkeypatch)
+    slow, slow_grads = run(args)
     for name in ("x", "u", "K", "k", "V", "v", "lam", "cost"):
-        a, b = getattr(fast, name), getattr(graph, name).detach()
+        a, b = getattr(fast, name).detach(), getattr(slow, name).detach()
         assert a.shape == b.shape, name
         torch.testing.assert_close(a, b, rtol=1e-11, atol=1e-11, msg=name)
-    assert torch.equal(fast.status, graph.status)
+    assert torch.equal(fast.status, slow.status)
+    for name, a in fast_grads.items():
+        b = slow_grads[name]
+        if not grad:
+            assert a is None and b is None
+            continue
+        assert a.shape == args[name].shape, name
+        torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10, msg=f"d/d{name}")
+    if shape == "broadcast":
+        return
     one = args if shape == "unbatched" else {k: v[0] for k, v in args.items()}
     x, u, lam, cost = dense_kkt(**one)
     first = (lambda t: t) if shape == "unbatched" else (lambda t: t[0])
-    torch.testing.assert_close(first(fast.x), x, rtol=1e-9, atol=1e-10)
-    torch.testing.assert_close(first(fast.cost), cost, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(first(fast.x).detach(), x, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(first(fast.cost).detach(), cost, rtol=1e-9, atol=1e-10)

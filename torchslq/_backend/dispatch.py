@@ -632,3 +632,135 @@ def _box_opts() -> tuple:
 def _np_dtype(dtype: torch.dtype) -> np.dtype:
     """The numpy dtype of a torch float dtype (for the kernels' empty placeholders)."""
     return np.float32 if dtype == torch.float32 else np.float64
+
+
+# ----------------------------------------------------------------------------- gain form
+
+
+def _gain_kernels() -> ModuleType:
+    """The gain-form LQ kernels (:mod:`._numba_gain`); call where :func:`can_use_compiled`
+    holds (numba importable)."""
+    from . import _numba_gain
+
+    return _numba_gain
+
+
+def _one_time_step(t: Tensor, tail: int) -> Tensor:
+    """``t (..., steps, *tail dims)`` with its time dim cut to 1 where it is a broadcast
+    (stride 0): the kernels index a time dim of 1 for every step, and the expanded
+    tensor would otherwise be copied ``steps`` times."""
+    d = t.ndim - tail - 1
+    if t.shape[d] > 1 and t.stride(d) == 0:
+        return t.narrow(d, 0, 1)
+    return t
+
+
+# (A, B, c, Q, R, S, q, r): dims after the batch dims, time included
+_GAIN_TAILS = (3, 3, 2, 3, 3, 3, 2, 2)
+
+
+def lq_gain_pieces(
+    A: Tensor, B: Tensor, c: Tensor | None, Q: Tensor, R: Tensor, S: Tensor | None,
+    q: Tensor | None, r: Tensor | None, batch: torch.Size,
+) -> tuple[tuple[np.ndarray, ...], int]:  # fmt: skip
+    """The LQ data as the gain kernels' ``pieces`` (each ``(1 or prod(batch), 1 or steps,
+    ...)``; an absent ``c, S, q, r`` an empty array) and the data's own batch size: 1
+    where every piece is shared by the batch (one Riccati pass serves all), else
+    ``prod(batch)``. Time dims must be given (``with_time``); ``batch`` is the full
+    batch shape (x0's included)."""
+    n, m = B.shape[-2], B.shape[-1]
+    dtype = _np_dtype(A.dtype)
+    empty = {2: (0, 1, n), 3: (0, 1, m, n)}
+    arrays, shared = [], True
+    for t, tail, name in zip((A, B, c, Q, R, S, q, r), _GAIN_TAILS, "ABcQRSqr", strict=True):
+        if t is None:
+            shape = (0, 1, m) if name == "r" else empty[tail]
+            arrays.append(np.zeros(shape, dtype=dtype))
+            continue
+        t = _one_time_step(t.detach(), tail)
+        shared = shared and math.prod(t.shape[: t.ndim - tail]) == 1
+        arrays.append(t)
+    nb = math.prod(batch)
+    data_batch = 1 if shared else nb
+    out = tuple(
+        a if isinstance(a, np.ndarray) else _flat(a, batch if data_batch > 1 else (1,), tail)
+        for a, tail in zip(arrays, _GAIN_TAILS, strict=True)
+    )
+    return out, data_batch
+
+
+def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T: int) -> dict:
+    """:func:`torchslq.lqr_solve` on the gain-form kernels (:mod:`._numba_gain`), without
+    autograd: the Riccati pass over the data's batch (``data_batch``, 1 or ``B``), the
+    rollout, costates and optimal cost over ``x0 (B, n)``'s batch.
+
+    Returns a dict of tensors: ``K (Bd, T, m, n)``, ``k (Bd, T, m)``, ``P (Bd, T+1, n,
+    n)``, ``p (Bd, T+1, n)``, ``L (Bd, T, m, m)`` (``Quu``'s Cholesky factors),
+    ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T, m)``, ``lam (B, T+1, n)``,
+    ``cost (B,)`` (NaN where not finite), ``finite (B,)``. Call only where
+    :func:`can_use_compiled` holds."""
+    kern = _gain_kernels()
+    A, Bm, c = pieces[0], pieces[1], pieces[2]
+    n, m = Bm.shape[-2], Bm.shape[-1]
+    nb = x0.shape[0]
+    dtype = x0.dtype
+    K = torch.empty(data_batch, T, m, n, dtype=dtype)
+    k = torch.empty(data_batch, T, m, dtype=dtype)
+    P = torch.empty(data_batch, T + 1, n, n, dtype=dtype)
+    p = torch.empty(data_batch, T + 1, n, dtype=dtype)
+    L = torch.empty(data_batch, T, m, m, dtype=dtype)
+    s = torch.empty(data_batch, dtype=dtype)
+    failed = torch.empty(data_batch, dtype=torch.bool)
+    Kn, kn, Pn, pn, sn = K.numpy(), k.numpy(), P.numpy(), p.numpy(), s.numpy()
+    _launch(
+        kern.riccati_gain_kernel, data_batch, T, pieces, Kn, kn, Pn, pn, L.numpy(), sn,
+        failed.numpy(),
+    )  # fmt: skip
+    x = torch.empty(nb, T + 1, n, dtype=dtype)
+    u = torch.empty(nb, T, m, dtype=dtype)
+    lam = torch.empty(nb, T + 1, n, dtype=dtype)
+    cost = torch.empty(nb, dtype=dtype)
+    finite = torch.empty(nb, dtype=torch.bool)
+    _launch(
+        kern.rollout_gain_kernel, nb, T, A, Bm, c, Kn, kn, Pn, pn, sn,
+        x0.detach().contiguous().numpy(), x.numpy(), u.numpy(), lam.numpy(), cost.numpy(),
+        finite.numpy(),
+    )  # fmt: skip
+    return {
+        "K": K, "k": k, "P": P, "p": p, "L": L, "failed": failed,
+        "x": x, "u": u, "lam": lam, "cost": cost, "finite": finite,
+    }  # fmt: skip
+
+
+def lq_gain_gradients(
+    pieces: tuple[np.ndarray, ...], sol: dict, ok: Tensor, gx: Tensor, gu: Tensor,
+    needs: tuple[bool, ...],
+) -> tuple[Tensor | None, ...]:  # fmt: skip
+    """Gradients of :func:`lq_gain_solve`'s ``x, u`` (incoming ``gx (B, T+1, n)``,
+    ``gu (B, T, m)``) with respect to ``(A, B, Q, R, x0, q, r, S, c)``, each with full
+    batch and time dims (``(B, T, n, n)``, ...; None where ``needs`` is False); zero for
+    elements where ``ok (B,)`` is False."""
+    kern = _gain_kernels()
+    x, u, lam = sol["x"], sol["u"], sol["lam"]
+    nb, T1, n = x.shape
+    T, m = T1 - 1, u.shape[-1]
+    dtype = x.dtype
+    shapes = (
+        (T, n, n), (T, n, m), (T + 1, n, n), (T, m, m), (n,), (T + 1, n), (T, m), (T, m, n),
+        (T, n),
+    )  # fmt: skip
+    out = [
+        torch.empty(nb, *shape, dtype=dtype) if need else torch.empty(0, *shape, dtype=dtype)
+        for shape, need in zip(shapes, needs, strict=True)
+    ]
+    gA, gB, gQ, gR, gx0, gq, gr, gS, gc = out
+    vs = np.empty((nb, T + 1, n), dtype=_np_dtype(dtype))
+    ks = np.empty((nb, T, m), dtype=_np_dtype(dtype))
+    _launch(
+        kern.adjoint_gain_kernel, nb, T, pieces[0], pieces[1], sol["K"].numpy(),
+        sol["L"].numpy(), sol["P"].numpy(), x.numpy(), u.numpy(), lam.numpy(),
+        ok.contiguous().numpy(), gx.contiguous().numpy(), gu.contiguous().numpy(), vs, ks,
+        gA.numpy(), gB.numpy(), gc.numpy(), gQ.numpy(), gR.numpy(), gS.numpy(), gq.numpy(),
+        gr.numpy(), gx0.numpy(),
+    )  # fmt: skip
+    return tuple(g if need else None for g, need in zip(out, needs, strict=True))

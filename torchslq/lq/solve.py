@@ -20,6 +20,7 @@ associative scan of Särkkä & García-Fernández (2023) (:mod:`.scan`), whose s
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -30,8 +31,8 @@ from .._backend import (
     adjoint_compiled,
     can_use_compiled,
     compiled_available,
-    lq_rollout_compiled,
 )
+from .._backend.dispatch import lq_gain_gradients, lq_gain_pieces, lq_gain_solve
 from .._shapes import broadcast_shapes
 from ..status import Status
 from .riccati import (
@@ -388,41 +389,89 @@ def _with_input_faults(status: Tensor, nonfinite: Tensor, not_pd: Tensor) -> Ten
     return status.masked_fill(nonfinite, int(Status.NON_FINITE))
 
 
-def _forward_compiled(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
-    """:func:`lqr_solve` without autograd on the CPU kernels, from the LQ data as given
-    (time dims expanded): the Riccati pass assembles each step's matrices itself and the
-    rollout reads ``A, B, c``; the optimal cost is the value function at ``x0``
-    (``1/2 [x0; 1]' Vh_0 [x0; 1]``). None where this does not apply (a tensor needs
-    grad, not on the CPU, ``auto`` choosing the scan) or where an element failed."""
-    from .riccati import _compiled_pieces_pass
+class _GainLQRFunction(torch.autograd.Function):
+    """(A, B, Q, R, x0, q, r, S, c) -> (x, u) on the gain-form CPU kernels, solved
+    before the call (``sol`` of :func:`lq_gain_solve`, every element's factorisation
+    succeeded); the backward pass is the implicit-KKT one of :class:`_LQRFunction`
+    written on the data directly (:func:`lq_gain_gradients`): one vector recursion
+    with the forward factors and the outer products, no homogeneous matrices."""
 
-    # (can_use_compiled is also False where autograd would record a graph)
-    if not can_use_compiled(*(t for t in (A, B, Q, R, x0, q, r, S, c) if t is not None)):
+    @staticmethod
+    def forward(ctx, pieces, sol, batch, A, B, Q, R, x0, q, r, S, c):  # noqa: D401
+        data = (A, B, Q, R, x0, q, r, S, c)
+        ctx.pieces, ctx.batch = pieces, batch
+        ctx.factors = {key: sol[key] for key in ("K", "L", "P", "lam", "finite")}
+        ctx.shapes = [None if t is None else t.shape for t in data]
+        x = sol["x"].reshape(tuple(batch) + tuple(sol["x"].shape[1:]))
+        u = sol["u"].reshape(tuple(batch) + tuple(sol["u"].shape[1:]))
+        # the inputs are saved so that autograd reports an in-place change before the
+        # backward pass (the kernels read them through ``pieces``)
+        ctx.save_for_backward(x, u, *(t for t in data if t is not None))
+        return x, u
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, gx, gu):
+        x, u = ctx.saved_tensors[:2]
+        nb = max(math.prod(ctx.batch), 1)
+        x, u = x.detach().reshape(nb, *x.shape[-2:]), u.detach().reshape(nb, *u.shape[-2:])
+        gx = torch.zeros_like(x) if gx is None else gx.reshape(nb, *x.shape[-2:])
+        gu = torch.zeros_like(u) if gu is None else gu.reshape(nb, *u.shape[-2:])
+        sol = dict(ctx.factors, x=x, u=u)
+        needs = tuple(ctx.needs_input_grad[3:])
+        grads = lq_gain_gradients(ctx.pieces, sol, sol["finite"], gx, gu, needs)
+        out = []
+        for g, shape in zip(grads, ctx.shapes, strict=True):
+            if g is not None:
+                g = g.reshape(tuple(ctx.batch) + tuple(g.shape[1:])).sum_to_size(shape)
+            out.append(g)
+        return (None, None, None, *out)
+
+
+def _solve_gain(A, B, Q, R, R_given, x0, q, r, S, c, method: str) -> LQRSolution | None:
+    """:func:`lqr_solve` on the gain-form CPU kernels (:func:`lq_gain_solve`), with or
+    without autograd (:class:`_GainLQRFunction`); the arguments as given, time dims
+    expanded. None where this does not apply (not on the CPU, a ``torch.func``
+    transform, ``auto`` choosing the scan) or where an element's factorisation failed:
+    the homogeneous path then classifies the failures."""
+    data = (A, B, Q, R, x0, q, r, S, c)
+    present = [t for t in data if t is not None]
+    if x0.device.type != "cpu" or not can_use_compiled(*(t.detach() for t in present)):
         return None
     T, n = A.shape[-3], A.shape[-1]
-    nb = max(x0.shape[:-1].numel(), 1)
+    batch = broadcast_shapes(
+        A.shape[:-3], B.shape[:-3], Q.shape[:-3], R.shape[:-3], x0.shape[:-1],
+        *(t.shape[:-2] for t in (q, r, c) if t is not None),
+        *(() if S is None else (S.shape[:-3],)),
+    )  # fmt: skip
+    nb = max(math.prod(batch), 1)
     if method == "auto" and choose_method(T, nb, x0.device, x0.dtype) != "sequential":
         return None
-    fac = _compiled_pieces_pass(A, B, Q, R, q, r, S, c, None, None, None)
-    if fac is None or bool(fac.failed.any()):
+    pieces, data_batch = lq_gain_pieces(A, B, c, Q, R, S, q, r, batch)
+    sol = lq_gain_solve(pieces, data_batch, x0.detach().expand(*batch, n).reshape(nb, n), T)
+    if bool(sol["failed"].any()):
         return None
-    x, u = lq_rollout_compiled(A, B, c, fac.Kk, x0)
-    batch = x.shape[:-2]
-    Kk = fac.Kk.expand(*batch, *fac.Kk.shape[-3:])
-    Vh = fac.Vh.expand(*batch, *fac.Vh.shape[-3:])
-    finite = torch.isfinite(x).flatten(-2).all(-1) & torch.isfinite(u).flatten(-2).all(-1)
-    xh = _homog(x)
-    lam = (Vh[..., :n, :] @ xh.unsqueeze(-1))[..., 0]
-    cost = 0.5 * (xh[..., 0, :].unsqueeze(-2) @ Vh[..., 0, :, :] @ xh[..., 0, :].unsqueeze(-1))
-    cost = cost[..., 0, 0].masked_fill(~finite, float("nan"))
+
+    def full(t: Tensor) -> Tensor:  # (1 or nb, ...) -> (*batch, ...)
+        return t.expand(nb, *t.shape[1:]).reshape(tuple(batch) + tuple(t.shape[1:]))
+
+    finite = full(sol["finite"])
+    if torch.is_grad_enabled() and any(t.requires_grad for t in present):
+        x, u = _GainLQRFunction.apply(pieces, sol, batch, *data)
+        ok = finite.reshape(*finite.shape, 1, 1)
+        cost = lq_objective(
+            torch.where(ok, x, 0.0), torch.where(ok, u, 0.0), Q, R_given, q, r, S
+        ).masked_fill(~finite, float("nan"))
+    else:
+        x, u, cost = full(sol["x"]), full(sol["u"]), full(sol["cost"])
     return LQRSolution(
         x=x,
         u=u,
-        K=Kk[..., :n],
-        k=Kk[..., n],
-        V=Vh[..., :n, :n],
-        v=Vh[..., :n, n],
-        lam=lam,
+        K=full(sol["K"]),
+        k=full(sol["k"]),
+        V=full(sol["P"]),
+        v=full(sol["p"]),
+        lam=full(sol["lam"]),
         cost=cost,
         status=lq_status(torch.zeros_like(finite), finite),
     )
@@ -526,10 +575,10 @@ def lqr_solve(
         if bool(not_pd.any()):
             R = torch.where(not_pd.reshape(*not_pd.shape, 1, 1, 1), float("nan"), R)
     if method != "scan" and not (validate and bool((nonfinite | not_pd).any())):
-        # no graph needed: the compiled pass straight from the data, without building
-        # the homogeneous matrices (None where it does not apply, or an element failed:
-        # the path below then classifies the failures)
-        sol = _forward_compiled(A, B, Q, R, x0, q, r, S, c, method)
+        # on the CPU: the gain-form kernels straight from the data, with or without a
+        # graph (None where they do not apply, or an element failed: the homogeneous
+        # path below then classifies the failures)
+        sol = _solve_gain(A, B, Q, R, R_given, x0, q, r, S, c, method)
         if sol is not None:
             return sol
     F = homogeneous_dynamics(A, B, c)
