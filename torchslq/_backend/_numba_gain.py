@@ -38,7 +38,68 @@ def _row(a, b, t):
     return (b if a.shape[0] > 1 else 0), (t if a.shape[1] > 1 else 0)
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"})
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+def _acc_nn(C, X, Y, sign):
+    """``C += sign X Y``, four columns of ``C`` at a time in registers: four independent
+    sums per pass over ``k`` (one sum at a time waits on the FMA latency at every
+    term, which is what bounds scalar code on these small matrices)."""
+    rows, inner, cols = X.shape[0], X.shape[1], Y.shape[1]
+    for i in range(rows):
+        Xi = X[i]
+        Ci = C[i]
+        j = 0
+        while j + 4 <= cols:
+            a0 = a1 = a2 = a3 = 0.0
+            for k in range(inner):
+                x = Xi[k]
+                Yk = Y[k]
+                a0 += x * Yk[j]
+                a1 += x * Yk[j + 1]
+                a2 += x * Yk[j + 2]
+                a3 += x * Yk[j + 3]
+            Ci[j] += sign * a0
+            Ci[j + 1] += sign * a1
+            Ci[j + 2] += sign * a2
+            Ci[j + 3] += sign * a3
+            j += 4
+        while j < cols:
+            a0 = 0.0
+            for k in range(inner):
+                a0 += Xi[k] * Y[k, j]
+            Ci[j] += sign * a0
+            j += 1
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+def _acc_tn(C, X, Y, sign, upper):
+    """``C += sign X'Y`` as :func:`_acc_nn` (only ``j >= i`` where ``upper``)."""
+    inner, rows, cols = X.shape[0], X.shape[1], Y.shape[1]
+    for i in range(rows):
+        Ci = C[i]
+        j = i if upper else 0
+        while j + 4 <= cols:
+            a0 = a1 = a2 = a3 = 0.0
+            for k in range(inner):
+                x = X[k, i]
+                Yk = Y[k]
+                a0 += x * Yk[j]
+                a1 += x * Yk[j + 1]
+                a2 += x * Yk[j + 2]
+                a3 += x * Yk[j + 3]
+            Ci[j] += sign * a0
+            Ci[j + 1] += sign * a1
+            Ci[j + 2] += sign * a2
+            Ci[j + 3] += sign * a3
+            j += 4
+        while j < cols:
+            a0 = 0.0
+            for k in range(inner):
+                a0 += X[k, i] * Y[k, j]
+            Ci[j] += sign * a0
+            j += 1
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
     """Gain-form Riccati pass (module docstring) of elements ``b0 <= b < b1``, one
     element at a time. The matrix products run with each sum in a register (dot order)
@@ -102,18 +163,10 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
             # PA = P'A, PB = P'B: sums in registers (dot order) for small n, else
             # row (axpy) order, whose contiguous inner loops LLVM vectorises
             if n < ROW_ORDER_N:
-                for i in range(n):
-                    Pi = Pn[i]
-                    for j in range(n):
-                        acc = 0.0
-                        for kk in range(n):
-                            acc += Pi[kk] * At[kk, j]
-                        PA[i, j] = acc
-                    for j in range(m):
-                        acc = 0.0
-                        for kk in range(n):
-                            acc += Pi[kk] * Bt[kk, j]
-                        PB[i, j] = acc
+                PA[:] = 0.0
+                PB[:] = 0.0
+                _acc_nn(PA, Pn, At, 1.0)
+                _acc_nn(PB, Pn, Bt, 1.0)
             else:
                 for i in range(n):
                     Pi = Pn[i]
@@ -141,15 +194,12 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
                         for kk in range(n):
                             acc += Bt[kk, i] * PB[kk, j]
                         Lq[i, j] = acc
-                    for j in range(n):
-                        acc = 0.0
-                        for kk in range(n):
-                            acc += Bt[kk, i] * PA[kk, j]
-                        Y[i, j] = acc
                     acc = 0.0
                     for kk in range(n):
                         acc += Bt[kk, i] * wv[kk]
                     y[i] = acc
+                Y[:] = 0.0
+                _acc_tn(Y, Bt, PA, 1.0, False)
             else:
                 for i in range(m):
                     for j in range(i + 1):
@@ -214,19 +264,18 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
             if n < ROW_ORDER_N:
                 for i in range(n):
                     for j in range(i, n):
-                        acc = 0.5 * (Qt[i, j] + Qt[j, i])
-                        for kk in range(n):
-                            acc += At[kk, i] * PA[kk, j]
-                        for kk in range(m):
-                            acc -= Y[kk, i] * Y[kk, j]
-                        Pc[i, j] = acc
-                        Pc[j, i] = acc
+                        Pc[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
                     acc = 0.0
                     for kk in range(n):
                         acc += At[kk, i] * wv[kk]
                     for kk in range(m):
                         acc -= Y[kk, i] * y[kk]
                     pc[i] = acc
+                _acc_tn(Pc, At, PA, 1.0, True)
+                _acc_tn(Pc, Y, Y, -1.0, True)
+                for i in range(n):
+                    for j in range(i + 1, n):
+                        Pc[j, i] = Pc[i, j]
             else:
                 for i in range(n):
                     Pci = Pc[i]
@@ -350,9 +399,9 @@ def rollout_gain_kernel(b0, b1, A, Bm, c, K, k, P, p, s, x0, x, u, lam, cost, fi
         finite[e] = fin
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"})
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def adjoint_gain_kernel(
-    b0, b1, A, Bm, K, L, P, x, u, lam, ok, gx, gu, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr, gx0
+    b0, b1, A, Bm, K, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr, gx0
 ):
     """Backward pass of the implicit differentiation (Amos et al. 2018, Sec. 4.2) for
     elements ``b0 <= b < b1``: the LQ problem with the forward problem's matrices and
@@ -366,6 +415,11 @@ def adjoint_gain_kernel(
         gc_t = dlam_{t+1},   gQ_t = (dx_t x_t' + x_t dx_t') / 2,   gq_t = dx_t
         gR_t = (du_t u_t' + u_t du_t') / 2,   gS_t = du_t x_t' + u_t dx_t',   gr_t = du_t
         gx0 = dlam_0
+
+    and with the optimal cost's incoming gradient ``gJ (B,)`` its own gradient on top
+    (envelope theorem: the Lagrangian's partial derivatives at the solution, ``lam_{t+1}
+    x_t'`` for ``A_t``, ``x_t x_t' / 2`` for ``Q_t``, ``lam_0`` for ``x0``, ...), folded in
+    as ``dlam += gJ lam``, ``dx += gJ x / 2``, ``du += gJ u / 2`` in the products.
 
     ``A, B`` as in :func:`riccati_gain_kernel`; ``K, L (1|B, T, ...)``, ``P (1|B, T+1,
     n, n)``; ``x, u, lam`` the forward solution and ``gx (B, T+1, n)``, ``gu (B, T,
@@ -386,6 +440,9 @@ def adjoint_gain_kernel(
     dl = np.empty(n, dtype=dt)
     dln = np.empty(n, dtype=dt)
     z = np.empty(m, dtype=dt)
+    dlj = np.empty(n, dtype=dt)
+    dxj = np.empty(n, dtype=dt)
+    duj = np.empty(m, dtype=dt)
     for e in range(b0, b1):
         if not ok[e]:
             _zero_gradients(e, gA, gB, gc, gQ, gR, gS, gq, gr, gx0)
@@ -429,22 +486,26 @@ def adjoint_gain_kernel(
                 kt[i] = acc / Lt[i, i]
             for i in range(m):
                 kt[i] = -kt[i]
+        gj = gJ[e]
+        hj = 0.5 * gj
         for i in range(n):
             dx[i] = 0.0
             dl[i] = ve[0, i]  # P_0 dx_0 + v_0 with dx_0 = 0
         if gx0.shape[0] > 0:
             for i in range(n):
-                gx0[e, i] = dl[i]
+                gx0[e, i] = dl[i] + gj * lam[e, 0, i]
         for t in range(T + 1):
             xt = x[e, t]
             if gQ.shape[0] > 0:
                 G = gQ[e, t]
                 for i in range(n):
                     for j in range(n):
-                        G[i, j] = 0.5 * (dx[i] * xt[j] + xt[i] * dx[j])
+                        G[i, j] = 0.5 * (
+                            (dx[i] + hj * xt[i]) * xt[j] + xt[i] * (dx[j] + hj * xt[j])
+                        )
             if gq.shape[0] > 0:
                 for i in range(n):
-                    gq[e, t, i] = dx[i]
+                    gq[e, t, i] = dx[i] + gj * xt[i]
             if t == T:
                 break
             ut = u[e, t]
@@ -474,32 +535,37 @@ def adjoint_gain_kernel(
                     acc += Pn[i, j] * dxn[j]
                 dln[i] = acc
             ln = lam[e, t + 1]
+            for i in range(n):
+                dlj[i] = dln[i] + gj * ln[i]
+                dxj[i] = dx[i] + hj * xt[i]
+            for i in range(m):
+                duj[i] = du[i] + hj * ut[i]
             if gA.shape[0] > 0:
                 G = gA[e, t]
                 for i in range(n):
                     for j in range(n):
-                        G[i, j] = dln[i] * xt[j] + ln[i] * dx[j]
+                        G[i, j] = dlj[i] * xt[j] + ln[i] * dx[j]
             if gB.shape[0] > 0:
                 G = gB[e, t]
                 for i in range(n):
                     for j in range(m):
-                        G[i, j] = dln[i] * ut[j] + ln[i] * du[j]
+                        G[i, j] = dlj[i] * ut[j] + ln[i] * du[j]
             if gc.shape[0] > 0:
                 for i in range(n):
-                    gc[e, t, i] = dln[i]
+                    gc[e, t, i] = dlj[i]
             if gR.shape[0] > 0:
                 G = gR[e, t]
                 for i in range(m):
                     for j in range(m):
-                        G[i, j] = 0.5 * (du[i] * ut[j] + ut[i] * du[j])
+                        G[i, j] = 0.5 * (duj[i] * ut[j] + ut[i] * duj[j])
             if gS.shape[0] > 0:
                 G = gS[e, t]
                 for i in range(m):
                     for j in range(n):
-                        G[i, j] = du[i] * xt[j] + ut[i] * dx[j]
+                        G[i, j] = duj[i] * xt[j] + ut[i] * dxj[j]
             if gr.shape[0] > 0:
                 for i in range(m):
-                    gr[e, t, i] = du[i]
+                    gr[e, t, i] = du[i] + gj * ut[i]
             for i in range(n):
                 dx[i] = dxn[i]
                 dl[i] = dln[i]

@@ -184,6 +184,8 @@ def _launch(kernel, nb: int, T: int, *args) -> None:
 
 def _flat(t: Tensor, batch: torch.Size, tail: int) -> np.ndarray:
     """``t (..., *tail dims)`` as a contiguous ``(1 or prod(batch), *tail)`` array."""
+    if t.ndim == tail + 1 and (t.shape[0] in (1, math.prod(batch))) and t.is_contiguous():
+        return t.detach().numpy()  # already one flat batch dim
     lead = t.shape[: t.ndim - tail]
     if math.prod(lead) == 1:
         t = t.reshape(1, *t.shape[t.ndim - tail :])
@@ -734,10 +736,10 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
 
 def lq_gain_gradients(
     pieces: tuple[np.ndarray, ...], sol: dict, ok: Tensor, gx: Tensor, gu: Tensor,
-    needs: tuple[bool, ...],
+    gJ: Tensor, needs: tuple[bool, ...],
 ) -> tuple[Tensor | None, ...]:  # fmt: skip
-    """Gradients of :func:`lq_gain_solve`'s ``x, u`` (incoming ``gx (B, T+1, n)``,
-    ``gu (B, T, m)``) with respect to ``(A, B, Q, R, x0, q, r, S, c)``, each with full
+    """Gradients of :func:`lq_gain_solve`'s ``x, u, cost`` (incoming ``gx (B, T+1,
+    n)``, ``gu (B, T, m)``, ``gJ (B,)``) with respect to ``(A, B, Q, R, x0, q, r, S, c)``, each with full
     batch and time dims (``(B, T, n, n)``, ...; None where ``needs`` is False); zero for
     elements where ``ok (B,)`` is False."""
     kern = _gain_kernels()
@@ -759,7 +761,8 @@ def lq_gain_gradients(
     _launch(
         kern.adjoint_gain_kernel, nb, T, pieces[0], pieces[1], sol["K"].numpy(),
         sol["L"].numpy(), sol["P"].numpy(), x.numpy(), u.numpy(), lam.numpy(),
-        ok.contiguous().numpy(), gx.contiguous().numpy(), gu.contiguous().numpy(), vs, ks,
+        ok.contiguous().numpy(), gx.contiguous().numpy(), gu.contiguous().numpy(),
+        gJ.contiguous().numpy(), vs, ks,
         gA.numpy(), gB.numpy(), gc.numpy(), gQ.numpy(), gR.numpy(), gS.numpy(), gq.numpy(),
         gr.numpy(), gx0.numpy(),
     )  # fmt: skip

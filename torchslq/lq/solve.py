@@ -390,11 +390,12 @@ def _with_input_faults(status: Tensor, nonfinite: Tensor, not_pd: Tensor) -> Ten
 
 
 class _GainLQRFunction(torch.autograd.Function):
-    """(A, B, Q, R, x0, q, r, S, c) -> (x, u) on the gain-form CPU kernels, solved
-    before the call (``sol`` of :func:`lq_gain_solve`, every element's factorisation
-    succeeded); the backward pass is the implicit-KKT one of :class:`_LQRFunction`
-    written on the data directly (:func:`lq_gain_gradients`): one vector recursion
-    with the forward factors and the outer products, no homogeneous matrices."""
+    """(A, B, Q, R, x0, q, r, S, c) -> (x, u, cost) on the gain-form CPU kernels,
+    solved before the call (``sol`` of :func:`lq_gain_solve`, every element's
+    factorisation succeeded); the backward pass is the implicit-KKT one of
+    :class:`_LQRFunction` written on the data directly (:func:`lq_gain_gradients`): one
+    vector recursion with the forward factors and the outer products, no homogeneous
+    matrices; the optimal cost's gradient by the envelope theorem."""
 
     @staticmethod
     def forward(ctx, pieces, sol, batch, A, B, Q, R, x0, q, r, S, c):  # noqa: D401
@@ -404,22 +405,24 @@ class _GainLQRFunction(torch.autograd.Function):
         ctx.shapes = [None if t is None else t.shape for t in data]
         x = sol["x"].reshape(tuple(batch) + tuple(sol["x"].shape[1:]))
         u = sol["u"].reshape(tuple(batch) + tuple(sol["u"].shape[1:]))
+        cost = sol["cost"].reshape(tuple(batch))
         # the inputs are saved so that autograd reports an in-place change before the
         # backward pass (the kernels read them through ``pieces``)
         ctx.save_for_backward(x, u, *(t for t in data if t is not None))
-        return x, u
+        return x, u, cost
 
     @staticmethod
     @once_differentiable
-    def backward(ctx, gx, gu):
+    def backward(ctx, gx, gu, gJ):
         x, u = ctx.saved_tensors[:2]
         nb = max(math.prod(ctx.batch), 1)
         x, u = x.detach().reshape(nb, *x.shape[-2:]), u.detach().reshape(nb, *u.shape[-2:])
         gx = torch.zeros_like(x) if gx is None else gx.reshape(nb, *x.shape[-2:])
         gu = torch.zeros_like(u) if gu is None else gu.reshape(nb, *u.shape[-2:])
+        gJ = x.new_zeros(nb) if gJ is None else gJ.reshape(nb)
         sol = dict(ctx.factors, x=x, u=u)
         needs = tuple(ctx.needs_input_grad[3:])
-        grads = lq_gain_gradients(ctx.pieces, sol, sol["finite"], gx, gu, needs)
+        grads = lq_gain_gradients(ctx.pieces, sol, sol["finite"], gx, gu, gJ, needs)
         out = []
         for g, shape in zip(grads, ctx.shapes, strict=True):
             if g is not None:
@@ -428,7 +431,7 @@ class _GainLQRFunction(torch.autograd.Function):
         return (None, None, None, *out)
 
 
-def _solve_gain(A, B, Q, R, R_given, x0, q, r, S, c, method: str) -> LQRSolution | None:
+def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
     """:func:`lqr_solve` on the gain-form CPU kernels (:func:`lq_gain_solve`), with or
     without autograd (:class:`_GainLQRFunction`); the arguments as given, time dims
     expanded. None where this does not apply (not on the CPU, a ``torch.func``
@@ -448,20 +451,24 @@ def _solve_gain(A, B, Q, R, R_given, x0, q, r, S, c, method: str) -> LQRSolution
     if method == "auto" and choose_method(T, nb, x0.device, x0.dtype) != "sequential":
         return None
     pieces, data_batch = lq_gain_pieces(A, B, c, Q, R, S, q, r, batch)
-    sol = lq_gain_solve(pieces, data_batch, x0.detach().expand(*batch, n).reshape(nb, n), T)
+    x0f = x0.detach()
+    if x0f.shape != (nb, n):
+        x0f = x0f.expand(*batch, n).reshape(nb, n)
+    sol = lq_gain_solve(pieces, data_batch, x0f, T)
     if bool(sol["failed"].any()):
         return None
 
+    flat = len(batch) == 1
+
     def full(t: Tensor) -> Tensor:  # (1 or nb, ...) -> (*batch, ...)
-        return t.expand(nb, *t.shape[1:]).reshape(tuple(batch) + tuple(t.shape[1:]))
+        if t.shape[0] != nb:
+            t = t.expand(nb, *t.shape[1:])
+        return t if flat else t.reshape(tuple(batch) + tuple(t.shape[1:]))
 
     finite = full(sol["finite"])
     if torch.is_grad_enabled() and any(t.requires_grad for t in present):
-        x, u = _GainLQRFunction.apply(pieces, sol, batch, *data)
-        ok = finite.reshape(*finite.shape, 1, 1)
-        cost = lq_objective(
-            torch.where(ok, x, 0.0), torch.where(ok, u, 0.0), Q, R_given, q, r, S
-        ).masked_fill(~finite, float("nan"))
+        sol["cost"] = full(sol["cost"])  # the cost of every x0, before the Function
+        x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
     else:
         x, u, cost = full(sol["x"]), full(sol["u"]), full(sol["cost"])
     return LQRSolution(
@@ -473,7 +480,9 @@ def _solve_gain(A, B, Q, R, R_given, x0, q, r, S, c, method: str) -> LQRSolution
         v=full(sol["p"]),
         lam=full(sol["lam"]),
         cost=cost,
-        status=lq_status(torch.zeros_like(finite), finite),
+        # (CONVERGED is 0: cheaper than lq_status's selects, which this path would pay
+        # on every call)
+        status=(~finite).to(torch.int64) * int(Status.NON_FINITE),
     )
 
 
@@ -578,7 +587,7 @@ def lqr_solve(
         # on the CPU: the gain-form kernels straight from the data, with or without a
         # graph (None where they do not apply, or an element failed: the homogeneous
         # path below then classifies the failures)
-        sol = _solve_gain(A, B, Q, R, R_given, x0, q, r, S, c, method)
+        sol = _solve_gain(A, B, Q, R, x0, q, r, S, c, method)
         if sol is not None:
             return sol
     F = homogeneous_dynamics(A, B, c)
