@@ -669,3 +669,33 @@ def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad,
     first = (lambda t: t) if shape == "unbatched" else (lambda t: t[0])
     torch.testing.assert_close(first(fast.x).detach(), x, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(first(fast.cost).detach(), cost, rtol=1e-9, atol=1e-10)
+
+
+def test_gain_form_gradient_of_a_non_finite_element_is_zero():
+    """Without validation, an element whose affine term is NaN solves to a non-finite
+    trajectory on the gain-form path: its status is ``non_finite``, its gradients are
+    zero, and the other elements' gradients (of per-element and of shared data) are
+    those of the batch without it."""
+    args = random_problem(seed=5, bsz=3, T=6, n=3, m=2)
+    args["Q"] = args["Q"][:1]  # shared by the batch: its gradient sums over elements
+    bad = {**args, "c": args["c"].clone()}
+    bad["c"][1, 2, 0] = float("nan")
+
+    def grads(inputs, rows):
+        leaves = {k: v.clone().requires_grad_(True) for k, v in inputs.items()}
+        sol = lqr_solve(**leaves, validate=False)
+        ok = torch.zeros(sol.x.shape[0], dtype=torch.bool)
+        ok[rows] = True
+        loss = sol.x[ok].sum() + sol.u[ok].sum() + sol.cost[ok].sum()
+        loss.backward()
+        return sol, {k: v.grad for k, v in leaves.items()}
+
+    sol, g = grads(bad, [0, 2])
+    assert sol.status.tolist() == [Status.CONVERGED, Status.NON_FINITE, Status.CONVERGED]
+    for name in ("A", "B", "c", "x0", "q"):
+        assert torch.equal(g[name][1], torch.zeros_like(g[name][1])), name
+    keep = {k: (v if k == "Q" else v[[0, 2]]) for k, v in args.items()}
+    _, g_ref = grads(keep, [0, 1])
+    for name, ref in g_ref.items():
+        got = g[name] if name == "Q" else g[name][[0, 2]]
+        torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12, msg=name)

@@ -39,40 +39,11 @@ def _row(a, b, t):
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def _acc_nn(C, X, Y, sign):
-    """``C += sign X Y``, four columns of ``C`` at a time in registers: four independent
-    sums per pass over ``k`` (one sum at a time waits on the FMA latency at every
-    term, which is what bounds scalar code on these small matrices)."""
-    rows, inner, cols = X.shape[0], X.shape[1], Y.shape[1]
-    for i in range(rows):
-        Xi = X[i]
-        Ci = C[i]
-        j = 0
-        while j + 4 <= cols:
-            a0 = a1 = a2 = a3 = 0.0
-            for k in range(inner):
-                x = Xi[k]
-                Yk = Y[k]
-                a0 += x * Yk[j]
-                a1 += x * Yk[j + 1]
-                a2 += x * Yk[j + 2]
-                a3 += x * Yk[j + 3]
-            Ci[j] += sign * a0
-            Ci[j + 1] += sign * a1
-            Ci[j + 2] += sign * a2
-            Ci[j + 3] += sign * a3
-            j += 4
-        while j < cols:
-            a0 = 0.0
-            for k in range(inner):
-                a0 += Xi[k] * Y[k, j]
-            Ci[j] += sign * a0
-            j += 1
-
-
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def _acc_tn(C, X, Y, sign, upper):
-    """``C += sign X'Y`` as :func:`_acc_nn` (only ``j >= i`` where ``upper``)."""
+    """``C += sign X'Y`` (only ``j >= i`` where ``upper``; ``X.T`` for ``C += sign X Y``),
+    four columns of ``C`` at a time in registers: four independent sums per pass over
+    ``k`` (one sum at a time waits on the FMA latency at every term, which is what
+    bounds scalar code on these small matrices)."""
     inner, rows, cols = X.shape[0], X.shape[1], Y.shape[1]
     for i in range(rows):
         Ci = C[i]
@@ -165,8 +136,8 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
             if n < ROW_ORDER_N:
                 PA[:] = 0.0
                 PB[:] = 0.0
-                _acc_nn(PA, Pn, At, 1.0)
-                _acc_nn(PB, Pn, Bt, 1.0)
+                _acc_tn(PA, Pn.T, At, 1.0, False)
+                _acc_tn(PB, Pn.T, Bt, 1.0, False)
             else:
                 for i in range(n):
                     Pi = Pn[i]
@@ -423,8 +394,8 @@ def adjoint_gain_kernel(
 
     ``A, B`` as in :func:`riccati_gain_kernel`; ``K, L (1|B, T, ...)``, ``P (1|B, T+1,
     n, n)``; ``x, u, lam`` the forward solution and ``gx (B, T+1, n)``, ``gu (B, T,
-    m)`` the incoming gradients; ``ok (B,)``: elements whose gradients are zero where
-    False (a failed or non-finite solve); ``vs (B, T+1, n)``, ``ks (B, T, m)``
+    m)`` the incoming gradients; ``ok (B,)``: elements whose gradients are skipped where
+    False (a failed or non-finite solve; the caller zeroes them); ``vs (B, T+1, n)``, ``ks (B, T, m)``
     scratch. Outputs (full batch and time dims; a gradient nobody needs has a batch dim
     of 0 and is skipped): ``gA (B, T, n, n)``, ``gB (B, T, n, m)``, ``gc (B, T, n)``,
     ``gQ (B, T+1, n, n)``, ``gR (B, T, m, m)``, ``gS (B, T, m, n)``, ``gq (B, T+1,
@@ -445,8 +416,7 @@ def adjoint_gain_kernel(
     duj = np.empty(m, dtype=dt)
     for e in range(b0, b1):
         if not ok[e]:
-            _zero_gradients(e, gA, gB, gc, gQ, gR, gS, gq, gr, gx0)
-            continue
+            continue  # (its gradients are zeroed by the caller)
         bk = e if K.shape[0] > 1 else 0
         ve = vs[e]
         ke = ks[e]
@@ -569,26 +539,3 @@ def adjoint_gain_kernel(
             for i in range(n):
                 dx[i] = dxn[i]
                 dl[i] = dln[i]
-
-
-@numba.njit(cache=True, nogil=True)
-def _zero_gradients(e, gA, gB, gc, gQ, gR, gS, gq, gr, gx0):
-    """Element ``e``'s gradients (those computed) set to zero."""
-    if gA.shape[0] > 0:
-        gA[e] = 0.0
-    if gB.shape[0] > 0:
-        gB[e] = 0.0
-    if gc.shape[0] > 0:
-        gc[e] = 0.0
-    if gQ.shape[0] > 0:
-        gQ[e] = 0.0
-    if gR.shape[0] > 0:
-        gR[e] = 0.0
-    if gS.shape[0] > 0:
-        gS[e] = 0.0
-    if gq.shape[0] > 0:
-        gq[e] = 0.0
-    if gr.shape[0] > 0:
-        gr[e] = 0.0
-    if gx0.shape[0] > 0:
-        gx0[e] = 0.0

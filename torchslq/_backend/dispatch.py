@@ -766,4 +766,8 @@ def lq_gain_gradients(
         gA.numpy(), gB.numpy(), gc.numpy(), gQ.numpy(), gR.numpy(), gS.numpy(), gq.numpy(),
         gr.numpy(), gx0.numpy(),
     )  # fmt: skip
+    if not bool(ok.all()):  # the kernel skipped these elements
+        for g, need in zip(out, needs, strict=True):
+            if need:
+                g[~ok] = 0.0
     return tuple(g if need else None for g, need in zip(out, needs, strict=True))
