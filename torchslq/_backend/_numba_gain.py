@@ -16,9 +16,11 @@ the primes the next step's value function::
 
 (``P = Qxx + Qux'K`` written so that it is symmetric by construction; ``s`` is the
 value function's constant, so that the optimal cost is ``x0'P_0 x0 / 2 + p_0'x0 +
-s_0``.) The backward pass of the implicit differentiation (:func:`adjoint_gain_kernel`)
-reuses ``K``, ``L`` and ``P``: one more LQ solve with the incoming gradients as linear
-terms, then the gradients of every datum as outer products of the two trajectories.
+s_0``.) The gains are written ``[K, k]`` side by side, as the homogeneous kernel's, so
+that the rollout is :func:`._numba_kernels.lq_rollout_kernel`. The backward pass of the
+implicit differentiation (:func:`adjoint_gain_kernel`) reuses ``K``, ``L`` and ``P``:
+one more LQ solve with the incoming gradients as linear terms, then the gradients of
+every datum as outer products of the two trajectories.
 """
 
 from __future__ import annotations
@@ -28,14 +30,10 @@ import math
 import numba
 import numpy as np
 
+from ._numba_kernels import _idx
+
 # from this state dimension on, the pass runs its products in row order
 ROW_ORDER_N = 8
-
-
-@numba.njit(cache=True, nogil=True)
-def _row(a, b, t):
-    """Batch and time index into a piece ``(1 or B, 1 or T, ...)``."""
-    return (b if a.shape[0] > 1 else 0), (t if a.shape[1] > 1 else 0)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
@@ -71,7 +69,7 @@ def _acc_tn(C, X, Y, sign, upper):
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
+def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
     """Gain-form Riccati pass (module docstring) of elements ``b0 <= b < b1``, one
     element at a time. The matrix products run with each sum in a register (dot order)
     for ``n < ROW_ORDER_N`` and as row updates (axpy order, contiguous inner loops that
@@ -81,14 +79,14 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
     ``pieces = (A, B, c, Q, R, S, q, r)``: ``A (1|B, 1|T, n, n)``, ``B (.., n, m)``,
     ``c (.., n)``, ``Q (1|B, 1|T+1, n, n)``, ``R (.., m, m)``, ``S (.., m, n)``,
     ``q (1|B, 1|T+1, n)``, ``r (.., m)`` (``c, S, q, r`` with a batch dim of 0: zero).
-    Outputs ``K (B, T, m, n)``, ``k (B, T, m)``, ``P (B, T+1, n, n)``, ``p (B, T+1,
+    Outputs ``Kk (B, T, m, n+1)`` (``[K_t, k_t]``), ``P (B, T+1, n, n)``, ``p (B, T+1,
     n)``, ``L (B, T, m, m)`` (lower Cholesky factors of ``Quu``), ``s (B,)`` and
     ``failed (B,)``: some ``Quu`` not positive definite or not finite (the pass of that
     element stops there; its outputs are meaningless).
     """
-    T = K.shape[1]
-    m = K.shape[2]
-    n = K.shape[3]
+    T = Kk.shape[1]
+    m = Kk.shape[2]
+    n = Kk.shape[3] - 1
     A, Bm, c, Q, R, S, q, r = pieces
     dt = P.dtype
     PA = np.empty((n, n), dtype=dt)
@@ -99,7 +97,7 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
     Lq = np.zeros((m, m), dtype=dt)
     has_c, has_S, has_q, has_r = c.shape[0] > 0, S.shape[0] > 0, q.shape[0] > 0, r.shape[0] > 0
     for e in range(b0, b1):
-        bq, tq = _row(Q, e, T)
+        bq, tq = _idx(Q, e, T)
         Qt = Q[bq, tq]
         Pn = P[e, T]
         pn = p[e, T]
@@ -108,19 +106,19 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
                 Pn[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
             pn[i] = 0.0
         if has_q:
-            bl, tl = _row(q, e, T)
+            bl, tl = _idx(q, e, T)
             for i in range(n):
                 pn[i] = q[bl, tl, i]
         sv = 0.0
         ok = True
         for t in range(T - 1, -1, -1):
-            ba, ta = _row(A, e, t)
+            ba, ta = _idx(A, e, t)
             At = A[ba, ta]
-            bb, tb = _row(Bm, e, t)
+            bb, tb = _idx(Bm, e, t)
             Bt = Bm[bb, tb]
             # w = p' + P'c;  s += p''c + c'P'c / 2
             if has_c:
-                bc, tc = _row(c, e, t)
+                bc, tc = _idx(c, e, t)
                 ct = c[bc, tc]
                 for i in range(n):
                     acc = 0.0
@@ -156,7 +154,7 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
                         for j in range(m):
                             PBi[j] += a * Bk[j]
             # Quu = R + B'PB (lower triangle), Qux = S + B'PA, qu = r + B'w
-            br, tr = _row(R, e, t)
+            br, tr = _idx(R, e, t)
             Rt = R[br, tr]
             if n < ROW_ORDER_N:
                 for i in range(m):
@@ -190,13 +188,13 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
                         acc += a * wv[kk]
                     y[i] = acc
             if has_S:
-                bs, ts = _row(S, e, t)
+                bs, ts = _idx(S, e, t)
                 St = S[bs, ts]
                 for i in range(m):
                     for j in range(n):
                         Y[i, j] += St[i, j]
             if has_r:
-                bl, tl = _row(r, e, t)
+                bl, tl = _idx(r, e, t)
                 for i in range(m):
                     y[i] += r[bl, tl, i]
             # Cholesky Quu = Lq Lq' in place; Y = Lq^{-1} Qux, y = Lq^{-1} qu
@@ -230,7 +228,7 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
             # P = Q + A'PA - Y'Y (upper triangle, mirrored), p = q + A'w - Y'y
             Pc = P[e, t]
             pc = p[e, t]
-            bq, tq = _row(Q, e, t)
+            bq, tq = _idx(Q, e, t)
             Qt = Q[bq, tq]
             if n < ROW_ORDER_N:
                 for i in range(n):
@@ -272,32 +270,26 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
                         Pc[i, j] = v
                         Pc[j, i] = v
             if has_q:
-                bl, tl = _row(q, e, t)
+                bl, tl = _idx(q, e, t)
                 for i in range(n):
                     pc[i] += q[bl, tl, i]
             for kk in range(m):
                 sv -= 0.5 * y[kk] * y[kk]
             # [K k] = -Lq'^{-1} [Y y]
-            Kt = K[e, t]
-            kt = k[e, t]
+            Kt = Kk[e, t]
             Lt = L[e, t]
             for i in range(m - 1, -1, -1):
                 di = 1.0 / Lq[i, i]
-                for j in range(n):
-                    acc = Y[i, j]
+                for j in range(n + 1):
+                    acc = Y[i, j] if j < n else y[i]
                     for kk in range(i + 1, m):
                         acc -= Lq[kk, i] * Kt[kk, j]
                     Kt[i, j] = acc * di
-                acc = y[i]
-                for kk in range(i + 1, m):
-                    acc -= Lq[kk, i] * kt[kk]
-                kt[i] = acc * di
                 for j in range(m):
                     Lt[i, j] = Lq[i, j] if j <= i else 0.0
             for i in range(m):
-                for j in range(n):
+                for j in range(n + 1):
                     Kt[i, j] = -Kt[i, j]
-                kt[i] = -kt[i]
             Pn = Pc
             pn = pc
         s[e] = sv
@@ -305,74 +297,40 @@ def riccati_gain_kernel(b0, b1, pieces, K, k, P, p, L, s, failed):
 
 
 @numba.njit(cache=True, nogil=True)
-def rollout_gain_kernel(b0, b1, A, Bm, c, K, k, P, p, s, x0, x, u, lam, cost, finite):
-    """The optimal trajectory of elements ``b0 <= b < b1`` from the pass's outputs:
-    ``u_t = K_t x_t + k_t``, ``x_{t+1} = A_t x_t + B_t u_t + c_t``, the costates
-    ``lam_t = P_t x_t + p_t``, the optimal cost ``x0'P_0 x0 / 2 + p_0'x0 + s`` and
-    whether ``x, u`` are finite. ``A, B, c`` as in :func:`riccati_lanes_kernel`;
-    ``K, k, P, p, s`` with a batch of 1 (shared data) or B; ``x0 (1|B, n)``; outputs
-    ``x (B, T+1, n)``, ``u (B, T, m)``, ``lam (B, T+1, n)``, ``cost (B,)``,
-    ``finite (B,)``."""
-    T = u.shape[1]
-    m = u.shape[2]
+def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
+    """From the pass's value functions and the rollout ``x (B, T+1, n)``, ``u (B, T,
+    m)`` of elements ``b0 <= b < b1``: the costates ``lam_t = P_t x_t + p_t``, the
+    optimal cost ``x_0'P_0 x_0 / 2 + p_0'x_0 + s`` (NaN where not finite) and whether
+    ``x, u`` are finite. ``P, p, s`` with a batch of 1 (shared data) or B; outputs
+    ``lam (B, T+1, n)``, ``cost (B,)``, ``finite (B,)``."""
+    T1 = x.shape[1]
     n = x.shape[2]
     for e in range(b0, b1):
-        bk = e if K.shape[0] > 1 else 0
-        bx = e if x0.shape[0] > 1 else 0
-        xe = x[e]
-        ue = u[e]
+        bk = e if P.shape[0] > 1 else 0
         le = lam[e]
-        for i in range(n):
-            xe[0, i] = x0[bx, i]
-        fin = True
-        for t in range(T + 1):
-            xt = xe[t]
+        for t in range(T1):
+            xt = x[e, t]
             Pt = P[bk, t]
-            pt = p[bk, t]
             for i in range(n):
-                acc = pt[i]
+                acc = p[bk, t, i]
                 for j in range(n):
                     acc += Pt[i, j] * xt[j]
                 le[t, i] = acc
-            if t == T:
-                break
-            Kt = K[bk, t]
-            kt = k[bk, t]
-            ut = ue[t]
-            for i in range(m):
-                acc = kt[i]
-                for j in range(n):
-                    acc += Kt[i, j] * xt[j]
-                ut[i] = acc
-                fin = fin and math.isfinite(acc)
-            ba, ta = _row(A, e, t)
-            bb, tb = _row(Bm, e, t)
-            At = A[ba, ta]
-            Bt = Bm[bb, tb]
-            xn = xe[t + 1]
-            for i in range(n):
-                acc = 0.0
-                for j in range(n):
-                    acc += At[i, j] * xt[j]
-                for j in range(m):
-                    acc += Bt[i, j] * ut[j]
-                xn[i] = acc
-            if c.shape[0] > 0:
-                bc, tc = _row(c, e, t)
-                for i in range(n):
-                    xn[i] += c[bc, tc, i]
-            for i in range(n):
-                fin = fin and math.isfinite(xn[i])
+        fin = True
+        for v in x[e].ravel():
+            fin = fin and math.isfinite(v)
+        for v in u[e].ravel():
+            fin = fin and math.isfinite(v)
         J = s[bk]
         for i in range(n):
-            J += x0[bx, i] * (p[bk, 0, i] + 0.5 * (le[0, i] - p[bk, 0, i]))
+            J += x[e, 0, i] * (p[bk, 0, i] + 0.5 * (le[0, i] - p[bk, 0, i]))
         cost[e] = J if fin else np.nan
         finite[e] = fin
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def adjoint_gain_kernel(
-    b0, b1, A, Bm, K, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr, gx0
+    b0, b1, A, Bm, Kk, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr, gx0
 ):
     """Backward pass of the implicit differentiation (Amos et al. 2018, Sec. 4.2) for
     elements ``b0 <= b < b1``: the LQ problem with the forward problem's matrices and
@@ -392,7 +350,7 @@ def adjoint_gain_kernel(
     x_t'`` for ``A_t``, ``x_t x_t' / 2`` for ``Q_t``, ``lam_0`` for ``x0``, ...), folded in
     as ``dlam += gJ lam``, ``dx += gJ x / 2``, ``du += gJ u / 2`` in the products.
 
-    ``A, B`` as in :func:`riccati_gain_kernel`; ``K, L (1|B, T, ...)``, ``P (1|B, T+1,
+    ``A, B`` as in :func:`riccati_gain_kernel`; ``Kk, L (1|B, T, ...)``, ``P (1|B, T+1,
     n, n)``; ``x, u, lam`` the forward solution and ``gx (B, T+1, n)``, ``gu (B, T,
     m)`` the incoming gradients; ``ok (B,)``: elements whose gradients are skipped where
     False (a failed or non-finite solve; the caller zeroes them); ``vs (B, T+1, n)``, ``ks (B, T, m)``
@@ -408,7 +366,6 @@ def adjoint_gain_kernel(
     dx = np.empty(n, dtype=dt)
     dxn = np.empty(n, dtype=dt)
     du = np.empty(m, dtype=dt)
-    dl = np.empty(n, dtype=dt)
     dln = np.empty(n, dtype=dt)
     z = np.empty(m, dtype=dt)
     dlj = np.empty(n, dtype=dt)
@@ -417,17 +374,17 @@ def adjoint_gain_kernel(
     for e in range(b0, b1):
         if not ok[e]:
             continue  # (its gradients are zeroed by the caller)
-        bk = e if K.shape[0] > 1 else 0
+        bk = e if Kk.shape[0] > 1 else 0
         ve = vs[e]
         ke = ks[e]
         for i in range(n):
             ve[T, i] = gx[e, T, i]
         for t in range(T - 1, -1, -1):
-            ba, ta = _row(A, e, t)
-            bb, tb = _row(Bm, e, t)
+            ba, ta = _idx(A, e, t)
+            bb, tb = _idx(Bm, e, t)
             At = A[ba, ta]
             Bt = Bm[bb, tb]
-            Kt = K[bk, t]
+            Kt = Kk[bk, t]
             Lt = L[bk, t]
             vn = ve[t + 1]
             for i in range(m):  # qu = gu + B'v, then z = L^{-1} qu
@@ -460,10 +417,9 @@ def adjoint_gain_kernel(
         hj = 0.5 * gj
         for i in range(n):
             dx[i] = 0.0
-            dl[i] = ve[0, i]  # P_0 dx_0 + v_0 with dx_0 = 0
-        if gx0.shape[0] > 0:
+        if gx0.shape[0] > 0:  # dlam_0 = P_0 dx_0 + v_0 with dx_0 = 0
             for i in range(n):
-                gx0[e, i] = dl[i] + gj * lam[e, 0, i]
+                gx0[e, i] = ve[0, i] + gj * lam[e, 0, i]
         for t in range(T + 1):
             xt = x[e, t]
             if gQ.shape[0] > 0:
@@ -479,15 +435,15 @@ def adjoint_gain_kernel(
             if t == T:
                 break
             ut = u[e, t]
-            Kt = K[bk, t]
+            Kt = Kk[bk, t]
             kt = ke[t]
             for i in range(m):
                 acc = kt[i]
                 for j in range(n):
                     acc += Kt[i, j] * dx[j]
                 du[i] = acc
-            ba, ta = _row(A, e, t)
-            bb, tb = _row(Bm, e, t)
+            ba, ta = _idx(A, e, t)
+            bb, tb = _idx(Bm, e, t)
             At = A[ba, ta]
             Bt = Bm[bb, tb]
             Pn = P[bk, t + 1]
@@ -538,4 +494,3 @@ def adjoint_gain_kernel(
                     gr[e, t, i] = du[i] + gj * ut[i]
             for i in range(n):
                 dx[i] = dxn[i]
-                dl[i] = dln[i]

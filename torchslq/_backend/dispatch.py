@@ -249,10 +249,7 @@ def riccati_compiled(
             np.zeros((0, 1, 1, 1), npd),
             np.zeros((0, 1, 1), npd),
         )
-        piece_arrays = tuple(
-            np.zeros((0,) * d, dtype=npd) if p is None else _flat(p, batch, d - 1)
-            for p, d in zip(pieces, PIECE_NDIMS, strict=True)
-        )
+        piece_arrays = _piece_arrays(pieces, batch, dtype)
     m = mn1 - n1
     nb = math.prod(batch)
     Kk = torch.zeros(nb, T, m, n1, dtype=dtype)
@@ -657,65 +654,56 @@ def _one_time_step(t: Tensor, tail: int) -> Tensor:
     return t
 
 
-# (A, B, c, Q, R, S, q, r): dims after the batch dims, time included
-_GAIN_TAILS = (3, 3, 2, 3, 3, 3, 2, 2)
-
-
-def lq_gain_pieces(
-    A: Tensor, B: Tensor, c: Tensor | None, Q: Tensor, R: Tensor, S: Tensor | None,
-    q: Tensor | None, r: Tensor | None, batch: torch.Size,
-) -> tuple[tuple[np.ndarray, ...], int]:  # fmt: skip
-    """The LQ data as the gain kernels' ``pieces`` (each ``(1 or prod(batch), 1 or steps,
-    ...)``; an absent ``c, S, q, r`` an empty array) and the data's own batch size: 1
-    where every piece is shared by the batch (one Riccati pass serves all), else
-    ``prod(batch)``. Time dims must be given (``with_time``); ``batch`` is the full
-    batch shape (x0's included)."""
-    n, m = B.shape[-2], B.shape[-1]
-    dtype = _np_dtype(A.dtype)
-    empty = {2: (0, 1, n), 3: (0, 1, m, n)}
-    arrays, shared = [], True
-    for t, tail, name in zip((A, B, c, Q, R, S, q, r), _GAIN_TAILS, "ABcQRSqr", strict=True):
-        if t is None:
-            shape = (0, 1, m) if name == "r" else empty[tail]
-            arrays.append(np.zeros(shape, dtype=dtype))
-            continue
-        t = _one_time_step(t.detach(), tail)
-        shared = shared and math.prod(t.shape[: t.ndim - tail]) == 1
-        arrays.append(t)
-    nb = math.prod(batch)
-    data_batch = 1 if shared else nb
-    out = tuple(
-        a if isinstance(a, np.ndarray) else _flat(a, batch if data_batch > 1 else (1,), tail)
-        for a, tail in zip(arrays, _GAIN_TAILS, strict=True)
+def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray, ...]:
+    """The LQ data ``(A, B, c, Q, R, S, q, r)`` (each with a time dim; ``c, S, q, r``
+    may be None) as the kernels' ``pieces``: arrays ``(1 or prod(batch), 1 or steps,
+    ...)``, an absent piece an empty array."""
+    npd = _np_dtype(dtype)
+    return tuple(
+        np.zeros((0,) * d, dtype=npd)
+        if p is None
+        else _flat(_one_time_step(p, d - 2), batch, d - 1)
+        for p, d in zip(pieces, PIECE_NDIMS, strict=True)
     )
-    return out, data_batch
+
+
+def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, ...], int]:
+    """The LQ data ``(A, B, c, Q, R, S, q, r)`` (time dims given, ``with_time``) as the
+    gain kernels' ``pieces`` (:func:`_piece_arrays`) and the data's own batch size: 1
+    where every piece is shared by the batch (one Riccati pass serves all), else
+    ``prod(batch)``; ``batch`` is the full batch shape (x0's included)."""
+    shared = all(
+        p is None or math.prod(p.shape[: p.ndim - d + 1]) == 1
+        for p, d in zip(pieces, PIECE_NDIMS, strict=True)
+    )
+    arrays = _piece_arrays(pieces, (1,) if shared else batch, pieces[0].dtype)
+    return arrays, 1 if shared else math.prod(batch)
 
 
 def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T: int) -> dict:
     """:func:`torchslq.lqr_solve` on the gain-form kernels (:mod:`._numba_gain`), without
-    autograd: the Riccati pass over the data's batch (``data_batch``, 1 or ``B``), the
-    rollout, costates and optimal cost over ``x0 (B, n)``'s batch.
+    autograd: the Riccati pass over the data's batch (``data_batch``, 1 or ``B``), then
+    over ``x0 (B, n)``'s batch the rollout (:func:`lq_rollout_kernel`, the one of
+    :func:`torchslq.lq.rollout_linear`), costates and optimal cost.
 
-    Returns a dict of tensors: ``K (Bd, T, m, n)``, ``k (Bd, T, m)``, ``P (Bd, T+1, n,
+    Returns a dict of tensors: ``Kk (Bd, T, m, n+1)`` (``[K, k]``), ``P (Bd, T+1, n,
     n)``, ``p (Bd, T+1, n)``, ``L (Bd, T, m, m)`` (``Quu``'s Cholesky factors),
     ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T, m)``, ``lam (B, T+1, n)``,
     ``cost (B,)`` (NaN where not finite), ``finite (B,)``. Call only where
     :func:`can_use_compiled` holds."""
-    kern = _gain_kernels()
-    A, Bm, c = pieces[0], pieces[1], pieces[2]
-    n, m = Bm.shape[-2], Bm.shape[-1]
+    gain = _gain_kernels()
+    n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     nb = x0.shape[0]
     dtype = x0.dtype
-    K = torch.empty(data_batch, T, m, n, dtype=dtype)
-    k = torch.empty(data_batch, T, m, dtype=dtype)
+    Kk = torch.empty(data_batch, T, m, n + 1, dtype=dtype)
     P = torch.empty(data_batch, T + 1, n, n, dtype=dtype)
     p = torch.empty(data_batch, T + 1, n, dtype=dtype)
     L = torch.empty(data_batch, T, m, m, dtype=dtype)
     s = torch.empty(data_batch, dtype=dtype)
     failed = torch.empty(data_batch, dtype=torch.bool)
-    Kn, kn, Pn, pn, sn = K.numpy(), k.numpy(), P.numpy(), p.numpy(), s.numpy()
+    Kkn, Pn, pn, sn = Kk.numpy(), P.numpy(), p.numpy(), s.numpy()
     _launch(
-        kern.riccati_gain_kernel, data_batch, T, pieces, Kn, kn, Pn, pn, L.numpy(), sn,
+        gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, L.numpy(), sn,
         failed.numpy(),
     )  # fmt: skip
     x = torch.empty(nb, T + 1, n, dtype=dtype)
@@ -723,13 +711,14 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     lam = torch.empty(nb, T + 1, n, dtype=dtype)
     cost = torch.empty(nb, dtype=dtype)
     finite = torch.empty(nb, dtype=torch.bool)
+    xn, un = x.numpy(), u.numpy()
     _launch(
-        kern.rollout_gain_kernel, nb, T, A, Bm, c, Kn, kn, Pn, pn, sn,
-        x0.detach().contiguous().numpy(), x.numpy(), u.numpy(), lam.numpy(), cost.numpy(),
-        finite.numpy(),
+        _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn,
+        x0.detach().contiguous().numpy(), xn, un,
     )  # fmt: skip
+    _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lam.numpy(), cost.numpy(), finite.numpy())
     return {
-        "K": K, "k": k, "P": P, "p": p, "L": L, "failed": failed,
+        "Kk": Kk, "P": P, "p": p, "L": L, "failed": failed,
         "x": x, "u": u, "lam": lam, "cost": cost, "finite": finite,
     }  # fmt: skip
 
@@ -759,7 +748,7 @@ def lq_gain_gradients(
     vs = np.empty((nb, T + 1, n), dtype=_np_dtype(dtype))
     ks = np.empty((nb, T, m), dtype=_np_dtype(dtype))
     _launch(
-        kern.adjoint_gain_kernel, nb, T, pieces[0], pieces[1], sol["K"].numpy(),
+        kern.adjoint_gain_kernel, nb, T, pieces[0], pieces[1], sol["Kk"].numpy(),
         sol["L"].numpy(), sol["P"].numpy(), x.numpy(), u.numpy(), lam.numpy(),
         ok.contiguous().numpy(), gx.contiguous().numpy(), gu.contiguous().numpy(),
         gJ.contiguous().numpy(), vs, ks,

@@ -177,19 +177,23 @@ def _homog(x: Tensor) -> Tensor:
     return torch.cat([x, x.new_ones(*x.shape[:-1], 1)], dim=-1)
 
 
-def lq_status(failed: Tensor, finite: Tensor) -> Tensor:
+def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
     """Per-element :class:`torchslq.Status` of an LQ solve from ``(B,)`` bool masks:
-    ``NOT_POSITIVE_DEFINITE`` where ``failed`` (some ``Quu`` not PD), else ``CONVERGED``
-    where ``finite``, else ``NON_FINITE``."""
-    return torch.where(
-        failed,
-        torch.full_like(failed, Status.NOT_POSITIVE_DEFINITE, dtype=torch.int64),
-        torch.where(
-            finite,
-            torch.full_like(failed, Status.CONVERGED, dtype=torch.int64),
-            torch.full_like(failed, Status.NON_FINITE, dtype=torch.int64),
-        ),
+    ``NOT_POSITIVE_DEFINITE`` where ``failed`` (some ``Quu`` not PD; None: nowhere),
+    else ``CONVERGED`` where ``finite``, else ``NON_FINITE``."""
+    status = torch.where(finite, int(Status.CONVERGED), int(Status.NON_FINITE))
+    return (
+        status if failed is None else status.masked_fill(failed, int(Status.NOT_POSITIVE_DEFINITE))
     )
+
+
+def _batch_shape(A, B, Q, R, x0, q, r, S, c) -> torch.Size:
+    """The broadcast batch shape of :func:`lqr_solve`'s arguments (time dims given)."""
+    return broadcast_shapes(
+        A.shape[:-3], B.shape[:-3], Q.shape[:-3], R.shape[:-3], x0.shape[:-1],
+        *(t.shape[:-2] for t in (q, r, c) if t is not None),
+        *(() if S is None else (S.shape[:-3],)),
+    )  # fmt: skip
 
 
 def lq_adjoint_solve(
@@ -401,7 +405,7 @@ class _GainLQRFunction(torch.autograd.Function):
     def forward(ctx, pieces, sol, batch, A, B, Q, R, x0, q, r, S, c):  # noqa: D401
         data = (A, B, Q, R, x0, q, r, S, c)
         ctx.pieces, ctx.batch = pieces, batch
-        ctx.factors = {key: sol[key] for key in ("K", "L", "P", "lam", "finite")}
+        ctx.factors = {key: sol[key] for key in ("Kk", "L", "P", "lam", "finite")}
         ctx.shapes = [None if t is None else t.shape for t in data]
         x = sol["x"].reshape(tuple(batch) + tuple(sol["x"].shape[1:]))
         u = sol["u"].reshape(tuple(batch) + tuple(sol["u"].shape[1:]))
@@ -442,15 +446,11 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
     if x0.device.type != "cpu" or not can_use_compiled(*(t.detach() for t in present)):
         return None
     T, n = A.shape[-3], A.shape[-1]
-    batch = broadcast_shapes(
-        A.shape[:-3], B.shape[:-3], Q.shape[:-3], R.shape[:-3], x0.shape[:-1],
-        *(t.shape[:-2] for t in (q, r, c) if t is not None),
-        *(() if S is None else (S.shape[:-3],)),
-    )  # fmt: skip
+    batch = _batch_shape(*data)
     nb = max(math.prod(batch), 1)
     if method == "auto" and choose_method(T, nb, x0.device, x0.dtype) != "sequential":
         return None
-    pieces, data_batch = lq_gain_pieces(A, B, c, Q, R, S, q, r, batch)
+    pieces, data_batch = lq_gain_pieces((A, B, c, Q, R, S, q, r), batch)
     x0f = x0.detach()
     if x0f.shape != (nb, n):
         x0f = x0f.expand(*batch, n).reshape(nb, n)
@@ -467,22 +467,19 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
 
     finite = full(sol["finite"])
     if torch.is_grad_enabled() and any(t.requires_grad for t in present):
-        sol["cost"] = full(sol["cost"])  # the cost of every x0, before the Function
         x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
     else:
         x, u, cost = full(sol["x"]), full(sol["u"]), full(sol["cost"])
     return LQRSolution(
         x=x,
         u=u,
-        K=full(sol["K"]),
-        k=full(sol["k"]),
+        K=full(sol["Kk"][..., :n]),
+        k=full(sol["Kk"][..., n]),
         V=full(sol["P"]),
         v=full(sol["p"]),
         lam=full(sol["lam"]),
         cost=cost,
-        # (CONVERGED is 0: cheaper than lq_status's selects, which this path would pay
-        # on every call)
-        status=(~finite).to(torch.int64) * int(Status.NON_FINITE),
+        status=lq_status(None, finite),
     )
 
 
@@ -567,15 +564,7 @@ def lqr_solve(
 
     if validate:
         try:
-            batch = broadcast_shapes(
-                A.shape[:-3],
-                B.shape[:-3],
-                Q.shape[:-3],
-                R.shape[:-3],
-                x0.shape[:-1],
-                *(t.shape[:-2] for t in (q, r, c) if t is not None),
-                *(() if S is None else (S.shape[:-3],)),
-            )
+            batch = _batch_shape(A, B, Q, R, x0, q, r, S, c)
         except RuntimeError as err:
             raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
         nonfinite, not_pd = _input_faults(A, B, Q, R, x0, q, r, S, c, batch)
