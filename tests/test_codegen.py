@@ -10,6 +10,7 @@ import math
 import numpy as np
 import pytest
 import torch
+from numba.core import types as nb_types
 from torch import nn
 
 import torchslq as ts
@@ -293,11 +294,14 @@ def test_parameters_that_need_grad_take_the_autograd_path():
     torch.testing.assert_close(Ap, A.detach(), rtol=1e-5, atol=1e-5)
 
 
-def test_bound_kernels_equal_the_generic_kernels(monkeypatch):
-    """The generated module's copies of the RK4 and rollout kernels (bound to its
-    functions, cached on disk) compute bit for bit what the generic kernels compute
-    with the functions passed as arguments."""
-    from torchslq._backend import bound
+def test_kernels_given_function_values_equal_the_bound_and_the_dispatcher_kernels(monkeypatch):
+    """The RK4 and rollout kernels called with the model's functions as first-class
+    function values (compiled once per machine, cached) compute bit for bit what the
+    generated module's copies with the functions bound in compute (large passes), and
+    what they compute with the functions passed as numba dispatchers (compiled for this
+    model); their compiled signatures take function values."""
+    from torchslq._backend import _numba_kernels, bound, model_fns
+    from torchslq.dynamics import _numba_rk4
     from torchslq.dynamics.rollout import rollout_closed_loop
 
     step = ts.discretize(UserCartPole(), 0.05)
@@ -315,12 +319,22 @@ def test_bound_kernels_equal_the_generic_kernels(monkeypatch):
         return A, B, *H, xs, us
 
     assert codegen.explain(step.continuous) == "compiled"
+    as_values = outputs()
+    for kernel in (_numba_rk4.rk4_lanes_kernel, _numba_kernels.closed_loop_rollout_kernel):
+        fn_args = [
+            a for sig in kernel.signatures for a in sig if isinstance(a, nb_types.FunctionType)
+        ]
+        assert fn_args, f"{kernel.__name__} ran without function values"
+    monkeypatch.setattr(bound, "MIN_ROWS", 0)  # the generated module's own kernels
+    module = bound.bound_kernels(step.continuous.compiled_rhs()[0], 1)
+    assert module is not None
     with_bound = outputs()
-    assert bound.bound_kernels(step.continuous.compiled_rhs()[0]) is not None
-    monkeypatch.setattr(bound, "_BOUND", {})
-    generic = outputs()
-    for a, b in zip(with_bound, generic, strict=True):
-        assert torch.equal(a, b)
+    assert module.rollout.signatures and module.jacobians_kernel.signatures
+    monkeypatch.setattr(bound, "MIN_ROWS", 1 << 60)
+    monkeypatch.setattr(model_fns, "function_value", lambda fn, *args: fn)
+    as_dispatchers = outputs()
+    for a, b, c in zip(as_values, with_bound, as_dispatchers, strict=True):
+        assert torch.equal(a, b) and torch.equal(a, c)
 
 
 class UserUnicycle(ts.Dynamics):
@@ -420,7 +434,7 @@ def test_float_attributes_are_inputs_unless_they_steer_control_flow():
         np.testing.assert_allclose(out, model(x1, u1)[0].numpy(), rtol=1e-13)
 
 
-def test_discretized_forward_called_from_python_runs_the_compiled_step():
+def test_discretized_forward_called_from_python_runs_the_compiled_step(monkeypatch):
     """A discretised model called directly (e.g. inside a user's own model, a learned
     residual on the step) runs the generated step in one kernel call without autograd;
     with autograd, the torch ops (and the graph)."""
@@ -434,23 +448,19 @@ def test_discretized_forward_called_from_python_runs_the_compiled_step():
     slow = step(xg, u)  # autograd: the torch path
     assert slow.grad_fn is not None and fast.grad_fn is None
     torch.testing.assert_close(fast, slow.detach(), rtol=1e-13, atol=1e-13)
-    from torchslq._backend import bound
+    from torchslq._backend import dispatch
 
     calls = []
-    module = bound.bound_kernels(step.compiled_step()[0])
-    original = module.step_rows
+    original = dispatch._launch
 
-    def counting(*args):
-        calls.append(1)
-        return original(*args)
+    def counting(kernel, *args):
+        calls.append(kernel.__name__)
+        return original(kernel, *args)
 
-    module.step_rows = counting
-    try:
-        with torch.no_grad():
-            step(x, u)
-    finally:
-        module.step_rows = original
-    assert calls == [1]
+    monkeypatch.setattr(dispatch, "_launch", counting)
+    with torch.no_grad():
+        step(x, u)
+    assert calls == ["step_rows_kernel"]
 
 
 class ResidualOnStep(ts.Dynamics):
@@ -588,9 +598,9 @@ def test_a_cached_file_from_another_library_version_is_generated_again(tmp_path,
     first = codegen.generated_hooks(CachedElsewhere())
     path = first.source_path
     text = open(path).read()
-    assert "step_rows = step_rows_kernel" in text
-    with open(path, "w") as f:  # as an older generator wrote it
-        f.write(text.replace("step_rows = step_rows_kernel", ""))
+    assert "def derivatives(" in text
+    with open(path, "w") as f:  # as another generator wrote it: no `derivatives`
+        f.write(text.replace("def derivatives(", "def derivatives_of_another_kind("))
     name = next(k for k, v in sys.modules.items() if getattr(v, "__file__", None) == path)
     monkeypatch.delitem(sys.modules, name)  # as in a new process
 
@@ -599,7 +609,7 @@ def test_a_cached_file_from_another_library_version_is_generated_again(tmp_path,
     u = torch.randn(6, 1, dtype=torch.float64)
     with torch.no_grad():
         got = step(x, u)
-    assert "step_rows = step_rows_kernel" in open(path).read()
+    assert "def derivatives(" in open(path).read()
     want = step(x.requires_grad_(True), u).detach()  # the torch RK4 step
     torch.testing.assert_close(got, want, rtol=1e-13, atol=1e-13)
 

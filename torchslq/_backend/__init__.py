@@ -34,6 +34,7 @@ from .dispatch import (
     rollout_compiled,
     set_compiled,
     stage_congruence_compiled,
+    step_rows_compiled,
 )
 from .dispatch import (
     _launch as _launch,
@@ -54,4 +55,5 @@ __all__ = [
     "rollout_compiled",
     "set_compiled",
     "stage_congruence_compiled",
+    "step_rows_compiled",
 ]

@@ -910,18 +910,73 @@ def costate_kernel(b0, b1, A, B, lx, lu, K, grad, lam):
                     lc[j] += s
 
 
+# How a model's step is given to the rollout kernels (``mode``): its own compiled step
+# ``step(x, u, p, out, work)``; the RK4 step of a continuous model's ``rhs(x, u, p[1:],
+# out)`` with ``p[0] = dt``; or a discrete model's step written as ``rhs(x, u, p, out)``.
+STEP_GIVEN = 0
+STEP_RK4 = 1
+STEP_DISCRETE = 2
+
+
 @numba.njit(nogil=True)
-def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, skip, u, x):
-    """A whole closed-loop rollout per row with a model's compiled step
-    (``Dynamics.compiled_step``): ``u[r, t] += K[b, t] (x[r, t] - xn[b, t])`` (clamped
-    into ``[lo, hi]`` when not empty; the feedforward is in ``u`` on entry, the same
-    order of operations as :func:`feedback_kernel`), ``x[r, t+1] = step(x[r, t], u[r, t])``
-    (``step(x, u, p, out, work)``, ``work`` an ``(8, n)`` scratch array).
-    x0 ``(R, n)``, xn ``(B, T, n)``, K ``(B, T, m, n)``, lo/hi ``(B, T, m)`` or empty,
-    u ``(R, T, m)``, x ``(R, T+1, n)`` (output); ``b = r % B``. Rows ``r0 <= r < r1``;
-    rows with ``skip[r]`` (``(R,)`` bool, or empty for none) are not rolled out: their
-    states after ``x0`` are NaN (a line search's trial that no element needs).
-    (Not cached on disk: it takes the step function as an argument.)"""
+def rk4_step_with(rhs, x, u, p, out, work):
+    """One RK4 step of ``rhs(x, u, p[1:], out)`` with ``p[0] = dt`` into ``out``."""
+    # the same sums in the same order as DiscretizedDynamics.forward; work rows:
+    # k, the stage argument, k1 + 2 k2, k3
+    n = x.shape[0]
+    dt = p[0]
+    q = p[1:]
+    k, xi, a, k3 = work[0], work[1], work[2], work[3]
+    rhs(x, u, q, k)
+    for i in range(n):
+        a[i] = k[i]
+        xi[i] = x[i] + (0.5 * dt) * k[i]
+    rhs(xi, u, q, k)
+    for i in range(n):
+        a[i] = a[i] + 2.0 * k[i]
+        xi[i] = x[i] + (0.5 * dt) * k[i]
+    rhs(xi, u, q, k3)
+    for i in range(n):
+        xi[i] = x[i] + dt * k3[i]
+    rhs(xi, u, q, k)
+    for i in range(n):
+        out[i] = x[i] + (dt / 6.0) * (a[i] + (k[i] + 2.0 * k3[i]))
+
+
+@numba.njit(nogil=True)
+def _model_step(step, rhs, mode, x, u, p, out, work):
+    """``out = f(x, u)`` by the model's step as ``mode`` says (see ``STEP_GIVEN``)."""
+    if mode == STEP_RK4:
+        rk4_step_with(rhs, x, u, p, out, work)
+    elif mode == STEP_DISCRETE:
+        rhs(x, u, p, out)
+    else:
+        step(x, u, p, out, work)
+
+
+@numba.njit(nogil=True, cache=True)
+def no_rhs(x, u, p, out):
+    """Stands in for the ``rhs`` a ``STEP_GIVEN`` kernel call does not use."""
+
+
+@numba.njit(nogil=True, cache=True)
+def no_step(x, u, p, out, work):
+    """Stands in for the ``step`` a ``STEP_RK4`` / ``STEP_DISCRETE`` call does not use."""
+
+
+@numba.njit(nogil=True, cache=True)
+def closed_loop_rollout_kernel(r0, r1, step, rhs, mode, p, x0, xn, K, lo, hi, skip, u, x):
+    """A whole closed-loop rollout per row with a model's compiled step: ``u[r, t] +=
+    K[b, t] (x[r, t] - xn[b, t])`` (clamped into ``[lo, hi]`` when not empty; the
+    feedforward is in ``u`` on entry, the same order of operations as
+    :func:`feedback_kernel`), ``x[r, t+1] = f(x[r, t], u[r, t])`` with ``f`` given by
+    ``step``, ``rhs`` and ``mode`` (see ``STEP_GIVEN``; ``work`` an ``(8, n)`` scratch
+    array). x0 ``(R, n)``, xn ``(B, T, n)``, K ``(B, T, m, n)``, lo/hi ``(B, T, m)`` or
+    empty, u ``(R, T, m)``, x ``(R, T+1, n)`` (output); ``b = r % B``. Rows ``r0 <= r <
+    r1``; rows with ``skip[r]`` (``(R,)`` bool, or empty for none) are not rolled out:
+    their states after ``x0`` are NaN (a line search's trial that no element needs).
+    Compiled once per machine with the functions as first-class arguments
+    (:mod:`torchslq._backend.model_fns`)."""
     B = xn.shape[0]
     T = u.shape[1]
     n = x.shape[2]
@@ -938,20 +993,19 @@ def closed_loop_rollout_kernel(r0, r1, step, p, x0, xn, K, lo, hi, skip, u, x):
             xr = x[r, t]
             ur = u[r, t]
             _feedback_row(xr, xn, K, lo, hi, b, t, ur)
-            step(xr, ur, p, x[r, t + 1], work)
+            _model_step(step, rhs, mode, xr, ur, p, x[r, t + 1], work)
 
 
-@numba.njit(nogil=True)
-def step_rows_kernel(r0, r1, step, p, x, u, out):
-    """``out[r] = step(x[r], u[r])`` for rows ``r0 <= r < r1`` (``x (R, n)``, ``u (R, m)``,
-    ``out (R, n)``): one call of a model's compiled step on a batch of rows, for a
-    ``forward`` called from Python (e.g. inside a user's own model) without autograd.
-    (Not cached on disk: it takes the step function as an argument; a generated model's
-    module has its own copy, bound and cached.)"""
+@numba.njit(nogil=True, cache=True)
+def step_rows_kernel(r0, r1, step, rhs, mode, p, x, u, out):
+    """``out[r] = f(x[r], u[r])`` for rows ``r0 <= r < r1`` (``x (R, n)``, ``u (R, m)``,
+    ``out (R, n)``; ``f`` as in :func:`closed_loop_rollout_kernel`): one call of a
+    model's compiled step on a batch of rows, for a ``forward`` called from Python (e.g.
+    inside a user's own model) without autograd."""
     n = x.shape[1]
     work = np.empty((8, n), dtype=x.dtype)
     for r in range(r0, r1):
-        step(x[r], u[r], p, out[r], work)
+        _model_step(step, rhs, mode, x[r], u[r], p, out[r], work)
 
 
 @numba.njit(cache=True, nogil=True)

@@ -52,7 +52,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
-from .bound import bound_kernels
+from .model_fns import rollout_kernel
 
 __all__ = [
     "PIECE_NDIMS",
@@ -468,12 +468,7 @@ def closed_loop_rollout_compiled(
         if skip is None
         else skip.detach().expand(lead).reshape(R).contiguous().numpy()
     )
-    bound = bound_kernels(step)
-    kernel, fns = (
-        (bound.rollout, ())
-        if bound is not None
-        else (_kernels().closed_loop_rollout_kernel, (step,))
-    )
+    kernel, fns = rollout_kernel("closed_loop_rollout_kernel", step, un.dtype, params.dtype, R * T)
     _launch(
         kernel,
         R,
@@ -490,6 +485,26 @@ def closed_loop_rollout_compiled(
         x.view(R, T + 1, n).numpy(),
     )
     return x
+
+
+def step_rows_compiled(step, params: np.ndarray, x: Tensor, u: Tensor) -> Tensor:
+    """``step(x[r], u[r])`` for every row of ``x (R, n)``, ``u (R, m)`` (contiguous) in
+    one kernel call with a model's compiled step (:meth:`torchslq.Dynamics.compiled_step`);
+    returns ``(R, n)``. Call only where :func:`can_use_compiled` holds."""
+    out = torch.empty_like(x)
+    xa = x.detach().numpy()
+    kernel, fns = rollout_kernel("step_rows_kernel", step, xa.dtype, params.dtype, x.shape[0])
+    _launch(
+        kernel,
+        x.shape[0],
+        1,
+        *fns,
+        params,
+        xa,
+        u.detach().numpy(),
+        out.numpy(),
+    )
+    return out
 
 
 def costate_compiled(

@@ -3,8 +3,9 @@
 and its derivatives for a model with compiled derivatives
 (:meth:`torchslq.ContinuousDynamics.compiled_derivatives`), imported on first use.
 
-They take the model's functions as arguments, so they are compiled once per process and
-model function (not cached on disk). The sums follow :mod:`torchslq.dynamics.discretize`
+They take the model's functions as arguments. The launchers call them with the functions
+as first-class function values (:mod:`torchslq._backend.model_fns`), so each kernel is
+compiled once per machine (cached on disk) for every model. The sums follow :mod:`torchslq.dynamics.discretize`
 (``DiscretizedDynamics._rk4_chain`` and ``_vhp_from_stages``):
 
 * :func:`rk4_lanes_kernel` (Jacobians, and second derivatives of a model that declares
@@ -20,7 +21,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .._backend.bound import bound_kernels
+from .._backend._numba_kernels import STEP_RK4, rk4_step_with  # noqa: F401 (re-exported)
+from .._backend.model_fns import register_step
 
 
 # (a_i, w_i) of the classical RK4 scheme: stage i at x + a_i dt k_{i-1}, weight w_i dt / 6
@@ -39,41 +41,13 @@ def _rk4_w(i):
 _RK4_STEPS: dict = {}
 
 
-@numba.njit(nogil=True)
-def rk4_step_with(rhs, x, u, p, out, work):
-    """One RK4 step of ``rhs(x, u, p[1:], out)`` with ``p[0] = dt`` into ``out`` (the
-    body of :func:`rk4_step`'s functions, and of the generated modules' ``rk4_step``)."""
-    # the same sums in the same order as DiscretizedDynamics.forward; work rows:
-    # k, the stage argument, k1 + 2 k2, k3
-    n = x.shape[0]
-    dt = p[0]
-    q = p[1:]
-    k, xi, a, k3 = work[0], work[1], work[2], work[3]
-    rhs(x, u, q, k)
-    for i in range(n):
-        a[i] = k[i]
-        xi[i] = x[i] + (0.5 * dt) * k[i]
-    rhs(xi, u, q, k)
-    for i in range(n):
-        a[i] = a[i] + 2.0 * k[i]
-        xi[i] = x[i] + (0.5 * dt) * k[i]
-    rhs(xi, u, q, k3)
-    for i in range(n):
-        xi[i] = x[i] + dt * k3[i]
-    rhs(xi, u, q, k)
-    for i in range(n):
-        out[i] = x[i] + (dt / 6.0) * (a[i] + (k[i] + 2.0 * k3[i]))
-
-
 def rk4_step(rhs):
     """A numba RK4 step ``step(x, u, p, out, work)`` (:meth:`torchslq.Dynamics.compiled_step`)
     around a model's ``rhs(x, u, p[1:], out)``
-    (:meth:`torchslq.ContinuousDynamics.compiled_rhs`) with ``p[0] = dt``: one compiled
-    function per ``rhs``, built once per process (not cached on disk, being a closure).
-    A generated model's module has its own, cached (:mod:`torchslq.dynamics.codegen`)."""
-    bound = bound_kernels(rhs)
-    if bound is not None:
-        return bound.step
+    (:meth:`torchslq.ContinuousDynamics.compiled_rhs`) with ``p[0] = dt``: one function
+    per ``rhs``, made once per process and compiled only if called from Python (the
+    launchers find ``rhs`` behind it, :func:`torchslq._backend.model_fns.step_source`,
+    and run the kernels compiled once per machine with ``rhs`` as an argument)."""
     if rhs in _RK4_STEPS:
         return _RK4_STEPS[rhs]
 
@@ -82,6 +56,7 @@ def rk4_step(rhs):
         rk4_step_with(rhs, x, u, p, out, work)
 
     _RK4_STEPS[rhs] = step
+    register_step(step, rhs, STEP_RK4)
     return step
 
 
@@ -169,7 +144,7 @@ def _curvature(Hi, n, nz, outs, sup):
     return no, ns
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, cache=True)
 def rk4_second_derivatives_kernel(
     r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hz, A, B
 ):
@@ -444,7 +419,7 @@ def _lane_weighted_sum(dt, n, s, fzL, G, outs, mu, mu2, acc):
                     mu[q, lane] = mu2[q, lane]
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, cache=True)
 def rk4_lanes_kernel(r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hz, A, B):
     """The RK4 step's Jacobians and the Hessian blocks of ``s · step(x, u)`` for every
     weight vector ``s = S[w, r]``, as :func:`rk4_second_derivatives_kernel` computes

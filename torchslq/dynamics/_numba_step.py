@@ -2,8 +2,8 @@
 :class:`torchslq.Dynamics` whose code :mod:`torchslq.dynamics.codegen` generated):
 its Jacobians and the Hessian blocks of ``s · step(x, u)``, with the argument list of
 :func:`torchslq.dynamics._numba_rk4.rk4_lanes_kernel` so that one launcher
-(:mod:`torchslq.dynamics.compiled_rk4`) serves both. Only ever run bound to a model's
-functions in its generated module (:mod:`torchslq.dynamics._specialize`)."""
+(:mod:`torchslq.dynamics.compiled_rk4`) serves both, with the model's functions as
+first-class function values (:mod:`torchslq._backend.model_fns`)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numba
 import numpy as np
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, cache=True)
 def step_derivatives_kernel(
     r0, r1, rhs, derivs, p, dt, curved_outputs, curved_entries, x, u, S, Hz, A, B
 ):

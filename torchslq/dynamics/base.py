@@ -77,13 +77,12 @@ class Dynamics(nn.Module):
         what :meth:`forward` computes (up to the last bits of library functions such as
         ``cos``). By default generated from :meth:`forward`
         (:mod:`torchslq.dynamics.codegen`, which says when it cannot be)."""
-        from .._backend.bound import bound_kernels
         from .codegen import generated_hooks
 
         hooks = generated_hooks(self)
         if hooks is None:
             return None
-        return bound_kernels(hooks.rhs).step, hooks.params(self)
+        return hooks.step, hooks.params(self)
 
     def compiled_jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:
         """``(A, B)`` on the CPU kernel from the code generated from :meth:`forward`, or
@@ -124,7 +123,7 @@ class Dynamics(nn.Module):
             return None
         from .compiled_rk4 import rk4_hooks
 
-        return rk4_hooks((hooks.rhs, hooks.params(self)), hooks.derivatives)
+        return rk4_hooks((hooks.rhs, hooks.params(self)), hooks.derivatives, discrete=True)
 
 
 class CompiledDerivatives(NamedTuple):

@@ -37,10 +37,13 @@ calls from another file may have changed), else the model is traced as above.
 
 A discrete :class:`~torchslq.Dynamics` is generated the same way: its step, its
 Jacobians and its Hessian blocks (:meth:`~torchslq.Dynamics.compiled_step`,
-``compiled_jacobians``, ``compiled_vhp``). The module also holds the library's kernels
-that take a model's functions as arguments, rewritten to call this model's directly
-(:mod:`torchslq.dynamics._specialize`), so they are cached with it
-(:mod:`torchslq._backend.bound`).
+``compiled_jacobians``, ``compiled_vhp``). The library's kernels that run these
+functions (the RK4 derivative passes, the rollouts) take them as first-class function
+values (:mod:`torchslq._backend.model_fns`): those kernels are compiled once per machine
+for every model, so a new model costs the compilation of its own two functions. The
+module also holds the same kernels rewritten to call its functions directly
+(:mod:`torchslq.dynamics._specialize`), where numba inlines them; large passes use
+those (:mod:`torchslq._backend.bound`), compiled on first use and cached with the module.
 
 The parameters travel as numbers (``params``), read from the module at each call: its
 tensors, and its float attributes (a mass, a time step; one that steers Python control
@@ -76,7 +79,7 @@ from ._symbolic import as_array, evaluate, symbols
 __all__ = ["GeneratedHooks", "explain", "generated_hooks"]
 
 #: bumped when the generated code changes meaning (part of the cache key)
-CODEGEN_VERSION = 1
+CODEGEN_VERSION = 2
 #: models larger than this keep the torch path (a network is faster as matrix ops)
 MAX_GRAPH_NODES = 600
 MAX_PARAMETERS = 256
@@ -100,6 +103,9 @@ class GeneratedHooks(NamedTuple):
     derivatives: object
     tensor_names: tuple[str, ...]
     source_path: str | None
+    #: ``step(x, u, p, out, work)`` of a discrete model (its ``rhs``); None for a
+    #: continuous one (:func:`torchslq.discretize` makes its step)
+    step: Callable | None = None
 
     def params(self, model: nn.Module) -> np.ndarray:
         """The current values of the model's tensors and float attributes (named
@@ -252,7 +258,7 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
         f"v{CODEGEN_VERSION};{kind};{n};{m};{[(k, tuple(t.shape)) for k, t in named]}".encode()
     )
     h.update(gm.code.encode())
-    h.update(_kernel_sources_digest())
+    h.update(_generator_digest())
     for c in consts:
         h.update(c.detach().cpu().to(torch.float64).contiguous().numpy().tobytes())
     digest = h.hexdigest()[:24]
@@ -289,10 +295,19 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
             tmp = _cache_dir() / f"s_{skey}.{os.getpid()}.tmp"
             tmp.write_text(digest)
             os.replace(tmp, _cache_dir() / f"s_{skey}.txt")
-    from .._backend.bound import register
-
-    register(module)
     return hooks
+
+
+_GENERATED: set = set()  # the rhs functions of generated modules (see is_generated)
+
+
+def is_generated(fn) -> bool:
+    """Whether ``fn`` is the ``rhs`` of a module generated here (its step reproduces
+    the model's ``forward``: the forward may run it, :class:`~torchslq.DiscretizedDynamics`)."""
+    try:
+        return fn in _GENERATED
+    except TypeError:  # unhashable
+        return False
 
 
 def _hooks_of(module, named: list[tuple[str, Tensor]]) -> GeneratedHooks:
@@ -303,7 +318,24 @@ def _hooks_of(module, named: list[tuple[str, Tensor]]) -> GeneratedHooks:
         derivatives = CompiledDerivatives(
             module.derivatives, module.CURVED_OUTPUTS, module.CURVED_ENTRIES
         )
-    return GeneratedHooks(module.rhs, derivatives, tuple(k for k, _ in named), module.__file__)
+    from .._backend.bound import register
+
+    register(module)  # its kernels, for large passes
+    step = None
+    if module.ROLLOUT_MODE == _step_discrete():  # a discrete model: rhs is its step
+        from .._backend.model_fns import register_step
+
+        step = module.step
+        register_step(step, module.rhs, module.ROLLOUT_MODE)
+    _GENERATED.add(module.rhs)
+    names = tuple(k for k, _ in named)
+    return GeneratedHooks(module.rhs, derivatives, names, module.__file__, step)
+
+
+def _step_discrete() -> int:
+    from .._backend._numba_kernels import STEP_DISCRETE
+
+    return STEP_DISCRETE
 
 
 # ------------------------------------------------------------------------- source index
@@ -325,7 +357,7 @@ def _source_key(model: nn.Module, kind: str, n: int, m: int, named, lift_floats:
     h.update(repr(_structure_key(model)[1:]).encode())
     if not lift_floats:
         h.update(repr([_get_attr(model, a) for a in _float_attrs(model)]).encode())
-    h.update(_kernel_sources_digest())
+    h.update(_generator_digest())
     seen: set = set()
     for mod in model.modules():
         for cls in type(mod).__mro__:
@@ -359,9 +391,6 @@ def _from_source_index(model: nn.Module, skey: str | None, n: int, m: int, named
     hooks = _hooks_of(module, named)
     if not _same_step(model, hooks, n, m):
         return None
-    from .._backend.bound import register
-
-    register(module)
     return hooks
 
 
@@ -660,12 +689,15 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
             f"            for b in range({nz}):",
             "                H[j, a, b] = 0.0",
         ]
-    src += _kernel_source(kind)
-    if len(src) > MAX_GENERATED_LINES + len(_kernel_source(kind)):
+    if kind == "discrete":  # the step as Dynamics.compiled_step gives it (no scratch needed)
+        src += ["", "", "@numba.njit(nogil=True, cache=True)", "def step(x, u, p, out, work):"]
+        src += ["    rhs(x, u, p, out)"]
+    if len(src) > MAX_GENERATED_LINES:
         raise _Unsupported(
-            f"{len(src) - len(_kernel_source(kind))} lines of generated code (more than "
-            f"{MAX_GENERATED_LINES}): too long to compile quickly"
+            f"{len(src)} lines of generated code (more than {MAX_GENERATED_LINES}): too long "
+            "to compile quickly"
         )
+    src += _kernel_source(kind)
     if printer._not_supported:
         raise _Unsupported(f"cannot print {sorted(map(str, printer._not_supported))[:3]}")
     return "\n".join(src) + "\n"
@@ -675,10 +707,11 @@ _KERNELS: dict[str, list[str]] = {}
 
 
 def _kernel_source(kind: str) -> list[str]:
-    """The library's generic kernels that take a model's functions as arguments,
-    rewritten to call this module's ``rhs`` / ``derivatives`` / RK4 step directly
-    (:mod:`torchslq.dynamics._specialize`), so they are cached with it (see
-    :mod:`torchslq._backend.bound`), plus the names the launchers look for."""
+    """The library's kernels that take a model's functions as arguments, rewritten to
+    call this module's ``rhs`` / ``derivatives`` / ``step`` directly
+    (:mod:`torchslq.dynamics._specialize`), plus the names :mod:`torchslq._backend.bound`
+    reads. numba compiles each on its first call (a large pass) and caches it with the
+    module."""
     if kind not in _KERNELS:
         from .._backend import _numba_kernels
         from . import _numba_rk4, _numba_step
@@ -686,39 +719,54 @@ def _kernel_source(kind: str) -> list[str]:
 
         if kind == "continuous":  # the RK4 step of rhs and its derivatives
             derivs, helpers = specialised_source(
-                _numba_rk4,
-                {"rhs", "derivs"},
-                ["rk4_step_with", "rk4_lanes_kernel", "rk4_second_derivatives_kernel"],
+                _numba_rk4, {"rhs", "derivs"}, ["rk4_lanes_kernel", "rk4_second_derivatives_kernel"]
             )
             source = "torchslq.dynamics._numba_rk4"
-            names = ["step = rk4_step_with", "jacobians_kernel = rk4_lanes_kernel"]
+            names = ["jacobians_kernel = rk4_lanes_kernel"]
             names += ["hessians_kernel = rk4_second_derivatives_kernel"]
+            names += ["step = rk4_step_with", "ROLLOUT_MODE = STEP_RK4"]
         else:  # rhs is the step
             derivs, helpers = specialised_source(
                 _numba_step, {"rhs", "derivs"}, ["step_derivatives_kernel"]
             )
             source = "torchslq.dynamics._numba_step"
             names = ["jacobians_kernel = step_derivatives_kernel"]
-            names += ["hessians_kernel = step_derivatives_kernel", "", ""]
-            names += ["@numba.njit(nogil=True, cache=True)", "def step(x, u, p, out, work):"]
-            names += ["    rhs(x, u, p, out)"]
+            names += ["hessians_kernel = step_derivatives_kernel", "ROLLOUT_MODE = STEP_DISCRETE"]
         roll, roll_helpers = specialised_source(
-            _numba_kernels, {"step"}, ["closed_loop_rollout_kernel", "step_rows_kernel"]
+            _numba_kernels, {"step", "rhs"}, ["closed_loop_rollout_kernel", "step_rows_kernel"]
         )
+        # this module's step is known: the bound rollouts call it without the mode test
+        # (with the three branches inlined, numba's rollout ran ~25% slower)
+        roll = _without_function(roll, "_model_step")
+        roll += (
+            "\n\n\n@numba.njit(nogil=True, inline='always')\n"
+            "def _model_step(mode, x, u, p, out, work):\n"
+            "    step(x, u, p, out, work)\n"
+        )
+        roll_helpers = sorted(set(roll_helpers) | {"STEP_RK4", "STEP_DISCRETE"})
         lines = ["", "", "# the library's kernels with this module's functions bound in", ""]
         lines += ["import numpy as np", ""]
         for mod, used in ((source, helpers), ("torchslq._backend._numba_kernels", roll_helpers)):
             lines += [f"from {mod} import {name}" for name in used]
-        lines += ["", "derivs = derivatives", "", "", derivs, "", "", *names, "", "", roll]
-        lines += ["", "", "rollout = closed_loop_rollout_kernel", "step_rows = step_rows_kernel"]
+        lines += ["", "derivs = derivatives", "", "", derivs, "", "", roll, "", "", *names]
+        lines += ["rollout = closed_loop_rollout_kernel", "step_rows = step_rows_kernel"]
         _KERNELS[kind] = lines
     return _KERNELS[kind]
+
+
+def _without_function(source: str, name: str) -> str:
+    """``source`` without the top-level function ``name``."""
+    import ast
+
+    tree = ast.parse(source)
+    tree.body = [n for n in tree.body if not (isinstance(n, ast.FunctionDef) and n.name == name)]
+    return ast.unparse(tree)
 
 
 _SOURCES_DIGEST: list[bytes] = []
 
 
-def _kernel_sources_digest() -> bytes:
+def _generator_digest() -> bytes:
     """A hash of every source the generated module depends on: the kernels written into
     it and the generator itself (this module, the interpreter, the rewrite), plus the
     versions of sympy and numba. A cache directory shared by several versions of the
@@ -753,6 +801,7 @@ _MODULE_NAMES = (
     "step_rows",
     "jacobians_kernel",
     "hessians_kernel",
+    "ROLLOUT_MODE",
 )
 
 

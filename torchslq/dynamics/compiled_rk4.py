@@ -24,21 +24,21 @@ from torch import Tensor
 
 from .._backend import _launch
 from .._backend.bound import bound_kernels
+from .._backend.model_fns import function_value
 from .._shapes import broadcast_shapes
 from .base import CompiledDerivatives
 
 __all__ = ["rk4_hooks", "rk4_jacobians_compiled", "rk4_vhp_compiled"]
 
-_module: ModuleType | None = None
+_modules: list[ModuleType] = []
 
 
 def _kernels() -> ModuleType:
-    global _module
-    if _module is None:
+    if not _modules:
         from . import _numba_rk4
 
-        _module = _numba_rk4
-    return _module
+        _modules.append(_numba_rk4)
+    return _modules[0]
 
 
 class RK4Hooks(NamedTuple):
@@ -47,21 +47,43 @@ class RK4Hooks(NamedTuple):
     params: np.ndarray
     curved_outputs: np.ndarray  # int64, empty: scan each point's Hessians
     curved_entries: np.ndarray
+    #: the functions are a discrete model's step and its derivatives (no RK4 chain)
+    discrete: bool = False
 
 
-def rk4_hooks(rhs, derivatives) -> RK4Hooks:
+def rk4_hooks(rhs, derivatives, discrete: bool = False) -> RK4Hooks:
     """The kernels' arguments from a model's :meth:`~torchslq.ContinuousDynamics.compiled_rhs`
     ``(rhs, params)`` and :meth:`~torchslq.ContinuousDynamics.compiled_derivatives` (a
-    function or a :class:`~torchslq.dynamics.CompiledDerivatives`)."""
+    function or a :class:`~torchslq.dynamics.CompiledDerivatives`); with ``discrete``,
+    a discrete model's generated step and its derivatives."""
     fn, params = rhs
     if isinstance(derivatives, CompiledDerivatives):
         outs = np.unique(np.asarray(derivatives.curved_outputs, dtype=np.int64))
         ents = np.unique(np.asarray(derivatives.curved_entries, dtype=np.int64))  # ascending
         if outs.size == 0 or ents.size == 0:
             raise ValueError("a CompiledDerivatives pattern needs curved outputs and entries")
-        return RK4Hooks(fn, derivatives.derivatives, params, outs, ents)
+        return RK4Hooks(fn, derivatives.derivatives, params, outs, ents, discrete)
     empty = np.zeros(0, dtype=np.int64)
-    return RK4Hooks(fn, derivatives, params, empty, empty)
+    return RK4Hooks(fn, derivatives, params, empty, empty, discrete)
+
+
+def _kernel_and_functions(hooks: RK4Hooks, dtype, static: bool, rows: int):
+    """The derivative kernel for ``hooks`` and the model's functions as its first-class
+    function arguments (:mod:`torchslq._backend.model_fns`); for a large pass of a
+    generated model, its module's kernel with them bound in (:mod:`torchslq._backend.bound`)."""
+    bound = bound_kernels(hooks.rhs, rows)
+    if bound is not None:
+        return (bound.jacobians_kernel if static else bound.hessians_kernel), ()
+    if hooks.discrete:
+        from ._numba_step import step_derivatives_kernel as kernel
+    else:
+        kernels = _kernels()
+        kernel = kernels.rk4_lanes_kernel if static else kernels.rk4_second_derivatives_kernel
+    fns = (
+        function_value(hooks.rhs, "rhs", dtype, hooks.params.dtype),
+        function_value(hooks.derivatives, "derivs", dtype, hooks.params.dtype),
+    )
+    return kernel, fns
 
 
 def _rows(x: Tensor, u: Tensor, lead=None) -> tuple[torch.Size, int, Tensor, Tensor]:
@@ -85,12 +107,7 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
     no_pattern = np.zeros(0, dtype=np.int64)
     no_weights = np.zeros((0, R, n), dtype=xa.dtype)  # W = 0: no Hessians asked
     no_hessians = np.zeros((0, R, n + m, n + m), dtype=xa.dtype)
-    bound = bound_kernels(hooks.rhs)
-    kernel, fns = (
-        (bound.jacobians_kernel, ())
-        if bound is not None
-        else (_kernels().rk4_lanes_kernel, (hooks.rhs, hooks.derivatives))
-    )
+    kernel, fns = _kernel_and_functions(hooks, xa.dtype, True, R)
     _launch(
         kernel,
         R,
@@ -134,13 +151,7 @@ def rk4_vhp_compiled(
     B = torch.empty(R if with_jacobians else 0, n, m, dtype=x.dtype)
     # a declared pattern: the lanes kernel; else each point's Hessians are scanned
     static = hooks.curved_outputs.size > 0
-    bound = bound_kernels(hooks.rhs)
-    if bound is not None:
-        kernel, fns = (bound.jacobians_kernel if static else bound.hessians_kernel), ()
-    else:
-        kernels = _kernels()
-        kernel = kernels.rk4_lanes_kernel if static else kernels.rk4_second_derivatives_kernel
-        fns = (hooks.rhs, hooks.derivatives)
+    kernel, fns = _kernel_and_functions(hooks, xr.numpy().dtype, static, R)
     _launch(
         kernel,
         R,

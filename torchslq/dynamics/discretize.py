@@ -5,7 +5,12 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
-from .._backend import _launch, can_use_compiled, module_needs_grad, stage_congruence_compiled
+from .._backend import (
+    can_use_compiled,
+    module_needs_grad,
+    stage_congruence_compiled,
+    step_rows_compiled,
+)
 from .._shapes import broadcast_shapes
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
@@ -86,20 +91,20 @@ class DiscretizedDynamics(Dynamics):
         return value + (A @ dx).squeeze(-1) + (B @ du).squeeze(-1)
 
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
-        """:meth:`forward` by the generated module's bound step (None without one)."""
-        from .._backend.bound import bound_kernels
+        """:meth:`forward` by the compiled step of the code generated from the continuous
+        model (None without one: a hand-written step may differ in the last bits)."""
+        from .._backend.model_fns import step_source
+        from .codegen import is_generated
 
         step = self.compiled_step()
-        bound = None if step is None else bound_kernels(step[0])
-        if bound is None:
+        source = None if step is None else step_source(step[0])
+        if source is None or not is_generated(source[0]):
             return None
         lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
         n, m = x.shape[-1], u.shape[-1]
         xr = x.detach().expand(*lead, n).reshape(-1, n).contiguous()
         ur = u.detach().expand(*lead, m).reshape(-1, m).contiguous()
-        out = torch.empty_like(xr)
-        _launch(bound.step_rows, xr.shape[0], 1, step[1], xr.numpy(), ur.numpy(), out.numpy())
-        return out.view(*lead, n)
+        return step_rows_compiled(step[0], step[1], xr, ur).view(*lead, n)
 
     @property
     def has_analytic_jacobians(self) -> bool:
