@@ -329,7 +329,7 @@ def test_kernels_given_function_values_equal_the_bound_and_the_dispatcher_kernel
     module = bound.bound_kernels(step.continuous.compiled_rhs()[0], 1)
     assert module is not None
     with_bound = outputs()
-    assert module.rollout.signatures and module.jacobians_kernel.signatures
+    assert module.closed_loop_rollout_kernel.signatures and module.jacobians_kernel.signatures
     monkeypatch.setattr(bound, "MIN_ROWS", 1 << 60)
     monkeypatch.setattr(model_fns, "function_value", lambda fn, *args: fn)
     as_dispatchers = outputs()

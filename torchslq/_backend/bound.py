@@ -26,13 +26,22 @@ _BOUND: dict = {}
 def register(module: ModuleType) -> None:
     """Register a generated module under its ``rhs``; it defines ``step``,
     ``ROLLOUT_MODE`` (how its rollout kernels take the model,
-    :data:`~._numba_kernels.STEP_RK4` or ``STEP_DISCRETE``), ``rollout`` and
-    ``step_rows`` (:func:`~._numba_kernels.closed_loop_rollout_kernel` and
-    :func:`~._numba_kernels.step_rows_kernel` less ``step`` and ``rhs``), and
+    :data:`~._numba_kernels.STEP_RK4` or ``STEP_DISCRETE``),
+    :func:`~._numba_kernels.closed_loop_rollout_kernel` and
+    :func:`~._numba_kernels.step_rows_kernel` (less ``step`` and ``rhs``), and
     ``jacobians_kernel`` / ``hessians_kernel`` (the step's derivatives, with the
     argument list of :func:`torchslq.dynamics._numba_rk4.rk4_lanes_kernel` less
     ``rhs`` and ``derivs``)."""
     _BOUND[module.rhs] = module
+
+
+def is_generated(fn) -> bool:
+    """Whether ``fn`` is the ``rhs`` of a generated module (whose step reproduces the
+    model's ``forward``, so the forward may run it)."""
+    try:
+        return fn in _BOUND
+    except TypeError:  # unhashable
+        return False
 
 
 def bound_kernels(fn, rows: int) -> ModuleType | None:

@@ -33,9 +33,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ROLES", "function_value", "register_step", "rollout_kernel", "step_source"]
+from .bound import bound_kernels
 
-ROLES = ("rhs", "derivs", "step")
+__all__ = ["function_value", "register_step", "rollout_kernel", "step_source"]
 
 _VALUES: dict = {}  # (fn, role, x dtype, p dtype) -> first-class function value
 _STEPS: dict = {}  # step function -> (rhs, mode)
@@ -127,7 +127,6 @@ def rollout_kernel(kernel_name: str, step: Any, x_dtype, p_dtype, rows: int):
     a stand-in for the unused one, as first-class function values; for a large pass of
     a generated model, its module's kernel and ``(mode,)`` (:mod:`.bound`)."""
     from . import _numba_kernels as K
-    from .bound import bound_kernels
 
     source = step_source(step)
     if source is None:
@@ -135,9 +134,8 @@ def rollout_kernel(kernel_name: str, step: Any, x_dtype, p_dtype, rows: int):
     else:
         fn, (rhs, mode) = K.no_step, source
         bound = bound_kernels(rhs, rows)
-        if bound is not None:
-            name = "rollout" if kernel_name == "closed_loop_rollout_kernel" else "step_rows"
-            return getattr(bound, name), (mode,)
+        if bound is not None:  # the same kernel, its functions bound in
+            return getattr(bound, kernel_name), (mode,)
     fns = (
         function_value(fn, "step", x_dtype, p_dtype),
         function_value(rhs, "rhs", x_dtype, p_dtype),

@@ -21,7 +21,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-from .._backend._numba_kernels import STEP_RK4, rk4_step_with  # noqa: F401 (re-exported)
+from .._backend._numba_kernels import STEP_RK4, rk4_step_with
 from .._backend.model_fns import register_step
 
 

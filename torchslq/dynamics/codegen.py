@@ -258,7 +258,7 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
         f"v{CODEGEN_VERSION};{kind};{n};{m};{[(k, tuple(t.shape)) for k, t in named]}".encode()
     )
     h.update(gm.code.encode())
-    h.update(_generator_digest())
+    h.update(_kernel_sources_digest())
     for c in consts:
         h.update(c.detach().cpu().to(torch.float64).contiguous().numpy().tobytes())
     digest = h.hexdigest()[:24]
@@ -298,18 +298,6 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
     return hooks
 
 
-_GENERATED: set = set()  # the rhs functions of generated modules (see is_generated)
-
-
-def is_generated(fn) -> bool:
-    """Whether ``fn`` is the ``rhs`` of a module generated here (its step reproduces
-    the model's ``forward``: the forward may run it, :class:`~torchslq.DiscretizedDynamics`)."""
-    try:
-        return fn in _GENERATED
-    except TypeError:  # unhashable
-        return False
-
-
 def _hooks_of(module, named: list[tuple[str, Tensor]]) -> GeneratedHooks:
     derivatives = module.derivatives
     if module.CURVED_OUTPUTS:
@@ -318,24 +306,17 @@ def _hooks_of(module, named: list[tuple[str, Tensor]]) -> GeneratedHooks:
         derivatives = CompiledDerivatives(
             module.derivatives, module.CURVED_OUTPUTS, module.CURVED_ENTRIES
         )
+    from .._backend._numba_kernels import STEP_DISCRETE
     from .._backend.bound import register
+    from .._backend.model_fns import register_step
 
     register(module)  # its kernels, for large passes
     step = None
-    if module.ROLLOUT_MODE == _step_discrete():  # a discrete model: rhs is its step
-        from .._backend.model_fns import register_step
-
+    if module.ROLLOUT_MODE == STEP_DISCRETE:  # a discrete model: rhs is its step
         step = module.step
-        register_step(step, module.rhs, module.ROLLOUT_MODE)
-    _GENERATED.add(module.rhs)
+        register_step(step, module.rhs, STEP_DISCRETE)
     names = tuple(k for k, _ in named)
     return GeneratedHooks(module.rhs, derivatives, names, module.__file__, step)
-
-
-def _step_discrete() -> int:
-    from .._backend._numba_kernels import STEP_DISCRETE
-
-    return STEP_DISCRETE
 
 
 # ------------------------------------------------------------------------- source index
@@ -357,7 +338,7 @@ def _source_key(model: nn.Module, kind: str, n: int, m: int, named, lift_floats:
     h.update(repr(_structure_key(model)[1:]).encode())
     if not lift_floats:
         h.update(repr([_get_attr(model, a) for a in _float_attrs(model)]).encode())
-    h.update(_generator_digest())
+    h.update(_kernel_sources_digest())
     seen: set = set()
     for mod in model.modules():
         for cls in type(mod).__mro__:
@@ -689,15 +670,12 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
             f"            for b in range({nz}):",
             "                H[j, a, b] = 0.0",
         ]
-    if kind == "discrete":  # the step as Dynamics.compiled_step gives it (no scratch needed)
-        src += ["", "", "@numba.njit(nogil=True, cache=True)", "def step(x, u, p, out, work):"]
-        src += ["    rhs(x, u, p, out)"]
-    if len(src) > MAX_GENERATED_LINES:
-        raise _Unsupported(
-            f"{len(src)} lines of generated code (more than {MAX_GENERATED_LINES}): too long "
-            "to compile quickly"
-        )
     src += _kernel_source(kind)
+    if len(src) > MAX_GENERATED_LINES + len(_kernel_source(kind)):
+        raise _Unsupported(
+            f"{len(src) - len(_kernel_source(kind))} lines of generated code (more than "
+            f"{MAX_GENERATED_LINES}): too long to compile quickly"
+        )
     if printer._not_supported:
         raise _Unsupported(f"cannot print {sorted(map(str, printer._not_supported))[:3]}")
     return "\n".join(src) + "\n"
@@ -732,6 +710,13 @@ def _kernel_source(kind: str) -> list[str]:
             source = "torchslq.dynamics._numba_step"
             names = ["jacobians_kernel = step_derivatives_kernel"]
             names += ["hessians_kernel = step_derivatives_kernel", "ROLLOUT_MODE = STEP_DISCRETE"]
+            names += [
+                "",
+                "",
+                "@numba.njit(nogil=True, cache=True)",
+                "def step(x, u, p, out, work):",
+            ]
+            names += ["    rhs(x, u, p, out)"]
         roll, roll_helpers = specialised_source(
             _numba_kernels, {"step", "rhs"}, ["closed_loop_rollout_kernel", "step_rows_kernel"]
         )
@@ -749,7 +734,6 @@ def _kernel_source(kind: str) -> list[str]:
         for mod, used in ((source, helpers), ("torchslq._backend._numba_kernels", roll_helpers)):
             lines += [f"from {mod} import {name}" for name in used]
         lines += ["", "derivs = derivatives", "", "", derivs, "", "", roll, "", "", *names]
-        lines += ["rollout = closed_loop_rollout_kernel", "step_rows = step_rows_kernel"]
         _KERNELS[kind] = lines
     return _KERNELS[kind]
 
@@ -766,7 +750,7 @@ def _without_function(source: str, name: str) -> str:
 _SOURCES_DIGEST: list[bytes] = []
 
 
-def _generator_digest() -> bytes:
+def _kernel_sources_digest() -> bytes:
     """A hash of every source the generated module depends on: the kernels written into
     it and the generator itself (this module, the interpreter, the rewrite), plus the
     versions of sympy and numba. A cache directory shared by several versions of the
@@ -797,8 +781,8 @@ _MODULE_NAMES = (
     "rhs",
     "derivatives",
     "step",
-    "rollout",
-    "step_rows",
+    "closed_loop_rollout_kernel",
+    "step_rows_kernel",
     "jacobians_kernel",
     "hessians_kernel",
     "ROLLOUT_MODE",

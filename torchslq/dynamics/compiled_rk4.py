@@ -30,15 +30,16 @@ from .base import CompiledDerivatives
 
 __all__ = ["rk4_hooks", "rk4_jacobians_compiled", "rk4_vhp_compiled"]
 
-_modules: list[ModuleType] = []
+_module: ModuleType | None = None
 
 
 def _kernels() -> ModuleType:
-    if not _modules:
+    global _module
+    if _module is None:
         from . import _numba_rk4
 
-        _modules.append(_numba_rk4)
-    return _modules[0]
+        _module = _numba_rk4
+    return _module
 
 
 class RK4Hooks(NamedTuple):

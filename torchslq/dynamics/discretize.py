@@ -93,8 +93,8 @@ class DiscretizedDynamics(Dynamics):
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
         """:meth:`forward` by the compiled step of the code generated from the continuous
         model (None without one: a hand-written step may differ in the last bits)."""
+        from .._backend.bound import is_generated
         from .._backend.model_fns import step_source
-        from .codegen import is_generated
 
         step = self.compiled_step()
         source = None if step is None else step_source(step[0])
