@@ -30,51 +30,15 @@ import math
 import numba
 import numpy as np
 
+from ._numba_gemm import acc_tn
 from ._numba_kernels import _idx
-
-# from this state dimension on, the pass runs its products in row order
-ROW_ORDER_N = 8
-
-
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def _acc_tn(C, X, Y, sign, upper):
-    """``C += sign X'Y`` (only ``j >= i`` where ``upper``; ``X.T`` for ``C += sign X Y``),
-    four columns of ``C`` at a time in registers: four independent sums per pass over
-    ``k`` (one sum at a time waits on the FMA latency at every term, which is what
-    bounds scalar code on these small matrices)."""
-    inner, rows, cols = X.shape[0], X.shape[1], Y.shape[1]
-    for i in range(rows):
-        Ci = C[i]
-        j = i if upper else 0
-        while j + 4 <= cols:
-            a0 = a1 = a2 = a3 = 0.0
-            for k in range(inner):
-                x = X[k, i]
-                Yk = Y[k]
-                a0 += x * Yk[j]
-                a1 += x * Yk[j + 1]
-                a2 += x * Yk[j + 2]
-                a3 += x * Yk[j + 3]
-            Ci[j] += sign * a0
-            Ci[j + 1] += sign * a1
-            Ci[j + 2] += sign * a2
-            Ci[j + 3] += sign * a3
-            j += 4
-        while j < cols:
-            a0 = 0.0
-            for k in range(inner):
-                a0 += X[k, i] * Y[k, j]
-            Ci[j] += sign * a0
-            j += 1
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
     """Gain-form Riccati pass (module docstring) of elements ``b0 <= b < b1``, one
-    element at a time. The matrix products run with each sum in a register (dot order)
-    for ``n < ROW_ORDER_N`` and as row updates (axpy order, contiguous inner loops that
-    LLVM vectorises) from there on: measured 1.3x / 2x faster at (n, m) = (12, 4) /
-    (32, 8) than the dot order, and 1.4x slower at (4, 1).
+    element at a time, the matrix products register-blocked (:func:`._numba_gemm.acc_tn`;
+    compile it inside :func:`._numba_gemm.slp_vectorized`).
 
     ``pieces = (A, B, c, Q, R, S, q, r)``: ``A (1|B, 1|T, n, n)``, ``B (.., n, m)``,
     ``c (.., n)``, ``Q (1|B, 1|T+1, n, n)``, ``R (.., m, m)``, ``S (.., m, n)``,
@@ -129,64 +93,24 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
             else:
                 for i in range(n):
                     wv[i] = pn[i]
-            # PA = P'A, PB = P'B: sums in registers (dot order) for small n, else
-            # row (axpy) order, whose contiguous inner loops LLVM vectorises
-            if n < ROW_ORDER_N:
-                PA[:] = 0.0
-                PB[:] = 0.0
-                _acc_tn(PA, Pn.T, At, 1.0, False)
-                _acc_tn(PB, Pn.T, Bt, 1.0, False)
-            else:
-                for i in range(n):
-                    Pi = Pn[i]
-                    PAi = PA[i]
-                    PBi = PB[i]
-                    for j in range(n):
-                        PAi[j] = 0.0
-                    for j in range(m):
-                        PBi[j] = 0.0
-                    for kk in range(n):
-                        a = Pi[kk]
-                        Ak = At[kk]
-                        Bk = Bt[kk]
-                        for j in range(n):
-                            PAi[j] += a * Ak[j]
-                        for j in range(m):
-                            PBi[j] += a * Bk[j]
-            # Quu = R + B'PB (lower triangle), Qux = S + B'PA, qu = r + B'w
+            # PA = P'A, PB = P'B (P' symmetric), Quu = R + B'PB (its lower triangle
+            # is read), Qux = B'PA (+ S below), qu = B'w (+ r below)
+            PA[:] = 0.0
+            PB[:] = 0.0
+            acc_tn(PA, Pn, At, 1.0, False)
+            acc_tn(PB, Pn, Bt, 1.0, False)
             br, tr = _idx(R, e, t)
             Rt = R[br, tr]
-            if n < ROW_ORDER_N:
-                for i in range(m):
-                    for j in range(i + 1):
-                        acc = 0.5 * (Rt[i, j] + Rt[j, i])
-                        for kk in range(n):
-                            acc += Bt[kk, i] * PB[kk, j]
-                        Lq[i, j] = acc
-                    acc = 0.0
-                    for kk in range(n):
-                        acc += Bt[kk, i] * wv[kk]
-                    y[i] = acc
-                Y[:] = 0.0
-                _acc_tn(Y, Bt, PA, 1.0, False)
-            else:
-                for i in range(m):
-                    for j in range(i + 1):
-                        acc = 0.5 * (Rt[i, j] + Rt[j, i])
-                        for kk in range(n):
-                            acc += Bt[kk, i] * PB[kk, j]
-                        Lq[i, j] = acc
-                    Yi = Y[i]
-                    for j in range(n):
-                        Yi[j] = 0.0
-                    acc = 0.0
-                    for kk in range(n):
-                        a = Bt[kk, i]
-                        PAk = PA[kk]
-                        for j in range(n):
-                            Yi[j] += a * PAk[j]
-                        acc += a * wv[kk]
-                    y[i] = acc
+            for i in range(m):
+                for j in range(m):
+                    Lq[i, j] = 0.5 * (Rt[i, j] + Rt[j, i])
+                acc = 0.0
+                for kk in range(n):
+                    acc += Bt[kk, i] * wv[kk]
+                y[i] = acc
+            acc_tn(Lq, Bt, PB, 1.0, False)
+            Y[:] = 0.0
+            acc_tn(Y, Bt, PA, 1.0, False)
             if has_S:
                 bs, ts = _idx(S, e, t)
                 St = S[bs, ts]
@@ -230,45 +154,20 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
             pc = p[e, t]
             bq, tq = _idx(Q, e, t)
             Qt = Q[bq, tq]
-            if n < ROW_ORDER_N:
-                for i in range(n):
-                    for j in range(i, n):
-                        Pc[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
-                    acc = 0.0
-                    for kk in range(n):
-                        acc += At[kk, i] * wv[kk]
-                    for kk in range(m):
-                        acc -= Y[kk, i] * y[kk]
-                    pc[i] = acc
-                _acc_tn(Pc, At, PA, 1.0, True)
-                _acc_tn(Pc, Y, Y, -1.0, True)
-                for i in range(n):
-                    for j in range(i + 1, n):
-                        Pc[j, i] = Pc[i, j]
-            else:
-                for i in range(n):
-                    Pci = Pc[i]
-                    for j in range(n):
-                        Pci[j] = Qt[i, j]
-                    acc = 0.0
-                    for kk in range(n):
-                        a = At[kk, i]
-                        PAk = PA[kk]
-                        for j in range(n):
-                            Pci[j] += a * PAk[j]
-                        acc += a * wv[kk]
-                    for kk in range(m):
-                        a = Y[kk, i]
-                        Yk = Y[kk]
-                        for j in range(n):
-                            Pci[j] -= a * Yk[j]
-                        acc -= a * y[kk]
-                    pc[i] = acc
-                for i in range(n):  # symmetric part (also of Q)
-                    for j in range(i + 1, n):
-                        v = 0.5 * (Pc[i, j] + Pc[j, i])
-                        Pc[i, j] = v
-                        Pc[j, i] = v
+            for i in range(n):
+                for j in range(i, n):
+                    Pc[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
+                acc = 0.0
+                for kk in range(n):
+                    acc += At[kk, i] * wv[kk]
+                for kk in range(m):
+                    acc -= Y[kk, i] * y[kk]
+                pc[i] = acc
+            acc_tn(Pc, At, PA, 1.0, True)
+            acc_tn(Pc, Y, Y, -1.0, True)
+            for i in range(n):
+                for j in range(i + 1, n):
+                    Pc[j, i] = Pc[i, j]
             if has_q:
                 bl, tl = _idx(q, e, t)
                 for i in range(n):
@@ -296,7 +195,7 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
         failed[e] = not ok
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
     """From the pass's value functions and the rollout ``x (B, T+1, n)``, ``u (B, T,
     m)`` of elements ``b0 <= b < b1``: the costates ``lam_t = P_t x_t + p_t``, the
@@ -309,13 +208,18 @@ def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
         bk = e if P.shape[0] > 1 else 0
         le = lam[e]
         for t in range(T1):
+            lt = le[t]
             xt = x[e, t]
             Pt = P[bk, t]
             for i in range(n):
-                acc = p[bk, t, i]
-                for j in range(n):
-                    acc += Pt[i, j] * xt[j]
-                le[t, i] = acc
+                lt[i] = p[bk, t, i]
+            # lam_t += sum_j x_tj P_t[j] (rows for columns: P_t is symmetric), whose
+            # contiguous inner loop vectorises (a dot per row waits on each sum)
+            for j in range(n):
+                a = xt[j]
+                Pj = Pt[j]
+                for i in range(n):
+                    lt[i] += a * Pj[i]
         fin = True
         for v in x[e].ravel():
             fin = fin and math.isfinite(v)
