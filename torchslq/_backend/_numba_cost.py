@@ -5,7 +5,7 @@ from __future__ import annotations
 import numba
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def quadratic_cost_kernel(r0, r1, B, x, u, xr, ur, Q, QT, R, stage_states, J):
     """``J[r] = 1/2 (sum_t |x_t - xr_t|^2_Q_t + |x_T - xr_T|^2_QT + sum_t |u_t - ur_t|^2_R_t)``
     per row. x ``(Rows, T+1, n)``, u ``(Rows, T, m)``; row ``r`` is batch element

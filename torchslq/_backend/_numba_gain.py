@@ -48,17 +48,30 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
     ``failed (B,)``: some ``Quu`` not positive definite or not finite (the pass of that
     element stops there; its outputs are meaningless).
     """
+    m = Kk.shape[2]
+    n = Kk.shape[3] - 1
+    dt = P.dtype
+    scratch = (
+        np.empty((n, n), dtype=dt),
+        np.empty((n, m), dtype=dt),
+        np.empty(n, dtype=dt),
+        np.empty((m, n), dtype=dt),
+        np.empty(m, dtype=dt),
+        np.zeros((m, m), dtype=dt),
+    )
+    _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch)
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
+def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch):
+    """The loop of :func:`riccati_gain_kernel` (without reference counting, see
+    :mod:`._numba_kernels`); ``scratch = (PA (n, n), PB (n, m), w (n,), Y (m, n), y (m,),
+    Lq (m, m))``."""
     T = Kk.shape[1]
     m = Kk.shape[2]
     n = Kk.shape[3] - 1
     A, Bm, c, Q, R, S, q, r = pieces
-    dt = P.dtype
-    PA = np.empty((n, n), dtype=dt)
-    PB = np.empty((n, m), dtype=dt)
-    wv = np.empty(n, dtype=dt)
-    Y = np.empty((m, n), dtype=dt)
-    y = np.empty(m, dtype=dt)
-    Lq = np.zeros((m, m), dtype=dt)
+    PA, PB, wv, Y, y, Lq = scratch
     has_c, has_S, has_q, has_r = c.shape[0] > 0, S.shape[0] > 0, q.shape[0] > 0, r.shape[0] > 0
     for e in range(b0, b1):
         bq, tq = _idx(Q, e, T)
@@ -195,7 +208,7 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
         failed[e] = not ok
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
 def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
     """From the pass's value functions and the rollout ``x (B, T+1, n)``, ``u (B, T,
     m)`` of elements ``b0 <= b < b1``: the costates ``lam_t = P_t x_t + p_t``, the
@@ -221,10 +234,12 @@ def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
                 for i in range(n):
                     lt[i] += a * Pj[i]
         fin = True
-        for v in x[e].ravel():
-            fin = fin and math.isfinite(v)
-        for v in u[e].ravel():
-            fin = fin and math.isfinite(v)
+        for t in range(T1):
+            for i in range(n):
+                fin = fin and math.isfinite(x[e, t, i])
+        for t in range(T1 - 1):
+            for i in range(u.shape[2]):
+                fin = fin and math.isfinite(u[e, t, i])
         J = s[bk]
         for i in range(n):
             J += x[e, 0, i] * (p[bk, 0, i] + 0.5 * (le[0, i] - p[bk, 0, i]))
@@ -263,18 +278,36 @@ def adjoint_gain_kernel(
     ``gQ (B, T+1, n, n)``, ``gR (B, T, m, m)``, ``gS (B, T, m, n)``, ``gq (B, T+1,
     n)``, ``gr (B, T, m)``, ``gx0 (B, n)``.
     """
-    T = u.shape[1]
     m = u.shape[2]
     n = x.shape[2]
     dt = x.dtype
-    dx = np.empty(n, dtype=dt)
-    dxn = np.empty(n, dtype=dt)
-    du = np.empty(m, dtype=dt)
-    dln = np.empty(n, dtype=dt)
-    z = np.empty(m, dtype=dt)
-    dlj = np.empty(n, dtype=dt)
-    dxj = np.empty(n, dtype=dt)
-    duj = np.empty(m, dtype=dt)
+    scratch = (
+        np.empty(n, dtype=dt),
+        np.empty(n, dtype=dt),
+        np.empty(m, dtype=dt),
+        np.empty(n, dtype=dt),
+        np.empty(m, dtype=dt),
+        np.empty(n, dtype=dt),
+        np.empty(n, dtype=dt),
+        np.empty(m, dtype=dt),
+    )
+    _adjoint_gain_rows(
+        b0, b1, A, Bm, Kk, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS,
+        gq, gr, gx0, scratch,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
+def _adjoint_gain_rows(
+    b0, b1, A, Bm, Kk, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr,
+    gx0, scratch,
+):  # fmt: skip
+    """The loop of :func:`adjoint_gain_kernel` (without reference counting, see
+    :mod:`._numba_kernels`); ``scratch``: eight vectors, of sizes n, n, m, n, m, n, n, m."""
+    T = u.shape[1]
+    m = u.shape[2]
+    n = x.shape[2]
+    dx, dxn, du, dln, z, dlj, dxj, duj = scratch
     for e in range(b0, b1):
         if not ok[e]:
             continue  # (its gradients are zeroed by the caller)

@@ -37,7 +37,7 @@ def slp_vectorized() -> Iterator[None]:
         numba.core.config.SLP_VECTORIZE = old
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
 def acc_tn(C, X, Y, sign, upper):  # noqa: C901, PLR0912, PLR0915
     """``C += sign X'Y`` for ``X (k, r)``, ``Y (k, c)``, ``C (r, c)`` (pass ``X.T`` for
     ``C += sign X Y``); where ``upper``, only the entries ``j >= i`` are needed (some

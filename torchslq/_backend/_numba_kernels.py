@@ -1,6 +1,18 @@
 """numba kernels of :mod:`torchslq._backend.dispatch` (imported on first use: importing
 numba and loading the cached machine code takes ~0.5 s, which a GPU-only user should
-never pay)."""
+never pay).
+
+**No reference counting in the loops** (``_nrt=False``). numba counts the references of
+every array view it creates (a row ``M[i]``, a step's matrix ``Vh[b, t]``, an argument
+passed to a helper) with an atomic increment and decrement, about 20 cycles each; LLVM
+removes only the pairs it can see in one block. On the small matrices of these loops
+that bookkeeping took 30% of a whole ILQR solve of the cart-pole at B = 512 (perf:
+``NRT_incref`` / ``NRT_decref``). The loops and helpers are compiled without numba's
+runtime: views of the caller's arrays need no count (the caller keeps them alive), and
+a kernel that needs scratch allocates it with the runtime on and passes it to its
+loop (``riccati_kernel`` -> ``_element_pass``, ``closed_loop_rollout_kernel`` ->
+``_closed_loop_rows``). Such a function cannot allocate (numba refuses to compile it).
+"""
 
 from __future__ import annotations
 
@@ -9,8 +21,10 @@ import math
 import numba
 import numpy as np
 
+from ._numba_gemm import acc_tn
 
-@numba.njit(cache=True, nogil=True)
+
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _feedback_step(Ft, Kt, xt, ut, xn, affine):
     """``u_t = K_t x_t + f``, ``x_{t+1} = B_t u_t + A_t x_t (+ c_t)``: with ``affine`` the
     feedforward ``f`` is ``Kt[:, n]`` and ``c_t = Ft[:n, -1]`` is added (the LQ rollout);
@@ -28,7 +42,7 @@ def _feedback_step(Ft, Kt, xt, ut, xn, affine):
         xn[i] = s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _controls(Kt, xt, ut, affine):
     """``ut = Kt[:, :n] xt + f``: ``f = Kt[:, n]`` with ``affine``, else ``ut`` on entry."""
     n = xt.shape[0]
@@ -39,7 +53,7 @@ def _controls(Kt, xt, ut, affine):
         ut[i] = s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def rollout_kernel(b0, b1, F, Kk, x0, x, u):
     """``u_t = Kk_t [x_t; 1]``, ``x_{t+1} = F_t[:n] [u_t; x_t; 1]`` per element.
 
@@ -58,7 +72,7 @@ def rollout_kernel(b0, b1, F, Kk, x0, x, u):
             _feedback_step(F[bf, t], Kk[bk, t], x[b, t], u[b, t], x[b, t + 1], True)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def lq_rollout_kernel(b0, b1, A, Bm, c, Kk, x0, x, u):
     """``u_t = K_t x_t + k_t``, ``x_{t+1} = A_t x_t + B_t u_t + c_t`` per element, from
     the LQ data itself (no homogeneous ``F``): A ``(1 or B, 1 or T, n, n)``, Bm ``(.., n,
@@ -159,7 +173,7 @@ def adjoint_kernel(b0, b1, F, Kk, Vh, L, gx, gu, dx, du, dlam):
                 v[t, i] = s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _qp_value(H, g, x):
     """``x'(g + H x / 2)``, the box QP's objective."""
     v = 0.0
@@ -171,7 +185,7 @@ def _qp_value(H, g, x):
     return v
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _box_qp(H, g, lower, upper, x, tol, opts, clamped, Lf, work):
     """Projected-Newton box QP of :func:`torchslq.lq.box_qp` for one element (same
     iteration, same stopping rules, ``min_rel_improve = 0``; ``opts = (max_iter, armijo,
@@ -275,7 +289,7 @@ def _box_qp(H, g, lower, upper, x, tol, opts, clamped, Lf, work):
     return success
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _stage_matrix(Vn, Ft, Ht, Hz, Hb, t, b, VF, M):
     """``M = H_t + F_t' Vh_{t+1} F_t`` (upper triangle, mirrored), plus DDP's
     ``v_{t+1} . f_zz`` on the ``[u; x]`` block when ``Hz`` ``(T, n, B, m+n, m+n)`` or the
@@ -283,29 +297,16 @@ def _stage_matrix(Vn, Ft, Ht, Hz, Hb, t, b, VF, M):
     not empty."""
     n1, mn1 = Ft.shape
     n = n1 - 1
-    # row-times-matrix (axpy) order over row views: the innermost loops run along
-    # contiguous rows, which LLVM vectorises (a dot-product order strides down columns
-    # and is latency-bound); all of M is formed (cheaper than a triangle's ragged loops),
-    # then the upper triangle is mirrored so that M is exactly symmetric
-    for i in range(n1):
-        vi = VF[i]
-        for j in range(mn1):
-            vi[j] = 0.0
-        for k in range(n1):
-            a = Vn[i, k]
-            fk = Ft[k]
-            for j in range(mn1):
-                vi[j] += a * fk[j]
+    # register-blocked products (acc_tn); all of H is copied, the upper triangle of
+    # F'VF added and mirrored, so that M is exactly symmetric
+    VF[:] = 0.0
+    acc_tn(VF, Vn.T, Ft, 1.0, False)
     for i in range(mn1):
         mi = M[i]
         hi = Ht[i]
         for j in range(mn1):
             mi[j] = hi[j]
-        for k in range(n1):
-            a = Ft[k, i]
-            vk = VF[k]
-            for j in range(mn1):
-                mi[j] += a * vk[j]
+    acc_tn(M, Ft, VF, 1.0, True)
     for i in range(mn1):
         for j in range(i + 1, mn1):
             M[j, i] = M[i, j]
@@ -339,7 +340,7 @@ def _stage_matrix(Vn, Ft, Ht, Hz, Hb, t, b, VF, M):
                     mi[m + j] += v * hi[j]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _cholesky(A, r, cl, Lb):
     """Lower factor of ``A[:m, :m] + r I`` into ``Lb``, with the rows and columns in
     ``cl`` replaced by the identity's (the box QP's free block); False if not positive
@@ -372,7 +373,7 @@ def _cholesky(A, r, cl, Lb):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _gains(Lb, M, ncols, cl, Kt):
     """``Kt[:, c] = -(Lb Lb')^{-1} M[:m, m + c]`` for ``c < ncols``, rows in ``cl``
     (clamped controls) given a zero right-hand side. Substitutions on whole rows of
@@ -392,26 +393,26 @@ def _gains(Lb, M, ncols, cl, Kt):
         _row_scale(ki, 1.0 / Lb[i, i], ncols)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _row_update(dst, a, src, ncols):
     """``dst[:ncols] -= a * src[:ncols]``."""
     for c in range(ncols):
         dst[c] -= a * src[c]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _row_scale(dst, d, ncols):
     for c in range(ncols):
         dst[c] *= d
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _idx(a, b, t):
     """Batch and time index into a piece of shape ``(1 or B, 1 or T, ...)``."""
     return (b if a.shape[0] > 1 else 0), (t if a.shape[1] > 1 else 0)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _assemble_stage(pieces, b, t, Fs, Hs):
     """``F_t = [[B, A, c], [0, 0, 1]]`` into ``Fs`` (its last row is set once by the
     caller) and the upper triangle of ``H_t = [[R, S, r], [S', Q, q], [r', q', 0]]``
@@ -455,7 +456,7 @@ def _assemble_stage(pieces, b, t, Fs, Hs):
             Hs[m + i, m + n] = q[bl, tl, i]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _assemble_terminal(pieces, b, T, Vt):
     """``Vh_T = [[Q_T, q_T], [q_T', 0]]`` (symmetric part of ``Q_T``) into ``Vt``."""
     Q, q = pieces[3], pieces[6]
@@ -599,7 +600,7 @@ def _finite(a):
     return True
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _element_pass(
     b, bf, bh, bv, bb, r, F, H, VhT, Hz, Hb, short_form, lower, upper, tol_base, box_opts,
     Kk, Vh, L, clamped, pieces, assembled, boxed, VF, M, Lb, Quu_r, qu, k, cl, work, W,
@@ -825,7 +826,7 @@ def stage_congruence_kernel(j0, j1, hxx, huu, hux, dk, scale, Hxx, Huu, Hux):
                     uk[l] += gka * qa[l]
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def feedback_kernel(t, x, xn, K, lo, hi, u):
     """``u[r, t] += K[b, t] (x[r] - xn[b, t])``, then clamped into ``[lo, hi]`` (when
     not empty): the feedback of a closed-loop rollout at step ``t`` for rows ``r`` of
@@ -837,7 +838,7 @@ def feedback_kernel(t, x, xn, K, lo, hi, u):
         _feedback_row(x[r], xn, K, lo, hi, r % B, t, u[r, t])
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def _feedback_row(xr, xn, K, lo, hi, b, t, ur):
     """``ur += K[b, t] (xr - xn[b, t])``, clamped into ``[lo[b, t], hi[b, t]]`` when
     the bounds are not empty (one row of :func:`feedback_kernel`)."""
@@ -857,7 +858,7 @@ def _feedback_row(xr, xn, K, lo, hi, b, t, ur):
         ur[i] = s
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def costate_kernel(b0, b1, A, B, lx, lu, K, grad, lam):
     """The costate recursion of ``dynamics.rollout.costate_gradient`` per element:
     ``lam_T = lx_T``, ``g_t = lu_t + B_t' lam_{t+1}``, ``lam_t = lx_t + A_t' lam_{t+1}
@@ -918,7 +919,7 @@ STEP_RK4 = 1
 STEP_DISCRETE = 2
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def rk4_step_with(rhs, x, u, p, out, work):
     """One RK4 step of ``rhs(x, u, p[1:], out)`` with ``p[0] = dt`` into ``out``."""
     # the same sums in the same order as DiscretizedDynamics.forward; work rows:
@@ -943,7 +944,7 @@ def rk4_step_with(rhs, x, u, p, out, work):
         out[i] = x[i] + (dt / 6.0) * (a[i] + (k[i] + 2.0 * k3[i]))
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def _model_step(step, rhs, mode, x, u, p, out, work):
     """``out = f(x, u)`` by the model's step as ``mode`` says (see ``STEP_GIVEN``)."""
     if mode == STEP_RK4:
@@ -954,12 +955,12 @@ def _model_step(step, rhs, mode, x, u, p, out, work):
         step(x, u, p, out, work)
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, _nrt=False)
 def no_rhs(x, u, p, out):
     """Stands in for the ``rhs`` a ``STEP_GIVEN`` kernel call does not use."""
 
 
-@numba.njit(nogil=True, cache=True)
+@numba.njit(nogil=True, cache=True, _nrt=False)
 def no_step(x, u, p, out, work):
     """Stands in for the ``step`` a ``STEP_RK4`` / ``STEP_DISCRETE`` call does not use."""
 
@@ -977,11 +978,18 @@ def closed_loop_rollout_kernel(r0, r1, step, rhs, mode, p, x0, xn, K, lo, hi, sk
     their states after ``x0`` are NaN (a line search's trial that no element needs).
     Compiled once per machine with the functions as first-class arguments
     (:mod:`torchslq._backend.model_fns`)."""
+    work = np.empty((8, x.shape[2]), dtype=x.dtype)  # the step's scratch
+    _closed_loop_rows(r0, r1, step, rhs, mode, p, x0, xn, K, lo, hi, skip, u, x, work)
+
+
+@numba.njit(nogil=True, cache=True, _nrt=False)
+def _closed_loop_rows(r0, r1, step, rhs, mode, p, x0, xn, K, lo, hi, skip, u, x, work):
+    """The loop of :func:`closed_loop_rollout_kernel` (no reference counting: module
+    docstring)."""
     B = xn.shape[0]
     T = u.shape[1]
     n = x.shape[2]
     skipping = skip.shape[0] > 0
-    work = np.empty((8, n), dtype=x.dtype)  # the step's scratch
     for r in range(r0, r1):
         for j in range(n):
             x[r, 0, j] = x0[r, j]
@@ -1002,13 +1010,17 @@ def step_rows_kernel(r0, r1, step, rhs, mode, p, x, u, out):
     ``out (R, n)``; ``f`` as in :func:`closed_loop_rollout_kernel`): one call of a
     model's compiled step on a batch of rows, for a ``forward`` called from Python (e.g.
     inside a user's own model) without autograd."""
-    n = x.shape[1]
-    work = np.empty((8, n), dtype=x.dtype)
+    work = np.empty((8, x.shape[1]), dtype=x.dtype)
+    _step_rows(r0, r1, step, rhs, mode, p, x, u, out, work)
+
+
+@numba.njit(nogil=True, cache=True, _nrt=False)
+def _step_rows(r0, r1, step, rhs, mode, p, x, u, out, work):
     for r in range(r0, r1):
         _model_step(step, rhs, mode, x[r], u[r], p, out[r], work)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, _nrt=False)
 def piecewise_cubic_kernel(b0, b1, grid, n_steps, values, t, out):
     """:class:`torchslq.ode.dense.PiecewiseCubic` at the query times: ``out[b, q] =`` the
     cubic through ``values[b, i, 0..3]`` (at ``theta = 0, 1/3, 2/3, 1``) on the interval

@@ -300,27 +300,30 @@ def riccati_compiled(
         opts = np.array(restarts[3], dtype=np.float64)
         restart_arrays = (opts, mu.numpy(), delta.numpy(), allowed.numpy())
         reg = mu
-    _launch(
-        _kernels().riccati_kernel,
-        nb,
-        T,
-        *arrays,
-        _reg_array(reg, batch, dtype),
-        *_hessian_arrays(hessians, dtype),
-        reg is None and not boxed,
-        lower,
-        upper,
-        float(box_tol),
-        _box_opts(),
-        Kk.numpy(),
-        Vh.numpy(),
-        L.numpy(),
-        clamped.numpy(),
-        failed.numpy(),
-        dV.numpy(),
-        piece_arrays,
-        *restart_arrays,
-    )
+    from ._numba_gemm import slp_vectorized
+
+    with slp_vectorized():  # for its register-blocked products, on the first call
+        _launch(
+            _kernels().riccati_kernel,
+            nb,
+            T,
+            *arrays,
+            _reg_array(reg, batch, dtype),
+            *_hessian_arrays(hessians, dtype),
+            reg is None and not boxed,
+            lower,
+            upper,
+            float(box_tol),
+            _box_opts(),
+            Kk.numpy(),
+            Vh.numpy(),
+            L.numpy(),
+            clamped.numpy(),
+            failed.numpy(),
+            dV.numpy(),
+            piece_arrays,
+            *restart_arrays,
+        )
     return (
         Kk.reshape(*batch, T, m, n1),
         Vh.reshape(*batch, T + 1, n1, n1),

@@ -28,12 +28,12 @@ from .._backend.model_fns import register_step
 # (a_i, w_i) of the classical RK4 scheme: stage i at x + a_i dt k_{i-1}, weight w_i dt / 6
 # (as functions: numba indexes a constant tuple with a run-time index slowly, ~0.2 us
 # per row of the Jacobian kernel)
-@numba.njit(inline="always")
+@numba.njit(inline="always", _nrt=False)
 def _rk4_a(i):
     return 0.0 if i == 0 else (0.5 if i < 3 else 1.0)
 
 
-@numba.njit(inline="always")
+@numba.njit(inline="always", _nrt=False)
 def _rk4_w(i):
     return 2.0 if (i == 1 or i == 2) else 1.0
 
@@ -60,7 +60,7 @@ def rk4_step(rhs):
     return step
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def _stages(rhs, derivs, p, dt, xr, ur, fz, H, dk, xi, k, with_hessians):
     """Forward sweep over the four stages of one row: ``fz[i] = [f_x | f_u](zeta_i)``,
     ``H[i]`` the per-output Hessians there (when ``with_hessians``), ``dk[i] =
@@ -94,7 +94,7 @@ def _stages(rhs, derivs, p, dt, xr, ur, fz, H, dk, xi, k, with_hessians):
             rhs(xi, ur, p, k)
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def _jacobians_from_stages(dk, dt, n, nz, A, B):
     """``A = I + dt/6 sum_i w_i dk_i/dx``, ``B = dt/6 sum_i w_i dk_i/du`` of one row."""
     c = dt / 6.0
@@ -107,13 +107,13 @@ def _jacobians_from_stages(dk, dt, n, nz, A, B):
                 B[j, q - n] = c * s
 
 
-@numba.njit(nogil=True, inline="always")
+@numba.njit(nogil=True, inline="always", _nrt=False)
 def _joint(c, n, m):
     """Index in ``[u; x]`` order of entry ``c`` of ``z = (x, u)``."""
     return c - n if c >= n else m + c
 
 
-@numba.njit(nogil=True, inline="always")
+@numba.njit(nogil=True, inline="always", _nrt=False)
 def _row_curved(Hi, j, a, nz):
     """Whether row ``a`` of output ``j``'s Hessian has a nonzero (or NaN) entry."""
     for b in range(nz):
@@ -122,7 +122,7 @@ def _row_curved(Hi, j, a, nz):
     return False
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def _curvature(Hi, n, nz, outs, sup):
     """The outputs of one stage with a nonzero Hessian (into ``outs``) and the ``z``
     entries where any of them is curved (into ``sup``, ascending); returns their counts.
@@ -307,7 +307,7 @@ def rk4_second_derivatives_kernel(
 LANES = 64
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def _lane_stage(rhs, derivs, p, a_dt, i, x, u, rows, fz, H, xi, kr, kL, fzL, HL, outs, ents):
     """Stage ``i`` of every lane, model calls row by row: ``fzL[i] = [f_x | f_u](zeta_i)``,
     ``HL`` the curved outputs' Hessians at the curved entries, ``kL = f(zeta_i)``."""
@@ -333,7 +333,7 @@ def _lane_stage(rhs, derivs, p, a_dt, i, x, u, rows, fz, H, xi, kr, kL, fzL, HL,
                 kL[j, lane] = kr[j]
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def _lane_congruences(i, a_dt, n, fzL, dkL, HL, ents, tri1, tri2, Zs, T1, G):
     """``dkL[i] = dk_i/dz = fz_i + a_i dt f_x(zeta_i) dk_{i-1}`` and, for each curved
     output ``j``, ``G[i, j] = Z_i' f_j,zz Z_i`` (packed upper triangle) with
@@ -382,7 +382,7 @@ def _lane_congruences(i, a_dt, n, fzL, dkL, HL, ents, tri1, tri2, Zs, T1, G):
                     G[i, jj, e, lane] += Zs[a, c1, lane] * T1[a, c2, lane]
 
 
-@numba.njit(nogil=True)
+@numba.njit(nogil=True, _nrt=False)
 def _lane_weighted_sum(dt, n, s, fzL, G, outs, mu, mu2, acc):
     """``acc = sum_i sum_j mu_i[j] G[i, j]`` (packed) with the adjoint weights
     ``mu_3 = c_3 s``, ``mu_{i-1} = c_{i-1} s + a_i dt f_x(zeta_i)' mu_i``, across the
