@@ -33,6 +33,9 @@ import numpy as np
 from ._numba_gemm import acc_tn
 from ._numba_kernels import _idx
 
+# from this state dimension on, the adjoint pass runs its transposed products in row order
+ROW_ORDER_N = 8
+
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
@@ -324,19 +327,38 @@ def _adjoint_gain_rows(
             Kt = Kk[bk, t]
             Lt = L[bk, t]
             vn = ve[t + 1]
-            for i in range(m):  # qu = gu + B'v, then z = L^{-1} qu
-                acc = gu[e, t, i]
-                for j in range(n):
-                    acc += Bt[j, i] * vn[j]
-                z[i] = acc
+            # qu = gu + B'v (then z = L^{-1} qu), v = gx + A'v + K'qu; from n = 8 on the
+            # transposed products in row order (contiguous inner loops, no chain of
+            # dependent sums: 1.25x faster at (32, 8), 1.3x slower at (4, 1))
             vt = ve[t]
-            for i in range(n):  # v = gx + A'v + K'qu
-                acc = gx[e, t, i]
+            if n < ROW_ORDER_N:
+                for i in range(m):
+                    acc = gu[e, t, i]
+                    for j in range(n):
+                        acc += Bt[j, i] * vn[j]
+                    z[i] = acc
+                for i in range(n):
+                    acc = gx[e, t, i]
+                    for j in range(n):
+                        acc += At[j, i] * vn[j]
+                    for j in range(m):
+                        acc += Kt[j, i] * z[j]
+                    vt[i] = acc
+            else:
+                for i in range(m):
+                    z[i] = gu[e, t, i]
+                for i in range(n):
+                    vt[i] = gx[e, t, i]
                 for j in range(n):
-                    acc += At[j, i] * vn[j]
+                    a = vn[j]
+                    for i in range(m):
+                        z[i] += a * Bt[j, i]
+                    for i in range(n):
+                        vt[i] += a * At[j, i]
                 for j in range(m):
-                    acc += Kt[j, i] * z[j]
-                vt[i] = acc
+                    a = z[j]
+                    for i in range(n):
+                        vt[i] += a * Kt[j, i]
             for i in range(m):
                 acc = z[i]
                 for j in range(i):
@@ -392,11 +414,12 @@ def _adjoint_gain_rows(
                 for j in range(m):
                     acc += Bt[i, j] * du[j]
                 dxn[i] = acc
-            for i in range(n):
-                acc = vn[i]
-                for j in range(n):
-                    acc += Pn[i, j] * dxn[j]
-                dln[i] = acc
+            for i in range(n):  # dlam = P dx + v (P symmetric: row order)
+                dln[i] = vn[i]
+            for j in range(n):
+                a = dxn[j]
+                for i in range(n):
+                    dln[i] += a * Pn[j, i]
             ln = lam[e, t + 1]
             for i in range(n):
                 dlj[i] = dln[i] + gj * ln[i]

@@ -422,38 +422,49 @@ def _assemble_stage(pieces, b, t, Fs, Hs):
     A, Bm, c, Q, R, S, q, r = pieces
     n = A.shape[2]
     m = Bm.shape[3]
+    # 2-d views of this step's pieces (no reference counts here: module docstring), read
+    # with two indices instead of four
     ba, ta = _idx(A, b, t)
+    At = A[ba, ta]
     bb, tb = _idx(Bm, b, t)
+    Bt = Bm[bb, tb]
     for i in range(n):
+        Fi = Fs[i]
         for j in range(m):
-            Fs[i, j] = Bm[bb, tb, i, j]
+            Fi[j] = Bt[i, j]
         for j in range(n):
-            Fs[i, m + j] = A[ba, ta, i, j]
+            Fi[m + j] = At[i, j]
     if c.shape[0] > 0:
         bc, tc = _idx(c, b, t)
+        ct = c[bc, tc]
         for i in range(n):
-            Fs[i, m + n] = c[bc, tc, i]
+            Fs[i, m + n] = ct[i]
     bq, tq = _idx(Q, b, t)
+    Qt = Q[bq, tq]
     br, tr = _idx(R, b, t)
+    Rt = R[br, tr]
     for i in range(m):
         for j in range(m):
-            Hs[i, j] = 0.5 * (R[br, tr, i, j] + R[br, tr, j, i])
+            Hs[i, j] = 0.5 * (Rt[i, j] + Rt[j, i])
     for i in range(n):
         for j in range(n):
-            Hs[m + i, m + j] = 0.5 * (Q[bq, tq, i, j] + Q[bq, tq, j, i])
+            Hs[m + i, m + j] = 0.5 * (Qt[i, j] + Qt[j, i])
     if S.shape[0] > 0:
         bs, ts = _idx(S, b, t)
+        St = S[bs, ts]
         for i in range(m):
             for j in range(n):
-                Hs[i, m + j] = S[bs, ts, i, j]
+                Hs[i, m + j] = St[i, j]
     if r.shape[0] > 0:
         bl, tl = _idx(r, b, t)
+        rt = r[bl, tl]
         for i in range(m):
-            Hs[i, m + n] = r[bl, tl, i]
+            Hs[i, m + n] = rt[i]
     if q.shape[0] > 0:
         bl, tl = _idx(q, b, t)
+        qt = q[bl, tl]
         for i in range(n):
-            Hs[m + i, m + n] = q[bl, tl, i]
+            Hs[m + i, m + n] = qt[i]
 
 
 @numba.njit(cache=True, nogil=True, _nrt=False)

@@ -42,7 +42,6 @@ from __future__ import annotations
 
 import importlib.util
 import math
-import mmap
 import os
 import warnings
 from concurrent.futures import ThreadPoolExecutor
@@ -73,7 +72,6 @@ _enabled = os.environ.get("TORCHSLQ_COMPILED", "1").strip().lower() not in ("0",
 
 
 _HAVE_NUMBA = importlib.util.find_spec("numba") is not None
-_MADV_HUGEPAGE = getattr(mmap, "MADV_HUGEPAGE", None)
 _kernels_module: ModuleType | None = None
 _kernels_error: str | None = None  # why the kernels could not be loaded, once tried
 
@@ -156,27 +154,6 @@ MIN_STEPS_PER_THREAD = 4096
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 _pool_pid = 0  # a forked child inherits the pool object but not its threads
-
-
-# outputs of at least this many bytes are allocated on transparent huge pages
-HUGE_PAGE_BYTES = 1 << 22
-
-
-def empty_output(*shape: int, dtype: torch.dtype) -> Tensor:
-    """``torch.empty(shape)`` for a kernel's output; a large one (``HUGE_PAGE_BYTES``) on
-    memory advised for transparent huge pages (Linux, ``madvise`` mode).
-
-    A fresh large allocation is mapped page by page on its first write: with 4 KiB
-    pages that costs about 1.5 us a page on the CI machine, 66 ms of the 212 ms Riccati
-    pass at (n, m) = (12, 4), B = 1024, T = 100 (its value functions alone are 119 MB).
-    2 MiB pages take a fault each 512 times less often. The tensor owns the mapping (it
-    is released with the tensor's storage)."""
-    nbytes = math.prod(shape) * dtype.itemsize
-    if nbytes < HUGE_PAGE_BYTES or _MADV_HUGEPAGE is None:
-        return torch.empty(shape, dtype=dtype)
-    buf = mmap.mmap(-1, nbytes, flags=mmap.MAP_PRIVATE | mmap.MAP_ANONYMOUS)
-    buf.madvise(_MADV_HUGEPAGE)
-    return torch.frombuffer(buf, dtype=dtype).view(shape)
 
 
 def _launch(kernel, nb: int, T: int, *args) -> None:
@@ -738,10 +715,10 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     nb = x0.shape[0]
     dtype = x0.dtype
-    Kk = empty_output(data_batch, T, m, n + 1, dtype=dtype)
-    P = empty_output(data_batch, T + 1, n, n, dtype=dtype)
-    p = empty_output(data_batch, T + 1, n, dtype=dtype)
-    L = empty_output(data_batch, T, m, m, dtype=dtype)
+    Kk = torch.empty(data_batch, T, m, n + 1, dtype=dtype)
+    P = torch.empty(data_batch, T + 1, n, n, dtype=dtype)
+    p = torch.empty(data_batch, T + 1, n, dtype=dtype)
+    L = torch.empty(data_batch, T, m, m, dtype=dtype)
     s = torch.empty(data_batch, dtype=dtype)
     failed = torch.empty(data_batch, dtype=torch.bool)
     Kkn, Pn, pn, sn = Kk.numpy(), P.numpy(), p.numpy(), s.numpy()
@@ -750,9 +727,9 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
             gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, L.numpy(), sn,
             failed.numpy(),
         )  # fmt: skip
-    x = empty_output(nb, T + 1, n, dtype=dtype)
-    u = empty_output(nb, T, m, dtype=dtype)
-    lam = empty_output(nb, T + 1, n, dtype=dtype)
+    x = torch.empty(nb, T + 1, n, dtype=dtype)
+    u = torch.empty(nb, T, m, dtype=dtype)
+    lam = torch.empty(nb, T + 1, n, dtype=dtype)
     cost = torch.empty(nb, dtype=dtype)
     finite = torch.empty(nb, dtype=torch.bool)
     xn, un = x.numpy(), u.numpy()
@@ -789,7 +766,7 @@ def lq_gain_gradients(
         (T, n),
     )  # fmt: skip
     out = [
-        empty_output(nb, *shape, dtype=dtype) if need else torch.empty(0, *shape, dtype=dtype)
+        torch.empty(nb, *shape, dtype=dtype) if need else torch.empty(0, *shape, dtype=dtype)
         for shape, need in zip(shapes, needs, strict=True)
     ]
     gA, gB, gQ, gR, gx0, gq, gr, gS, gc = out
