@@ -99,6 +99,7 @@ def _function_value_class():
     first use: the library imports without it)."""
     if not _CLASS:
         from numba.core import types
+        from numba.core.typing.typeof import typeof_impl
         from numba.experimental.function_type import _get_wrapper_address
 
         class FunctionValue(types.WrapperAddressProtocol):
@@ -109,12 +110,20 @@ def _function_value_class():
                 self.fn = fn
                 self._signature = signature
                 self._address = _get_wrapper_address(fn, signature)
+                self.numba_type = types.FunctionType(signature)
 
             def __wrapper_address__(self) -> int:
                 return self._address
 
             def signature(self):
                 return self._signature
+
+        # numba types an argument on every launch; for a function value it builds a new
+        # FunctionType from the signature each time (~10 us, per argument and launch):
+        # the value's own type, built once, instead
+        @typeof_impl.register(FunctionValue)
+        def _typeof_function_value(val, c):
+            return val.numba_type
 
         _CLASS.append(FunctionValue)
     return _CLASS[0]
