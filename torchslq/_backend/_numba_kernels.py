@@ -412,7 +412,7 @@ def _idx(a, b, t):
     return (b if a.shape[0] > 1 else 0), (t if a.shape[1] > 1 else 0)
 
 
-@numba.njit(cache=True, nogil=True, _nrt=False)
+@numba.njit(cache=True, nogil=True, _nrt=False, inline="always")
 def _assemble_stage(pieces, b, t, Fs, Hs):
     """``F_t = [[B, A, c], [0, 0, 1]]`` into ``Fs`` (its last row is set once by the
     caller) and the upper triangle of ``H_t = [[R, S, r], [S', Q, q], [r', q', 0]]``
