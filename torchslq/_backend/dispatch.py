@@ -737,11 +737,7 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
         _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn,
         x0.detach().contiguous().numpy(), xn, un,
     )  # fmt: skip
-    with slp_vectorized():
-        _launch(
-            gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lam.numpy(), cost.numpy(),
-            finite.numpy(),
-        )  # fmt: skip
+    _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lam.numpy(), cost.numpy(), finite.numpy())
     return {
         "Kk": Kk, "P": P, "p": p, "L": L, "failed": failed,
         "x": x, "u": u, "lam": lam, "cost": cost, "finite": finite,
