@@ -352,9 +352,14 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
     scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     eye_reg = torch.eye(n + me, dtype=dt, device=dev)
-    # a tiny regularisation of the KKT diagonal (primal +, dual -) keeps LDL' stable when
-    # H is singular on the constraints' null space only up to rounding
-    reg = torch.cat([torch.full((n,), 1e-13), torch.full((me,), -1e-13)]).to(dt).to(dev)
+    # the KKT matrix [[K11, A'], [A, 0]] in one buffer: the constraint blocks written once,
+    # K11 each iteration (building it with cat took 15% of a batched QLIN solve). A tiny
+    # regularisation of the diagonal (primal +, dual -) keeps LDL' stable when H is
+    # singular on the constraints' null space only up to rounding.
+    KKT = f.new_zeros(B, n + me, n + me)
+    KKT[:, :n, n:] = At
+    KKT[:, n:, :n] = A
+    KKT[:, n:, n:].diagonal(dim1=-2, dim2=-1).fill_(-1e-13)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         rd = (H @ z.unsqueeze(-1)).squeeze(-1) + f
@@ -381,14 +386,14 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
             break
         W = mu / s if mi else None
         K11 = H + ineq.gwg(W) if mi else H
-        KKT = torch.cat(
-            [torch.cat([K11, At], -1), torch.cat([A, f.new_zeros(B, me, me)], -1)], -2
-        ) + torch.diag(reg)
-        KKT = torch.where(done[:, None, None], eye_reg.expand(B, -1, -1), KKT)
+        KKT[:, :n, :n] = K11
+        KKT[:, :n, :n].diagonal(dim1=-2, dim2=-1).add_(1e-13)
+        # a finished element factors the identity (its step is 0)
+        K = torch.where(done[:, None, None], eye_reg, KKT) if bool(done.any()) else KKT
         # the KKT matrix is symmetric (indefinite): Bunch-Kaufman LDL'. (Batched LU of
         # larger matrices after torch.set_num_threads has returned invalid pivots with
         # this torch/MKL build; LDL' is also half the work.)
-        LU, piv, _ = torch.linalg.ldl_factor_ex(KKT)
+        LU, piv, _ = torch.linalg.ldl_factor_ex(K)
 
         def direction(rc, rd=rd, re=re, ri=ri, s=s, mu=mu, LU=LU, piv=piv):
             return _direction(rc, rd, re, ri, s, mu, LU, piv, ineq, n, mi)
