@@ -1027,6 +1027,7 @@ def step_rows_kernel(r0, r1, step, rhs, mode, p, x, u, out):
 
 @numba.njit(nogil=True, cache=True, _nrt=False)
 def _step_rows(r0, r1, step, rhs, mode, p, x, u, out, work):
+    """The loop of :func:`step_rows_kernel` (no reference counting: module docstring)."""
     for r in range(r0, r1):
         _model_step(step, rhs, mode, x[r], u[r], p, out[r], work)
 

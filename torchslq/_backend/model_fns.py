@@ -11,7 +11,8 @@ the kernel is specialised only on that signature, so it compiles once per machin
 every model and loads from numba's disk cache; a model costs the compilation of its own
 functions (a generated model's are cached with its module,
 :mod:`torchslq.dynamics.codegen`). The price is a call through a pointer that is not
-inlined, and a few microseconds per function argument per kernel launch.
+inlined, and numba's typing of each function argument at every launch (a Python call;
+the value's numba type itself is built once, :func:`_function_value_class`).
 
 The functions' signatures follow from the arrays a kernel passes them (``X``: arrays of
 the state's dtype, ``P``: the parameters' 1-d array, all C-contiguous):
