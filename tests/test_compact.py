@@ -154,6 +154,15 @@ def test_finished_elements_do_not_hold_up_the_line_search(module, monkeypatch):
     assert int(n_active.min()) < act.shape[0]  # someone finished before the last search
 
 
+def _batched_search_only(monkeypatch) -> None:
+    """The batched search on torch ops (armijo_search) for every line search, not the
+    fused kernel the CPU takes with a compiled step and a quadratic cost (checked
+    against armijo_search in test_fused_line_search.py)."""
+    from torchslq.solvers.descent import LineSearch
+
+    monkeypatch.setattr(LineSearch, "_fused_armijo", lambda self, *args: None)
+
+
 @pytest.mark.codegen
 @pytest.mark.parametrize("compact", [False, True])
 @pytest.mark.parametrize("solver", ["ddp", "ilqr-bounds", "slq"])
@@ -164,6 +173,7 @@ def test_skipping_settled_trials_changes_no_solve(solver, compact, monkeypatch):
     kernel really skips rows."""
     import sys
 
+    _batched_search_only(monkeypatch)
     problem, x0 = cartpole_swingup(batch=6, horizon=25, seed=3)
     assert problem.dynamics.compiled_step() is not None
     make = {
@@ -200,6 +210,7 @@ def test_armijo_passes_change_no_solve(solver, monkeypatch):
     devices' default) and one at a time; the option reaches armijo_search."""
     import sys
 
+    _batched_search_only(monkeypatch)
     problem, x0 = cartpole_swingup(batch=6, horizon=25, seed=3)
     make = {
         "ddp": lambda **kw: ts.DDP(max_iter=40, progress=False, **kw),

@@ -115,11 +115,12 @@ def test_solvers_evaluate_costs_on_the_kernel(monkeypatch):
 
     problem, x0 = pendulum_swingup(batch=3, horizon=30, seed=1)
     calls = []
-    real = _quad._launch
-    monkeypatch.setattr(_quad, "_launch", lambda *a: calls.append(1) or real(*a))
+    real = _quad._compiled_terms
+    monkeypatch.setattr(_quad, "_compiled_terms", lambda *a: calls.append(1) or real(*a))
     fast = ts.ILQR(max_iter=100, progress=False).solve(problem, x0)
+    # the kernel's arrays: for its values and for the fused line search's trials
     assert len(calls) > 10
-    monkeypatch.setattr(_quad, "_quadratic_cost_compiled", lambda *a: None)
+    monkeypatch.setattr(_quad, "_compiled_terms", lambda *a: None)
     ref = ts.ILQR(max_iter=100, progress=False).solve(problem, x0)
     assert bool(fast.converged.all()) and bool(ref.converged.all())
     torch.testing.assert_close(fast.cost, ref.cost, rtol=1e-12, atol=0)

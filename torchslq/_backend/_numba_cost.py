@@ -13,38 +13,45 @@ def quadratic_cost_kernel(r0, r1, B, x, u, xr, ur, Q, QT, R, stage_states, J):
     dim of 1 or the horizon: xr ``(., 1|T+1, n)``, ur ``(., 1|T, m)``, Q ``(., 1|T, n,
     n)``, QT ``(., n, n)``, R ``(., 1|T, m, m)``; ``stage_states`` False when ``Q`` is
     zero (only the terminal state is weighted). Rows ``r0 <= r < r1``."""
-    T = u.shape[1]
-    n = x.shape[2]
-    m = u.shape[2]
+    for r in range(r0, r1):
+        J[r] = quadratic_cost_row(x[r], u[r], r % B, xr, ur, Q, QT, R, stage_states)
+
+
+@numba.njit(cache=True, nogil=True, _nrt=False)
+def quadratic_cost_row(x, u, b, xr, ur, Q, QT, R, stage_states):
+    """The cost of one trajectory ``x (T+1, n)``, ``u (T, m)`` of batch element ``b``
+    (the weights and references as in :func:`quadratic_cost_kernel`); also the cost of
+    the fused line search's trials (:mod:`._numba_search`)."""
+    T = u.shape[0]
+    n = x.shape[1]
+    m = u.shape[1]
     xr_t = xr.shape[1] > 1
     ur_t = ur.shape[1] > 1
     Q_t = Q.shape[1] > 1
     R_t = R.shape[1] > 1
-    for r in range(r0, r1):
-        b = r % B
-        bxr = b if xr.shape[0] > 1 else 0
-        bur = b if ur.shape[0] > 1 else 0
-        bq = b if Q.shape[0] > 1 else 0
-        bqt = b if QT.shape[0] > 1 else 0
-        br = b if R.shape[0] > 1 else 0
-        s = 0.0
-        for t in range(0 if stage_states else T, T + 1):
-            tx = t if xr_t else 0
-            tq = t if Q_t else 0
-            for i in range(n):
-                di = x[r, t, i] - xr[bxr, tx, i]
-                v = 0.0
-                for j in range(n):
-                    w = Q[bq, tq, i, j] if t < T else QT[bqt, i, j]
-                    v += w * (x[r, t, j] - xr[bxr, tx, j])
-                s += di * v
-        for t in range(T):
-            tu = t if ur_t else 0
-            tr = t if R_t else 0
-            for i in range(m):
-                di = u[r, t, i] - ur[bur, tu, i]
-                v = 0.0
-                for j in range(m):
-                    v += R[br, tr, i, j] * (u[r, t, j] - ur[bur, tu, j])
-                s += di * v
-        J[r] = 0.5 * s
+    bxr = b if xr.shape[0] > 1 else 0
+    bur = b if ur.shape[0] > 1 else 0
+    bq = b if Q.shape[0] > 1 else 0
+    bqt = b if QT.shape[0] > 1 else 0
+    br = b if R.shape[0] > 1 else 0
+    s = 0.0
+    for t in range(0 if stage_states else T, T + 1):
+        tx = t if xr_t else 0
+        tq = t if Q_t else 0
+        for i in range(n):
+            di = x[t, i] - xr[bxr, tx, i]
+            v = 0.0
+            for j in range(n):
+                w = Q[bq, tq, i, j] if t < T else QT[bqt, i, j]
+                v += w * (x[t, j] - xr[bxr, tx, j])
+            s += di * v
+    for t in range(T):
+        tu = t if ur_t else 0
+        tr = t if R_t else 0
+        for i in range(m):
+            di = u[t, i] - ur[bur, tu, i]
+            v = 0.0
+            for j in range(m):
+                v += R[br, tr, i, j] * (u[t, j] - ur[bur, tu, j])
+            s += di * v
+    return 0.5 * s

@@ -55,6 +55,7 @@ from .._shapes import broadcast_shapes
 from .model_fns import rollout_kernel
 
 __all__ = [
+    "armijo_rollout_compiled",
     "PIECE_NDIMS",
     "adjoint_compiled",
     "closed_loop_feedback_compiled",
@@ -488,6 +489,79 @@ def closed_loop_rollout_compiled(
         x.view(R, T + 1, n).numpy(),
     )
     return x
+
+
+def armijo_rollout_compiled(
+    step,
+    params: np.ndarray,
+    x: Tensor,
+    u: Tensor,
+    K: Tensor,
+    k: Tensor,
+    u_min: Tensor | None,
+    u_max: Tensor | None,
+    grid: Tensor,
+    J0: Tensor,
+    slope: Tensor,
+    curvature: Tensor | None,
+    c1: float,
+    roundoff: float,
+    active: Tensor,
+    cost_terms: tuple,
+) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Armijo backtracking along the feedback rollout, one kernel call for the batch
+    (:func:`._numba_search.armijo_rollout_kernel`): a model's compiled step
+    (:meth:`torchslq.Dynamics.compiled_step`) and a quadratic cost's kernel arrays
+    (:meth:`torchslq.QuadraticCost.compiled_terms`).
+
+    ``x (B, T+1, n)``, ``u (B, T, m)`` the nominal trajectory, ``K (B, T, m, n)``,
+    ``k (B, T, m)``, bounds None or broadcastable to ``(B, T, m)``, ``grid (N,)`` the
+    steps (largest first), ``J0``, ``slope``, ``curvature`` (None: the linear model)
+    and ``active`` ``(B,)``. Returns ``(alpha, J, ok, x_new, u_new)`` as
+    :class:`torchslq.solvers.descent.LineSearch` does. Call only where
+    :func:`can_use_compiled` holds for all tensors."""
+    from . import _numba_search
+
+    Bsz, T, m = u.shape
+    n = x.shape[-1]
+    lo, hi = _bound_arrays(u_min, u_max, (Bsz, T, m), u.dtype)
+    x_new = torch.empty_like(x, memory_format=torch.contiguous_format)
+    u_new = torch.empty_like(u, memory_format=torch.contiguous_format)
+    alpha, J = torch.empty_like(J0), torch.empty_like(J0)
+    ok = torch.empty(Bsz, dtype=torch.bool)
+    curv = J0 if curvature is None else curvature  # unread without the quadratic model
+    kernel, fns = rollout_kernel(
+        "armijo_rollout_kernel", step, _np_dtype(x.dtype), params.dtype, Bsz * T, _numba_search
+    )
+    _, (xr, ur, Q, QT, R), stage_states = cost_terms
+    arrays = (x, u, K.expand(Bsz, T, m, n), k, grid, J0, slope, curv)
+    _launch(
+        kernel,
+        Bsz,
+        T,
+        *fns,
+        params,
+        *(t.detach().contiguous().numpy() for t in arrays[:4]),
+        lo,
+        hi,
+        *(t.detach().contiguous().numpy() for t in arrays[4:]),
+        curvature is not None,
+        float(c1),
+        float(roundoff),
+        active.contiguous().numpy(),
+        xr,
+        ur,
+        Q,
+        QT,
+        R,
+        stage_states,
+        x_new.numpy(),
+        u_new.numpy(),
+        alpha.numpy(),
+        J.numpy(),
+        ok.numpy(),
+    )
+    return alpha, J, ok, x_new, u_new
 
 
 def step_rows_compiled(step, params: np.ndarray, x: Tensor, u: Tensor) -> Tensor:

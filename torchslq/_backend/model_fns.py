@@ -130,12 +130,14 @@ def _function_value_class():
     return _CLASS[0]
 
 
-def rollout_kernel(kernel_name: str, step: Any, x_dtype, p_dtype, rows: int):
+def rollout_kernel(kernel_name: str, step: Any, x_dtype, p_dtype, rows: int, module=None):
     """The rollout kernel ``kernel_name`` (``"closed_loop_rollout_kernel"`` or
-    ``"step_rows_kernel"``) for ``step`` and its leading arguments: ``(step, rhs, mode)``
-    with a registered step's ``rhs`` and mode, else the step itself (``STEP_GIVEN``) and
-    a stand-in for the unused one, as first-class function values; for a large pass of
-    a generated model, its module's kernel and ``(mode,)`` (:mod:`.bound`)."""
+    ``"step_rows_kernel"`` of :mod:`._numba_kernels`, or a kernel of ``module`` with the
+    same leading arguments) for ``step`` and its leading arguments: ``(step, rhs,
+    mode)`` with a registered step's ``rhs`` and mode, else the step itself
+    (``STEP_GIVEN``) and a stand-in for the unused one, as first-class function values;
+    for a large pass of a generated model that defines the kernel, its module's kernel
+    and ``(mode,)`` (:mod:`.bound`)."""
     from . import _numba_kernels as K
 
     source = step_source(step)
@@ -144,11 +146,11 @@ def rollout_kernel(kernel_name: str, step: Any, x_dtype, p_dtype, rows: int):
     else:
         fn, (rhs, mode) = K.no_step, source
         bound = bound_kernels(rhs, rows)
-        if bound is not None:  # the same kernel, its functions bound in
-            return getattr(bound, kernel_name), (mode,)
+        if bound is not None and hasattr(bound, kernel_name):
+            return getattr(bound, kernel_name), (mode,)  # the same kernel, functions bound in
     fns = (
         function_value(fn, "step", x_dtype, p_dtype),
         function_value(rhs, "rhs", x_dtype, p_dtype),
         mode,
     )
-    return getattr(K, kernel_name), fns
+    return getattr(K if module is None else module, kernel_name), fns

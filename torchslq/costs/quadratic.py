@@ -193,9 +193,9 @@ class QuadraticCost(nn.Module):
         QT = self.Qf if self.Qf is not None else Qs[:, -1]  # (n, n) or (Bq, n, n)
         Rs = self._time_varying(self.R, T, "R", 2)
         xr, ur = self.references(T, x)
-        J = _quadratic_cost_compiled(x, u, xr, ur, Qs, QT, Rs)
-        if J is not None:
-            return J
+        terms = _compiled_terms(x, u, xr, ur, Qs, QT, Rs)
+        if terms is not None:
+            return _quadratic_cost_compiled(x, u, terms)
         dx, du = x - xr, u - ur
         # per-row products then a row-wise sum over time: unlike einsum (which may turn
         # into a batched GEMM whose blocking depends on B), this gives every element the
@@ -272,6 +272,19 @@ class QuadraticCost(nn.Module):
         lu = (R @ (u - ur).unsqueeze(-1)).squeeze(-1)
         return CostExpansion(lxx=Q, luu=R, lux=None, lx=lx, lu=lu)
 
+    def compiled_terms(self, x: Tensor, u: Tensor) -> tuple | None:
+        """The weights and references as the CPU cost kernel's arrays for trajectories
+        like ``x (B, T+1, n)``, ``u (B, T, m)`` (see :func:`_compiled_terms`), or None
+        where the kernel does not apply (outside :func:`compiled_cost_evaluation`, not
+        float64 CPU tensors, autograd, dimensions over 32). A fused line search
+        (:func:`torchslq.solvers.descent.LineSearch`) evaluates its trials with them."""
+        T = self._check_traj(x, u)
+        Qs = self._time_varying(self.Q, T, "Q", 2)
+        QT = self.Qf if self.Qf is not None else Qs[:, -1]
+        Rs = self._time_varying(self.R, T, "R", 2)
+        xr, ur = self.references(T, x)
+        return _compiled_terms(x, u, xr, ur, Qs, QT, Rs)
+
 
 # the CPU kernel's dense per-row forms are for small weights (diagonal ones of large
 # states are cheaper as the torch path's elementwise products)
@@ -294,12 +307,12 @@ def compiled_cost_evaluation() -> Iterator[None]:
         _compiled_costs.reset(token)
 
 
-def _quadratic_cost_compiled(x, u, xr, ur, Qs, QT, Rs) -> Tensor | None:
-    """The cost on the CPU kernel (:mod:`torchslq.costs._numba_cost`) inside
-    :func:`compiled_cost_evaluation`: one pass per row instead of a dozen torch ops over
-    the whole batch (line searches evaluate it for every trial step); the same value
-    per row whatever batch it is evaluated in. None where it does not apply: the
-    caller takes the torch path."""
+def _compiled_terms(x, u, xr, ur, Qs, QT, Rs) -> tuple | None:
+    """``(Bw, (xr, ur, Q, QT, R), stage_states)``: the references and weights as the
+    arrays of the CPU cost kernel (:func:`~torchslq._backend._numba_cost.quadratic_cost_row`;
+    ``Bw`` their broadcast batch, ``stage_states`` False when ``Q`` is zero), inside
+    :func:`compiled_cost_evaluation` where the kernel applies to ``x``, ``u``; else None
+    (the caller takes the torch path)."""
     if not _compiled_costs.get() or x.dtype != torch.float64:
         return None
     n, m = x.shape[-1], u.shape[-1]
@@ -308,20 +321,31 @@ def _quadratic_cost_compiled(x, u, xr, ur, Qs, QT, Rs) -> Tensor | None:
     QT = QT if QT.ndim == 3 else QT.unsqueeze(0)
     if not can_use_compiled(x, u, xr, ur, Qs, QT, Rs):
         return None
-    Bw = broadcast_shapes(*((t.shape[0],) for t in (xr, ur, Qs, QT, Rs)))
-    lead = broadcast_shapes(x.shape[:-2], u.shape[:-2], Bw)
+    Bw = broadcast_shapes(*((t.shape[0],) for t in (xr, ur, Qs, QT, Rs)))[0]
+    arrays = tuple(t.detach().contiguous().numpy() for t in (xr, ur, Qs, QT, Rs))
+    stage_states = bool(Qs.detach().any())  # (a terminal-only state cost skips T forms)
+    return Bw, arrays, stage_states
+
+
+def _quadratic_cost_compiled(x: Tensor, u: Tensor, terms: tuple) -> Tensor:
+    """The cost on the CPU kernel (:mod:`torchslq._backend._numba_cost`) with the arrays
+    ``terms`` of :func:`_compiled_terms`: one pass per row instead of a dozen torch ops
+    over the whole batch (line searches evaluate it for every trial step); the same
+    value per row whatever batch it is evaluated in."""
+    Bw, arrays, stage_states = terms
+    lead = broadcast_shapes(x.shape[:-2], u.shape[:-2], (Bw,))
     B = lead[-1]
     rows = math.prod(lead)
     J = torch.empty(rows, dtype=x.dtype)
     xs = x.detach().expand(*lead, *x.shape[-2:]).reshape(rows, *x.shape[-2:])
     us = u.detach().expand(*lead, *u.shape[-2:]).reshape(rows, *u.shape[-2:])
-    arrays = [t.detach().contiguous().numpy() for t in (xs, us, xr, ur, Qs, QT, Rs)]
-    stage_states = bool(Qs.detach().any())  # (a terminal-only state cost skips T forms)
     _launch(
         _cost_kernels().quadratic_cost_kernel,
         rows,
         x.shape[-2],
         B,
+        xs.contiguous().numpy(),
+        us.contiguous().numpy(),
         *arrays,
         stage_states,
         J.numpy(),

@@ -128,7 +128,7 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
     lead = broadcast_shapes(alpha.shape, x0.shape[:-1], (B,))
     u = (u_nom + alpha[..., None, None] * k).expand(*lead, T, m).contiguous()
     xn, KB = x_nom[..., :T, :].expand(B, T, n), K.expand(B, T, m, n)
-    compiled = _compiled_step(f)
+    compiled = compiled_step_of(f)
     if compiled is not None:  # the model's own compiled step: one kernel call in all
         # a NaN step is a line-search trial no element needs (armijo_search's
         # skip_settled): not rolled out, its states are NaN as on the torch path
@@ -152,7 +152,7 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
 def _rollout_compiled(f, x0: Tensor, u: Tensor) -> Tensor | None:
     """:func:`rollout` on the whole-rollout kernel with the model's compiled step (the
     closed-loop kernel with zero gains), or None without one."""
-    compiled = _compiled_step(f)
+    compiled = compiled_step_of(f)
     if compiled is None or u.ndim < 2:
         return None
     T, m, n = u.shape[-2], u.shape[-1], x0.shape[-1]
@@ -162,9 +162,10 @@ def _rollout_compiled(f, x0: Tensor, u: Tensor) -> Tensor | None:
     return closed_loop_rollout_compiled(*compiled, x0, u.new_zeros(1, T, n), zero_K, uc, None, None)
 
 
-def _compiled_step(f):
-    """``f.compiled_step()`` (:meth:`torchslq.Dynamics.compiled_step`) when ``f`` has one
-    and its parameters need no autograd here, else None."""
+def compiled_step_of(f):
+    """``f.compiled_step()`` (:meth:`torchslq.Dynamics.compiled_step`: the step function
+    and its parameters array) when ``f`` has one and its parameters need no autograd
+    here, else None."""
     get = getattr(f, "compiled_step", None)
     if get is None or module_needs_grad(f):
         return None

@@ -28,14 +28,16 @@ from typing import TYPE_CHECKING, Any, Protocol
 import torch
 from torch import Tensor
 
+from .._backend.dispatch import armijo_rollout_compiled, can_use_compiled
 from ..dynamics.linearize import linearize
-from ..dynamics.rollout import costate_gradient, rollout, rollout_closed_loop
+from ..dynamics.rollout import compiled_step_of, costate_gradient, rollout, rollout_closed_loop
 from ..lq.riccati import riccati_backward, rollout_linear
 from ..status import Status
 from .core import Advance as _Advance
 from .core import ElementState, Measure
 from .line_search import TrialRecorder, armijo_search, exact_search
 from .options import DescentOptions
+from .stopping import ROUNDOFF_NOISE
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..problem import Problem
@@ -270,6 +272,10 @@ class LineSearch:
         du, k, slope = d["du"], d["k"], d["slope"]
         if scale is not None:
             du, k, slope = scale[:, None, None] * du, scale[:, None, None] * k, scale * slope
+        if self.kind == "armijo" and self.rollout == "closed_loop" and scale is None:
+            fused = self._fused_armijo(problem, state, d, running)
+            if fused is not None:
+                return fused
         trials = TrialRecorder()
 
         def evaluate(alphas: Tensor) -> Tensor:  # alphas (Na, b) -> J (Na, b)
@@ -294,6 +300,38 @@ class LineSearch:
         if scale is not None:
             alpha = alpha * scale
         return alpha, J_new, ok, x_new, u_new
+
+    def _fused_armijo(
+        self, problem: Problem, state: DescentState, d: dict[str, Tensor], running: Tensor
+    ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor] | None:
+        """The Armijo search along the feedback rollout as one CPU kernel call
+        (:func:`torchslq._backend.dispatch.armijo_rollout_compiled`) where the model has
+        a compiled step and the cost gives its kernel arrays
+        (:meth:`torchslq.QuadraticCost.compiled_terms`); None elsewhere. Its steps,
+        costs and accepted trajectories are :func:`armijo_search`'s (the trials in
+        turn, the same operations in the same order), without the passes' glue: about
+        thirty small torch ops per pass, most of a small batch's search."""
+        terms_of = getattr(problem.cost, "compiled_terms", None)
+        if terms_of is None:
+            return None
+        x, u, J0 = state.x, state.u, state.J
+        curvature = d["curvature"] if self.quadratic_model else None
+        tensors = [x, u, J0, d["K"], d["k"], d["slope"]]
+        tensors += [t for t in (curvature, state.lo, state.hi) if t is not None]
+        if not can_use_compiled(*tensors):
+            return None
+        compiled = compiled_step_of(problem.transition)
+        if compiled is None:
+            return None
+        terms = terms_of(x, u)
+        if terms is None:
+            return None
+        # armijo_search's steps, the same floats
+        grid = 1.0 * self.beta ** torch.arange(self.max_backtracks, dtype=J0.dtype)
+        return armijo_rollout_compiled(
+            *compiled, x, u, d["K"], d["k"], state.lo, state.hi, grid, J0, d["slope"],
+            curvature, self.c1, ROUNDOFF_NOISE * torch.finfo(J0.dtype).eps, running, terms,
+        )  # fmt: skip
 
 
 @dataclass(frozen=True)
