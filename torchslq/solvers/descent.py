@@ -13,7 +13,8 @@ A :class:`DescentRule` combines
 
 A direction returns a dict ``d`` with ``du (b,T,m)``, ``dx (b,T+1,n)``, ``K``, ``k``,
 ``grad (b,T,m)`` (``∇_U J``, or the projected gradient with bounds), ``slope (b,)``
-(``∇J·Ū``), ``failed (b,)`` and optionally ``curvature (b,)`` (``k'Quu k``), ``scale
+(``∇J·Ū``), ``failed (b,)`` and optionally ``grad_norm (b,)`` (the norm of ``grad``,
+where the direction computed it), ``curvature (b,)`` (``k'Quu k``), ``scale
 (b,)`` (the line search runs over ``(0, scale]``), ``keep_gains (b,)`` (False where the
 gains of this iteration were not computed), ``nonfinite (b,)`` (its data were not
 finite: status ``non_finite`` rather than ``not_positive_definite``). Its per-element memory (e.g. the
@@ -350,19 +351,23 @@ class DescentRule:
 
     def measure(self, problem, state: DescentState, running: Tensor, it: int):
         d, state = self.direction(problem, state, running, it)
-        gn = d["grad"].flatten(1).norm(dim=1)
+        gn = d.get("grad_norm")
+        if gn is None:
+            gn = d["grad"].flatten(1).norm(dim=1)
         new_gains = running if "keep_gains" not in d else running & d["keep_gains"]
         K = torch.where(new_gains[:, None, None, None], d["K"], state.K)
         k = torch.where(new_gains[:, None, None], d["k"], state.k)
         small_grad = gn < self.tol
-        du_norm = d["du"].flatten(1).norm(dim=1)
-        small_step = du_norm < self.step_tol * state.u.flatten(1).norm(dim=1)
-        done = {
-            "grad": small_grad,
-            "step": small_step,
-            "either": small_grad | small_step,
-            "both": small_grad & small_step,
-        }[self.stop]
+        if self.stop == "grad":  # (the step test's two norms only where it is used)
+            done = small_grad
+        else:
+            du_norm = d["du"].flatten(1).norm(dim=1)
+            small_step = du_norm < self.step_tol * state.u.flatten(1).norm(dim=1)
+            done = {
+                "step": small_step,
+                "either": small_grad | small_step,
+                "both": small_grad & small_step,
+            }[self.stop]
         if "feasible" in d:  # multiple shooting: converged only with the defects closed
             done = done & d["feasible"]
         fail = torch.full_like(gn, int(Status.RUNNING), dtype=torch.int64)

@@ -275,12 +275,13 @@ class RegularizedNewton:
         lo, hi = state.lo, state.hi
         if lo is not None:
             grad = u - torch.minimum(torch.maximum(u - grad, lo), hi)  # projected gradient
-        done = None
+        done = grad_norm = None
         if self.skip_tol is not None and it > 0:
-            done = grad.flatten(1).norm(dim=1) < self.skip_tol
+            grad_norm = grad.flatten(1).norm(dim=1)
+            done = grad_norm < self.skip_tol
             if bool((done | ~running).all()):
                 # every step would be discarded: skip the second-order terms and the pass
-                return _no_step(x, u, grad), state
+                return _no_step(x, u, grad) | {"grad_norm": grad_norm}, state
         hook = self._second_order(problem, x, u, lam, e, vhp)
         u_bounds = None if lo is None else (lo - u, hi - u)  # bounds on δu at ū = u
         fac, bad, mu, delta = self._regularized_pass(A, B, e, hook, u_bounds, state, running)
@@ -321,6 +322,7 @@ class RegularizedNewton:
             d["nonfinite"] = nonfinite
         if done is not None:
             d["keep_gains"] = ~done
+            d["grad_norm"] = grad_norm
         return d, replace(state, mu=mu, delta=delta)
 
     def _regularized_pass(self, A, B, e, hook, u_bounds, state, running):
