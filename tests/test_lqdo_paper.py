@@ -1,5 +1,5 @@
 """Herber & Sundarrajan (2020), small cases against the paper's Tables 1-3: container
-crane QLIN-TR20 / QLIN-PS10, Van der Pol V2 (QLIN does not converge; the safeguarded
+crane QLIN-TR20 / QLIN-PS10 / QLIN-PS40, Van der Pol V2 (QLIN does not converge; the safeguarded
 variant reaches the interior-point values), co-design transfer QLIN-PS10."""
 
 from __future__ import annotations
@@ -46,3 +46,24 @@ def test_codesign_transfer_table3_qlin_ps10():
     assert res.status.tolist() == [int(Status.CONVERGED)]
     assert round(float(res.objective), 4) == 23.6228
     assert abs(int(res.iterations) - 8) <= 1  # the paper: 8
+
+
+def test_container_crane_table1_ps40_with_clarabel_on_every_qp(monkeypatch):
+    """QLIN-PS40: 0.0375 in 3 iterations (Table 1) with every LGL QP solved by Clarabel
+    (the dense fallback disabled), and the same value as the dense interior point alone
+    (an independent solver) to 1e-6."""
+    from torchslq.lqdo import backends
+
+    tr = transcribe(container_crane(), "PS", nodes=40)
+    dense = Quasilinearization(backend="dense").solve(tr, crane_initial_guess(tr))
+
+    def no_fallback(*args, **kwargs):
+        raise AssertionError("Clarabel failed on a QP: the dense fallback was called")
+
+    monkeypatch.setattr(backends, "solve_dense", no_fallback)
+    res = Quasilinearization().solve(tr, crane_initial_guess(tr))
+    assert res.status.tolist() == [int(Status.CONVERGED)]
+    assert round(float(res.objective), 4) == 0.0375
+    assert int(res.iterations) == 3
+    assert float(res.violation) < 1e-6
+    assert float(res.objective) == pytest.approx(float(dense.objective), rel=1e-6)

@@ -1,7 +1,7 @@
 """LQDO problem and transcription: quadrature and defects exact on polynomials of the
 right degree, the reference QP against automatic differentiation of the nonlinear
-program, OLQ detection, the reuse of OLQ pieces, and the row-wise derivatives against
-per-row automatic differentiation."""
+program, OLQ detection, the reuse of OLQ pieces and of the data that do not depend on the
+reference, and the row-wise derivatives against per-row automatic differentiation."""
 
 from __future__ import annotations
 
@@ -274,3 +274,31 @@ def test_row_derivatives_against_per_row_autograd(vmappable):
         gr = torch.autograd.functional.jacobian(lambda x: scalar(x[None])[0, 0], z[r])
         torch.testing.assert_close(grad[r, 0], gr, rtol=1e-13, atol=1e-13)
     assert (jac[:, 2] == 0).all()
+
+
+def test_lgl_qp_has_no_explicit_zeros_and_sees_changed_problem_data():
+    """The LGL constraint matrix stores the nonzeros of the Jacobian only (its M2 = I
+    has nt^2 pairs and nt nonzeros), counted against the dense autograd Jacobian; the
+    bounds and fixed states kept between calls follow a bound changed in place and a
+    replaced initial state."""
+    P = crane()
+    tr = transcribe(P, "PS", nodes=8)
+    gen = torch.Generator().manual_seed(4)
+    z = torch.randn(1, tr.n, generator=gen)
+    z[:, tr.idx_x[:, 1].reshape(-1)] += 20.0
+    qp = tr.qp(z)
+    Je = torch.autograd.functional.jacobian(lambda x: tr.equalities(x[None])[0], z[0])
+    # entries (duplicates summed: D's corner diagonal meets the Jacobian's xi entries)
+    positions = torch.unique(qp.A_idx[0] * tr.n + qp.A_idx[1]).numel()
+    assert positions == int((Je != 0).sum())
+    assert (qp.A_val != 0).all()
+    assert torch.isinf(qp.ub).all()
+    P.u_ub[1] = 0.5  # in place
+    P.initial = torch.tensor([1.0, 21.0, 0.0, 0.0, -1.0, float("nan")])  # replaced
+    qp2 = tr.qp(z)
+    assert (qp2.ub[0, tr.idx_u[:, 1]] == 0.5).all() and torch.isinf(qp2.ub[0, tr.idx_u[:, 0]]).all()
+    eq = tr.equalities(z)[0]
+    torch.testing.assert_close(qp2.dense().A[0] @ z[0] - qp2.b[0], eq, rtol=0, atol=1e-10)
+    row = tr.nd * P.nx + tr.k["boundary_eq"]  # the first fixed initial state
+    assert float(eq[row]) == pytest.approx(float(z[0, tr.idx_x[0, 0]]) - 1.0, abs=1e-12)
+    assert float(eq[row + 1]) == pytest.approx(float(z[0, tr.idx_x[0, 1]]) - 21.0, abs=1e-12)

@@ -176,6 +176,15 @@ class Transcription:
         )
         self.mi = nt * self.k["path_ineq"] + self.k["boundary_ineq"]
         self._cache: dict = {}
+        self._memos: dict = {}  # see _memo
+        self._index: dict = {}  # see _pattern_index
+        self._loc_path_flat = self.loc_path.reshape(-1)
+        self._no_index = torch.zeros(2, 0, dtype=torch.long, device=device)
+        # the operators' nonzeros only (M2 = I for PS: its nt^2 pairs hold nt nonzeros,
+        # and explicit zeros in the constraint matrix would be fill for the QP solver)
+        nz1, nz2 = self.pair_m1 != 0, self.pair_m2 != 0
+        self._m1 = (self.pair_i[nz1], self.pair_k[nz1], self.pair_m1[nz1])
+        self._m2 = (self.pair_i[nz2], self.pair_k[nz2], self.pair_m2[nz2])
 
     # ------------------------------------------------------------------ layout
     def pack(self, u: Tensor, xi: Tensor, p: Tensor | None = None) -> Tensor:
@@ -254,6 +263,28 @@ class Transcription:
 
     def bounds(self, B: int) -> tuple[Tensor, Tensor]:
         """Simple bounds ``lb, ub (B, n)`` (eq. 4 with the bounds of Prob. 1)."""
+        lb, ub = self._bounds(B)
+        return lb.clone(), ub.clone()
+
+    def _memo(self, key, deps: tuple, build):
+        """``build()`` kept under ``key`` while the tensors ``deps`` (problem data a user may
+        replace or modify in place) are the same objects at the same versions: per-call
+        data that do not depend on the reference (bounds, fixed states, the constant
+        blocks of the QP), built once instead of at every QLIN iteration."""
+        hit = self._memos.get(key)
+        stamp = tuple(d._version for d in deps)
+        if (
+            hit is not None
+            and hit[1] == stamp
+            and all(a is b for a, b in zip(hit[0], deps, strict=True))
+        ):
+            return hit[2]
+        out = build()
+        self._memos[key] = (deps, stamp, out)
+        return out
+
+    def _bounds(self, B: int) -> tuple[Tensor, Tensor]:
+        """:meth:`bounds`, shared between calls (not to be modified in place)."""
         P, nt, kw = self.problem, self.nt, dict(dtype=self.dtype, device=self.device)
 
         def cat(u, x, p):
@@ -265,22 +296,36 @@ class Transcription:
             ]
             return torch.cat(parts, 1)
 
-        return cat(P.u_lb, P.xi_lb, P.p_lb), cat(P.u_ub, P.xi_ub, P.p_ub)
+        deps = (P.u_lb, P.xi_lb, P.p_lb, P.u_ub, P.xi_ub, P.p_ub)
+        return self._memo(
+            ("bounds", B),
+            deps,
+            lambda: (cat(P.u_lb, P.xi_lb, P.p_lb), cat(P.u_ub, P.xi_ub, P.p_ub)),
+        )
 
     # ------------------------------------------------------------------ node rows
     def _path_rows(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """``t (B nt,)`` and ``[u_k, xi_k, p] (B nt, nu + nx + np)`` at every node."""
         B = z.shape[0]
-        zz = z[:, self.loc_path.reshape(-1)].reshape(B * self.nt, -1)
-        return self.t.repeat(B), zz
+        zz = z[:, self._loc_path_flat].reshape(B * self.nt, -1)
+        t = self._memos.get(("t", B))
+        if t is None:
+            t = self._memos[("t", B)] = self.t.repeat(B)
+        return t, zz
 
     def _bnd_rows(self, z: Tensor) -> Tensor:
         return z[:, self.loc_bnd]
 
     def _fixed(self, which: str, B: int) -> Tensor:
-        v = getattr(self.problem, which).to(dtype=self.dtype, device=self.device)
-        mask = self.fix0 if which == "initial" else self.fixf
-        return v.expand(B, -1)[:, mask] if v.ndim == 1 else v[:, mask].expand(B, -1)
+        """``(B, nfix)`` the fixed initial or final states (shared between calls)."""
+        v0 = getattr(self.problem, which)
+
+        def build():
+            v = v0.to(dtype=self.dtype, device=self.device)
+            mask = self.fix0 if which == "initial" else self.fixf
+            return v.expand(B, -1)[:, mask] if v.ndim == 1 else v[:, mask].expand(B, -1)
+
+        return self._memo(("fixed", which, B), (v0,), build)
 
     # ------------------------------------------------------------------ nonlinear program
     def objective(self, z: Tensor) -> Tensor:
@@ -304,8 +349,9 @@ class Transcription:
         t, zz = self._path_rows(z)
         F = P.call("dynamics", t, zz).reshape(B, nt, P.nx)
         d = z.new_zeros(B, self.nd, P.nx)
-        d = d.index_add(1, self.pair_i, self.pair_m1[:, None] * xi[:, self.pair_k])
-        d = d.index_add(1, self.pair_i, -self.pair_m2[:, None] * F[:, self.pair_k])
+        (i1, k1, m1), (i2, k2, m2) = self._m1, self._m2
+        d = d.index_add(1, i1, m1[:, None] * xi[:, k1])
+        d = d.index_add(1, i2, -m2[:, None] * F[:, k2])
         out = [d.reshape(B, -1)]
         if self.k["path_eq"]:
             out.append(P.call("path_eq", t, zz).reshape(B, -1))
@@ -433,9 +479,8 @@ class Transcription:
         B, nt, nx = z.shape[0], self.nt, self.problem.nx
         lam_d = lam[:, : self.nd * nx].reshape(B, self.nd, nx)
         # defect i = sum_k M1[i,k] xi_k - M2[i,k] f(z_k): node k's weights on f
-        w = z.new_zeros(B, nt, nx).index_add(
-            1, self.pair_k, -self.pair_m2[:, None] * lam_d[:, self.pair_i]
-        )
+        i2, k2, m2 = self._m2
+        w = z.new_zeros(B, nt, nx).index_add(1, k2, -m2[:, None] * lam_d[:, i2])
         Hp = self._curvature("dynamics", z, True, w)
         Hb = None
         row_e, row_i = self.nd * nx, 0
@@ -462,6 +507,33 @@ class Transcription:
                 Hb = Hk if Hb is None else Hb + Hk
         return Hp, Hb
 
+    def _pattern_index(self, key, pat: Tensor, build):
+        """The index tensors of a QP block, ``build(ii, jj)`` from the nonzeros ``(ii, jj)``
+        of its derivative pattern ``pat``, kept while the pattern is unchanged (it only
+        widens when a derivative is nonzero outside it): the QP's sparsity pattern is then
+        one set of tensors across QLIN iterations, not rebuilt at each."""
+        hit = self._index.get(key)
+        if hit is not None and hit[0].shape == pat.shape and torch.equal(hit[0], pat):
+            return hit[1]
+        ii, jj = pat.nonzero().T
+        out = build(ii, jj)
+        self._index[key] = (pat, out)
+        return out
+
+    def _joined(self, key, parts: list[Tensor]) -> Tensor:
+        """``torch.cat(parts, 1)`` of index tensors, the same tensor while the parts are the
+        same tensors (the sparse backend then recognises the pattern without hashing it)."""
+        hit = self._index.get(key)
+        if (
+            hit is not None
+            and len(hit[0]) == len(parts)
+            and all(a is b for a, b in zip(hit[0], parts, strict=True))
+        ):
+            return hit[1]
+        out = torch.cat(parts, 1)
+        self._index[key] = (tuple(parts), out)
+        return out
+
     def qp(
         self,
         z_ref: Tensor,
@@ -480,7 +552,12 @@ class Transcription:
         * ``convexify``: each node's Hessian block projected onto the positive
           semidefinite cone (negative eigenvalues set to zero), keeping the value and
           gradient at ``z_ref``: the QP is then convex, its step a descent direction of
-          the l1 merit function."""
+          the l1 merit function.
+
+        What does not depend on the reference is built once per batch size: an OLQ
+        objective term's block (values, linear and constant parts), the ``M1 Xi`` block
+        and the fixed-state rows, the bounds, and the index tensors of every block while
+        its derivative pattern is unchanged."""
         self._check_z(z_ref)
         z = z_ref.detach()
         P, B, nt, nx = self.problem, z.shape[0], self.nt, self.problem.nx
@@ -495,62 +572,83 @@ class Transcription:
             ("lagrange", True, self.loc_path, self.w, curv[0]),
             ("mayer", False, self.loc_bnd[None], None, curv[1]),
         ):
-            zz = (self._path_rows(z)[1] if path else self._bnd_rows(z)).reshape(B, loc.shape[0], -1)
-            if P.element(name) is not None:
-                Hk, gk, ck = self._quadratic(name, z, path)
-                if w is not None:
-                    Hk, gk, ck = Hk * w[:, None, None], gk * w[:, None], ck * w
-            elif Hc is not None or convexify:  # no objective term here: a zero model
-                Hk = zz.new_zeros(*zz.shape, zz.shape[-1])
-                gk, ck = torch.zeros_like(zz), zz.new_zeros(zz.shape[:2])
-            else:
+            present = P.element(name) is not None
+            if not present and Hc is None and not convexify:
                 continue
-            if Hc is not None or convexify:
-                Hk, gk, ck = _recentred(Hk, gk, ck, zz, Hc, convexify)
-            ii, jj = self._widen(name, Hk).nonzero().T
-            H_idx.append(torch.stack([loc[:, ii].reshape(-1), loc[:, jj].reshape(-1)]))
-            H_val.append(Hk[:, :, ii, jj].reshape(B, -1))
-            f = f.index_add(1, loc.reshape(-1), gk.reshape(B, -1))
-            c = c + ck.sum(1)
+            # an OLQ term's model is the same at every reference (Sec. 4.1)
+            const = present and Hc is None and not convexify and bool(P.olq_rows(name).all())
+            key = ("H", name, B, dt, dev)
+            blk = self._cache.get(key) if const else None
+            if blk is None:
+                zz = self._path_rows(z)[1] if path else self._bnd_rows(z)
+                zz = zz.reshape(B, loc.shape[0], -1)
+                if present:
+                    Hk, gk, ck = self._quadratic(name, z, path)
+                    if w is not None:
+                        Hk, gk, ck = Hk * w[:, None, None], gk * w[:, None], ck * w
+                else:  # no objective term here: a zero model
+                    Hk = zz.new_zeros(*zz.shape, zz.shape[-1])
+                    gk, ck = torch.zeros_like(zz), zz.new_zeros(zz.shape[:2])
+                if Hc is not None or convexify:
+                    Hk, gk, ck = _recentred(Hk, gk, ck, zz, Hc, convexify)
+
+                def build(ii, jj, loc=loc):
+                    return ii, jj, torch.stack([loc[:, ii].reshape(-1), loc[:, jj].reshape(-1)])
+
+                ii, jj, idx = self._pattern_index(("H", name), self._widen(name, Hk), build)
+                fk = z.new_zeros(B, n).index_add(1, loc.reshape(-1), gk.reshape(B, -1))
+                blk = (idx, Hk[:, :, ii, jj].reshape(B, -1), fk, ck.sum(1))
+                if const:
+                    self._cache[key] = blk
+            H_idx.append(blk[0])
+            H_val.append(blk[1])
+            f = f + blk[2]
+            c = c + blk[3]
         # ---------------- equalities
         A_idx, A_val, b = [], [], []
-        row0 = 0
         Jf, rf = self._linear("dynamics", z, True)  # (B, nt, nx, nz), (B, nt, nx)
-        a = torch.arange(nx, device=dev)
-        # M1 Xi: rows i nx + a, columns xi_{k, a}
-        A_idx.append(
-            torch.stack(
-                [
-                    (self.pair_i[:, None] * nx + a).reshape(-1),
-                    self.idx_x[self.pair_k].reshape(-1),
-                ]
+        (i1, k1, m1), (i2, k2, m2) = self._m1, self._m2
+
+        def m1_block():  # M1 Xi: rows i nx + a, columns xi_{k, a}
+            a = torch.arange(nx, device=dev)
+            idx = torch.stack([(i1[:, None] * nx + a).reshape(-1), self.idx_x[k1].reshape(-1)])
+            return idx, m1[:, None].expand(-1, nx).reshape(1, -1).expand(B, -1).to(dt)
+
+        idx, val = self._memo(("M1", B, dt, dev), (), m1_block)
+        A_idx.append(idx)
+        A_val.append(val)
+        nzl = Jf.shape[-1]
+
+        def dyn_block(ak, jk):
+            # -M2 J_k z_k on the Jacobian's structural nonzeros (rows ak, node-local vars
+            # jk): one gather from the flat Jacobians, times -M2
+            idx = torch.stack(
+                [(i2[:, None] * nx + ak).reshape(-1), self.loc_path[k2][:, jk].reshape(-1)]
             )
+            flat = (k2[:, None] * (nx * nzl) + ak * nzl + jk).reshape(-1)
+            coef = (-m2[:, None]).expand(-1, ak.numel()).reshape(-1)
+            return idx, flat, coef
+
+        idx, flat, coef = self._pattern_index(
+            ("A", "dynamics"), self._widen("dynamics", Jf), dyn_block
         )
-        A_val.append(self.pair_m1[:, None].expand(-1, nx).reshape(1, -1).expand(B, -1))
-        # -M2 J_k z_k on the Jacobian's structural nonzeros (rows ak, node-local vars jk)
-        ak, jk = self._widen("dynamics", Jf).nonzero().T
-        A_idx.append(
-            torch.stack(
-                [
-                    (self.pair_i[:, None] * nx + ak).reshape(-1),
-                    self.loc_path[self.pair_k][:, jk].reshape(-1),
-                ]
-            )
-        )
-        A_val.append((-self.pair_m2[:, None] * Jf[:, self.pair_k][:, :, ak, jk]).reshape(B, -1))
-        bd = z.new_zeros(B, self.nd, nx).index_add(
-            1, self.pair_i, self.pair_m2[:, None] * rf[:, self.pair_k]
-        )
+        A_idx.append(idx)
+        A_val.append(coef.to(dt) * Jf.reshape(B, -1)[:, flat])
+        bd = z.new_zeros(B, self.nd, nx).index_add(1, i2, m2[:, None] * rf[:, k2])
         b.append(bd.reshape(B, -1))
-        row0 += self.nd * nx
+        row0 = self.nd * nx
 
         def add_linear(name, path, rows_list, idx_list, val_list, row0):
             J, r = self._linear(name, z, path)  # (B, R, k, nz)
-            R, k, nz = J.shape[1:]
+            R, k, _ = J.shape[1:]
             loc = self.loc_path if path else self.loc_bnd[None]
-            ak, jk = self._widen(name, J).nonzero().T
-            rr = row0 + torch.arange(R, device=dev)[:, None] * k + ak
-            idx_list.append(torch.stack([rr.reshape(-1), loc[:, jk].reshape(-1)]))
+
+            def build(ak, jk):
+                rr = row0 + torch.arange(R, device=dev)[:, None] * k + ak
+                return ak, jk, torch.stack([rr.reshape(-1), loc[:, jk].reshape(-1)])
+
+            ak, jk, idx = self._pattern_index(("A", name), self._widen(name, J), build)
+            idx_list.append(idx)
             val_list.append(J[:, :, ak, jk].reshape(B, -1))
             rows_list.append(-r.reshape(B, -1))
             return row0 + R * k
@@ -559,33 +657,40 @@ class Transcription:
             row0 = add_linear("path_eq", True, b, A_idx, A_val, row0)
         if self.k["boundary_eq"]:
             row0 = add_linear("boundary_eq", False, b, A_idx, A_val, row0)
-        for which, node, mask in (("initial", 0, self.fix0), ("final", nt - 1, self.fixf)):
-            cols = self.idx_x[node][mask]
-            m = cols.numel()
-            A_idx.append(torch.stack([row0 + torch.arange(m, device=dev), cols]))
-            A_val.append(z.new_ones(B, m))
-            b.append(self._fixed(which, B))
-            row0 += m
+
+        def fixed_rows(row0=row0):
+            out = []
+            for mask, node in ((self.fix0, 0), (self.fixf, nt - 1)):
+                cols = self.idx_x[node][mask]
+                m = cols.numel()
+                out.append(torch.stack([row0 + torch.arange(m, device=dev), cols]))
+                row0 += m
+            return out, z.new_ones(B, int(self.fix0.sum()) + int(self.fixf.sum()))
+
+        rows, ones = self._memo(("fixed rows", B, dt, dev), (), fixed_rows)
+        A_idx += rows
+        A_val.append(ones)
+        b += [self._fixed("initial", B), self._fixed("final", B)]
         # ---------------- inequalities
-        G_idx, G_val, h = [z.new_zeros(2, 0, dtype=torch.long)], [z.new_zeros(B, 0)], []
+        G_idx, G_val, h = [self._no_index], [z.new_zeros(B, 0)], []
         r0 = 0
         if self.k["path_ineq"]:
             r0 = add_linear("path_ineq", True, h, G_idx, G_val, r0)
         if self.k["boundary_ineq"]:
             r0 = add_linear("boundary_ineq", False, h, G_idx, G_val, r0)
-        lb, ub = self.bounds(B)
+        lb, ub = self.bounds(B)  # copies: a caller may tighten a QP's bounds in place
         if not H_idx:
-            H_idx, H_val = [z.new_zeros(2, 0, dtype=torch.long)], [z.new_zeros(B, 0)]
+            H_idx, H_val = [self._no_index], [z.new_zeros(B, 0)]
         return SparseQP(
             n=n,
-            H_idx=torch.cat(H_idx, 1),
+            H_idx=self._joined("H", H_idx),
             H_val=torch.cat(H_val, 1).to(dt),
             f=f,
             c=c,
-            A_idx=torch.cat(A_idx, 1),
+            A_idx=self._joined("A", A_idx),
             A_val=torch.cat(A_val, 1),
             b=torch.cat(b, 1),
-            G_idx=torch.cat(G_idx, 1),
+            G_idx=self._joined("G", G_idx),
             G_val=torch.cat(G_val, 1),
             h=torch.cat(h, 1) if h else z.new_zeros(B, 0),
             lb=lb,
