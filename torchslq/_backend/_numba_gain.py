@@ -31,7 +31,7 @@ import numba
 import numpy as np
 
 from ._numba_gemm import acc_tn
-from ._numba_kernels import _idx
+from ._numba_kernels import _idx, lq_rollout_kernel
 
 # from this state dimension on, the adjoint pass runs its transposed products in row order
 ROW_ORDER_N = 8
@@ -209,6 +209,31 @@ def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch):
             pn = pc
         s[e] = sv
         failed[e] = not ok
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finite):
+    """A whole solve in one call: :func:`riccati_gain_kernel` over the data's batch
+    (``Kk.shape[0]`` elements), :func:`._numba_kernels.lq_rollout_kernel` from ``x0``
+    and :func:`value_kernel` over the solve's batch (``x.shape[0]`` elements), with the
+    arrays of those three. For a small solve on one thread: each launch of a kernel
+    costs 5-10 us of numba's argument typing, as much as the whole (4, 1) pass at
+    ``T = 100``."""
+    m = Kk.shape[2]
+    n = Kk.shape[3] - 1
+    dt = P.dtype
+    scratch = (
+        np.empty((n, n), dtype=dt),
+        np.empty((n, m), dtype=dt),
+        np.empty(n, dtype=dt),
+        np.empty((m, n), dtype=dt),
+        np.empty(m, dtype=dt),
+        np.zeros((m, m), dtype=dt),
+    )
+    _riccati_gain_rows(0, Kk.shape[0], pieces, Kk, P, p, L, s, failed, scratch)
+    nb = x.shape[0]
+    lq_rollout_kernel(0, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u)
+    value_kernel(0, nb, P, p, s, x, u, lam, cost, finite)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)

@@ -157,6 +157,12 @@ _pool_size = 0
 _pool_pid = 0  # a forked child inherits the pool object but not its threads
 
 
+def _threads(nb: int, T: int) -> int:
+    """How many threads :func:`_launch` splits a pass over ``nb`` elements of ``T``
+    steps into."""
+    return max(1, min(torch.get_num_threads(), nb, (nb * max(T, 1)) // MIN_STEPS_PER_THREAD))
+
+
 def _launch(kernel, nb: int, T: int, *args) -> None:
     """Run ``kernel(b0, b1, *args)`` over the batch ``[0, nb)``, split into contiguous
     chunks over ``torch.get_num_threads()`` threads when the pass is large enough.
@@ -167,7 +173,7 @@ def _launch(kernel, nb: int, T: int, *args) -> None:
     concurrent launches from several Python threads).
     """
     global _pool, _pool_size, _pool_pid
-    threads = max(1, min(torch.get_num_threads(), nb, (nb * max(T, 1)) // MIN_STEPS_PER_THREAD))
+    threads = _threads(nb, T)
     if threads == 1:
         kernel(0, nb, *args)
         return
@@ -772,6 +778,9 @@ def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, 
     return arrays, 1 if shared else math.prod(batch)
 
 
+_SLP_CALLED: set = set()  # dtypes gain_solve_kernel was first called with (compiled) for
+
+
 def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T: int) -> dict:
     """:func:`torchslq.lqr_solve` on the gain-form kernels (:mod:`._numba_gain`), without
     autograd: the Riccati pass over the data's batch (``data_batch``, 1 or ``B``), then
@@ -795,23 +804,37 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     L = torch.empty(data_batch, T, m, m, dtype=dtype)
     s = torch.empty(data_batch, dtype=dtype)
     failed = torch.empty(data_batch, dtype=torch.bool)
-    Kkn, Pn, pn, sn = Kk.numpy(), P.numpy(), p.numpy(), s.numpy()
-    with slp_vectorized():  # for its register-blocked products, on the first call
-        _launch(
-            gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, L.numpy(), sn,
-            failed.numpy(),
-        )  # fmt: skip
     x = torch.empty(nb, T + 1, n, dtype=dtype)
     u = torch.empty(nb, T, m, dtype=dtype)
     lam = torch.empty(nb, T + 1, n, dtype=dtype)
     cost = torch.empty(nb, dtype=dtype)
     finite = torch.empty(nb, dtype=torch.bool)
+    Kkn, Pn, pn, sn = Kk.numpy(), P.numpy(), p.numpy(), s.numpy()
     xn, un = x.numpy(), u.numpy()
-    _launch(
-        _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn,
-        x0.detach().contiguous().numpy(), xn, un,
-    )  # fmt: skip
-    _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lam.numpy(), cost.numpy(), finite.numpy())
+    x0n = x0.detach().contiguous().numpy()
+    if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
+        args = (
+            pieces, x0n, Kkn, Pn, pn, L.numpy(), sn, failed.numpy(), xn, un, lam.numpy(),
+            cost.numpy(), finite.numpy(),
+        )  # fmt: skip
+        if dtype in _SLP_CALLED:  # (entering the switch costs a few us per call)
+            gain.gain_solve_kernel(*args)
+        else:
+            with slp_vectorized():  # for its register-blocked products, on the first call
+                gain.gain_solve_kernel(*args)
+            _SLP_CALLED.add(dtype)
+    else:
+        with slp_vectorized():  # for its register-blocked products, on the first call
+            _launch(
+                gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, L.numpy(), sn,
+                failed.numpy(),
+            )  # fmt: skip
+        _launch(
+            _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0n, xn, un
+        )
+        _launch(
+            gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lam.numpy(), cost.numpy(), finite.numpy()
+        )
     return {
         "Kk": Kk, "P": P, "p": p, "L": L, "failed": failed,
         "x": x, "u": u, "lam": lam, "cost": cost, "finite": finite,
