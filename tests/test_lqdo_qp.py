@@ -4,6 +4,8 @@ gradients against finite differences; batch against per-element solves."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -141,6 +143,20 @@ def test_sparse_solvers_against_dense_kkt_and_dense_ip(solver):
     tol = 1e-6 if solver == "osqp" else 1e-7
     s = solve_sparse(qp, solver=solver)
     torch.testing.assert_close(s.z, ref, rtol=0, atol=tol * 10)
+    # without bounds or inequalities the batch is one sparse LU of its KKT matrix, whose
+    # structure is kept: a second QP of the same pattern (other values) against the
+    # dense KKT solve, multipliers included
+    g = torch.Generator().manual_seed(7)
+    qp2 = replace(qp, f=torch.randn(2, n, generator=g), A_val=qp.A_val * 1.5)
+    d2 = qp2.dense(bounds=False)
+    K2 = torch.cat(
+        [torch.cat([d2.H, d2.A.mT], -1), torch.cat([d2.A, torch.zeros(2, me, me)], -1)], -2
+    )
+    ref2 = torch.linalg.solve(K2, torch.cat([-d2.f, d2.b], -1))
+    for _ in range(2):
+        s2 = solve_sparse(qp2, solver=solver)
+        torch.testing.assert_close(s2.z, ref2[:, :n], rtol=0, atol=1e-9)
+        torch.testing.assert_close(s2.lam, ref2[:, n:], rtol=0, atol=1e-9)
     # with bounds: the sparse solver and the dense interior point agree, and the
     # solution is feasible
     trb = transcribe(lq_problem(bounded=True), "TR", nodes=12)

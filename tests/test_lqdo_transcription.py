@@ -202,11 +202,17 @@ def test_fixing_variables_keeps_the_objective_and_constraints():
     mask = torch.zeros(tr.n, dtype=torch.bool)
     mask[tr.idx_p] = True
     mask[tr.idx_u[2]] = True
-    red = qp.fix(mask, z[:, mask])
-    w = z[:, ~mask]
-    torch.testing.assert_close(red.objective(w), qp.objective(z), rtol=1e-12, atol=1e-9)
-    for a, b in zip(red.residuals(w), qp.residuals(z), strict=True):
-        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-9)
+    other = torch.zeros(tr.n, dtype=torch.bool)
+    other[tr.idx_x[1]] = True
+    # the index work is kept per pattern and mask: two masks on one pattern, and the
+    # first again at another point
+    z2 = z + 0.5
+    for m, zz in ((mask, z), (other, z), (mask, z2)):
+        red = qp.fix(m, zz[:, m])
+        w = zz[:, ~m]
+        torch.testing.assert_close(red.objective(w), qp.objective(zz), rtol=1e-12, atol=1e-9)
+        for a, b in zip(red.residuals(w), qp.residuals(zz), strict=True):
+            torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-9)
 
 
 def test_validation_names_the_argument():

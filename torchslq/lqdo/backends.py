@@ -80,18 +80,9 @@ def solve_sparse(
     no_bounds = not bool((torch.isfinite(qp.lb).any() | torch.isfinite(qp.ub).any()).item())
     if B * mi == 0 and no_bounds:
         # equality constraints only: the QP is its KKT linear system (one sparse LU)
-        from scipy.sparse.linalg import splu
-
-        d = qp.scipy()
-        K = sp.bmat([[d["P"], d["A"].T], [d["A"], None]], format="csc")
-        rhs = np.concatenate([-d["q"], d["b"]])
-        try:
-            sol = splu(K).solve(rhs)
-            ok = bool(np.all(np.isfinite(sol)))
-        except RuntimeError:  # singular KKT matrix
-            sol, ok = np.full(N + B * me, np.nan), False
-        x, lam, mu = sol[:N], sol[N:], np.zeros(0)
-        iters = 1
+        with _CLARABEL_LOCK:
+            x, lam, ok = _kkt_lu(qp)
+        mu, iters = np.zeros(0), 1
     elif solver == "clarabel":
         with _CLARABEL_LOCK:
             x, lam, mu, ok, iters = _clarabel(qp, tol, max_iter)
@@ -207,8 +198,87 @@ def _max_step(v, dv):
     return ratio.amin(-1).clamp(max=1.0)
 
 
-_CLARABEL_CACHE: OrderedDict = OrderedDict()  # pattern key -> (solver, P/A structures)
+_SPARSE_CACHE: OrderedDict = OrderedDict()  # pattern key -> solver structures
+_PATTERN_KEYS: OrderedDict = OrderedDict()  # see _pattern_key
 _CLARABEL_LOCK = threading.RLock()  # the cached solver objects are shared state
+
+
+def clear_sparse_caches() -> None:
+    """Forget the sparse solvers' structures kept per sparsity pattern (a timing that
+    should include their set-up calls this first)."""
+    with _CLARABEL_LOCK:
+        _SPARSE_CACHE.clear()
+        _PATTERN_KEYS.clear()
+
+
+def _remember(key, entry) -> None:
+    _SPARSE_CACHE[key] = entry
+    while len(_SPARSE_CACHE) > 8:
+        _SPARSE_CACHE.popitem(last=False)
+
+
+def _pattern_key(qp: SparseQP) -> int:
+    """A hash of the QP's index tensors. The transcription keeps one set of them while the
+    pattern is unchanged, so they are recognised by identity and version (held here, so
+    an id is not reused while its entry lives) instead of hashing their bytes per QP."""
+    idx = (qp.H_idx, qp.A_idx, qp.G_idx)
+    ids = tuple(id(t) for t in idx)
+    stamp = tuple(t._version for t in idx)
+    hit = _PATTERN_KEYS.get(ids)
+    if (
+        hit is not None
+        and hit[1] == stamp
+        and all(a is b for a, b in zip(hit[0], idx, strict=True))
+    ):
+        _PATTERN_KEYS.move_to_end(ids)
+        return hit[2]
+    key = hash(tuple(t.detach().cpu().numpy().tobytes() for t in idx))
+    _PATTERN_KEYS[ids] = (idx, stamp, key)
+    while len(_PATTERN_KEYS) > 16:
+        _PATTERN_KEYS.popitem(last=False)
+    return key
+
+
+def _kkt_lu(qp: SparseQP):
+    """An equality-constrained batch as one sparse LU of its KKT matrix ``[[H, A'], [A,
+    0]]`` (block-diagonal over the batch). The CSC structure of the matrix is kept per
+    pattern, so a repeated solve (the two-level lower level) fills in numbers only.
+    Returns ``x (B n,)``, ``lam (B me,)`` and whether the solve succeeded."""
+    import numpy as np
+    import scipy.sparse as sp
+    from scipy.sparse.linalg import splu
+
+    B, n, me = qp.batch, qp.n, qp.me
+    N, M = B * n, B * me
+    key = ("kkt", B, n, me, _pattern_key(qp))
+    entry = _SPARSE_CACHE.get(key)
+    if entry is None:
+        Hi, Ai = qp.H_idx.cpu().numpy(), qp.A_idx.cpu().numpy()
+        off = np.arange(B)[:, None]
+        hr, hc = (Hi[0][None] + n * off).reshape(-1), (Hi[1][None] + n * off).reshape(-1)
+        ar, ac = (Ai[0][None] + me * off).reshape(-1), (Ai[1][None] + n * off).reshape(-1)
+        rows = np.concatenate([hr, ac, N + ar])  # H, A' (upper right), A (lower left)
+        cols = np.concatenate([hc, N + ar, ac])
+        entry = _csc_structure(rows, cols, N + M)
+        _remember(key, entry)
+    else:
+        _SPARSE_CACHE.move_to_end(key)
+    pos, ind, ptr, nnz = entry
+    Av = qp.A_val.detach().cpu().double().numpy().reshape(-1)
+    vals = np.concatenate([qp.H_val.detach().cpu().double().numpy().reshape(-1), Av, Av])
+    K = sp.csc_matrix((np.bincount(pos, weights=vals, minlength=nnz), ind, ptr), shape=(N + M,) * 2)
+    rhs = np.concatenate(
+        [
+            -qp.f.detach().cpu().double().numpy().reshape(-1),
+            qp.b.detach().cpu().double().numpy().reshape(-1),
+        ]
+    )
+    try:
+        sol = splu(K).solve(rhs)
+        ok = bool(np.all(np.isfinite(sol)))
+    except RuntimeError:  # singular KKT matrix
+        sol, ok = np.full(N + M, np.nan), False
+    return sol[:N], sol[N:], ok
 
 
 def _csc_structure(rows, cols, ncols: int):
@@ -248,21 +318,7 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
     Hi, Ai, Gi = np_(qp.H_idx), np_(qp.A_idx), np_(qp.G_idx)
     lb, ub = np_(qp.lb).reshape(-1).astype(np.float64), np_(qp.ub).reshape(-1).astype(np.float64)
     fu, fl = np.isfinite(ub), np.isfinite(lb)
-    key = hash(
-        (
-            B,
-            n,
-            me,
-            mi,
-            Hi.tobytes(),
-            Ai.tobytes(),
-            Gi.tobytes(),
-            fu.tobytes(),
-            fl.tobytes(),
-            tol,
-            max_iter,
-        )
-    )
+    key = ("clarabel", B, n, me, mi, _pattern_key(qp), fu.tobytes(), fl.tobytes(), tol, max_iter)
     up = Hi[0] <= Hi[1]  # Clarabel takes the upper triangle of P
     off = np.arange(B)[:, None]
     Hv = np_(qp.H_val)[:, up].reshape(-1)
@@ -274,7 +330,7 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
         np.float64
     )
     q = np_(qp.f).reshape(-1).astype(np.float64)
-    entry = None if fresh else _CLARABEL_CACHE.get(key)
+    entry = None if fresh else _SPARSE_CACHE.get(key)
     if entry is None:
         pr = (Hi[0][up][None] + n * off).reshape(-1)
         pc = (Hi[1][up][None] + n * off).reshape(-1)
@@ -311,12 +367,10 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
         if max_iter is not None:
             st.max_iter = max_iter
         solver = clarabel.DefaultSolver(Pm, q, Am, bcon, cones, st)
-        _CLARABEL_CACHE[key] = (solver, Ppos, Pnnz, Apos, Annz)
-        while len(_CLARABEL_CACHE) > 8:
-            _CLARABEL_CACHE.popitem(last=False)
+        _remember(key, (solver, Ppos, Pnnz, Apos, Annz))
     else:
         solver, Ppos, Pnnz, Apos, Annz = entry
-        _CLARABEL_CACHE.move_to_end(key)
+        _SPARSE_CACHE.move_to_end(key)
         solver.update(
             P=np.bincount(Ppos, weights=Hv, minlength=Pnnz),
             q=q,

@@ -242,7 +242,9 @@ def row_derivatives(
     with torch.enable_grad():
         zz = z.detach().requires_grad_(True)
         val = fn(zz)
-        out = val if rows is None else val[:, [int(r) for r in rows]]
+        if rows is not None:
+            rows = torch.as_tensor(rows, dtype=torch.long, device=val.device).reshape(-1)
+        out = val if rows is None else val.index_select(1, rows)
         jac = _row_vjps(out, zz, hessian)
         hess = _row_vjps(jac[:, 0], zz, False) if hessian else None
     return val.detach(), jac.detach(), None if hess is None else hess.detach()

@@ -59,7 +59,7 @@ __all__ = ["Quasilinearization", "QLINResult", "violation"]
 def violation(tr: Transcription, z: Tensor) -> Tensor:
     """``(B, m)`` nonnegative violations of every constraint of Prob. (4) at ``z``:
     equalities (absolute), inequalities and simple bounds (positive parts)."""
-    lb, ub = tr.bounds(z.shape[0])
+    lb, ub = tr._bounds(z.shape[0])  # shared, read only
     return torch.cat(
         [
             tr.equalities(z).abs(),

@@ -15,6 +15,7 @@ for the sparse CPU solvers.
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -168,37 +169,36 @@ class SparseQP:
     # ------------------------------------------------------------------ reduction
     def fix(self, mask: Tensor, values: Tensor) -> SparseQP:
         """The QP in the free variables with ``z[:, mask] = values (B, nfix)`` substituted
-        (e.g. the static parameters in the two-level method, Sec. 4.2.2)."""
+        (e.g. the static parameters in the two-level method, Sec. 4.2.2).
+
+        The index work (which entries stay, where they go, which move to the right-hand
+        side) depends on the pattern and the mask only: it is kept per pattern (the
+        transcription keeps one set of index tensors across calls), so a repeated
+        substitution only moves values."""
         n = self.n
+        plan = _fix_plan(self, mask)
         full = self.f.new_zeros(self.batch, n)
         full[:, mask] = values.to(full)
-        free = ~mask
-        new = torch.full((n,), -1, dtype=torch.long, device=mask.device)
-        new[free] = torch.arange(int(free.sum()), device=mask.device)
-        nf = int(free.sum())
 
-        def split(idx: Tensor, val: Tensor, m: int):
-            keep = free[idx[1]]
-            moved = val[:, ~keep] * full[:, idx[1][~keep]]  # A_p p, moved to the rhs
-            rhs = val.new_zeros(self.batch, m).index_add(1, idx[0][~keep], moved)
-            kidx = torch.stack([idx[0][keep], new[idx[1][keep]]])
+        def split(part, val: Tensor, m: int):
+            keep, drop, drop_rows, drop_cols, kidx = part
+            moved = val[:, drop] * full[:, drop_cols]  # A_p p, moved to the rhs
+            rhs = val.new_zeros(self.batch, m).index_add(1, drop_rows, moved)
             return kidx, val[:, keep], rhs
 
-        A_idx, A_val, Ab = split(self.A_idx, self.A_val, self.me)
-        G_idx, G_val, Gh = split(self.G_idx, self.G_val, self.mi)
-        r, cidx = self.H_idx
-        ww = free[r] & free[cidx]
-        wp = free[r] & mask[cidx]
-        pp = mask[r] & mask[cidx]
-        f = self.f.index_add(1, r[wp], self.H_val[:, wp] * full[:, cidx[wp]])
+        A_idx, A_val, Ab = split(plan["A"], self.A_val, self.me)
+        G_idx, G_val, Gh = split(plan["G"], self.G_val, self.mi)
+        ww, wp, r_wp, c_wp, pp, r_pp, c_pp, H_idx = plan["H"]
+        free = plan["free"]
+        f = self.f.index_add(1, r_wp, self.H_val[:, wp] * full[:, c_wp])
         c = (
             self.c
             + (self.f * full).sum(-1)
-            + 0.5 * (self.H_val[:, pp] * full[:, r[pp]] * full[:, cidx[pp]]).sum(-1)
+            + 0.5 * (self.H_val[:, pp] * full[:, r_pp] * full[:, c_pp]).sum(-1)
         )
         return SparseQP(
-            n=nf,
-            H_idx=torch.stack([new[r[ww]], new[cidx[ww]]]),
+            n=plan["nf"],
+            H_idx=H_idx,
             H_val=self.H_val[:, ww],
             f=f[:, free],
             c=c,
@@ -211,3 +211,59 @@ class SparseQP:
             lb=self.lb[:, free],
             ub=self.ub[:, free],
         )
+
+
+_FIX_PLANS: OrderedDict = OrderedDict()  # see _fix_plan
+
+
+def _fix_plan(qp: SparseQP, mask: Tensor) -> dict:
+    """The index part of :meth:`SparseQP.fix` for ``qp``'s pattern and ``mask``, kept for
+    the last few patterns: recognised by the identity and version of the index tensors
+    (held here, so an id is not reused while its entry lives) and the mask's values."""
+    idx = (qp.H_idx, qp.A_idx, qp.G_idx)
+    key = (tuple(id(t) for t in idx), qp.n, qp.me, qp.mi, mask.device, mask.cpu().numpy().tobytes())
+    stamp = tuple(t._version for t in idx)
+    hit = _FIX_PLANS.get(key)
+    if (
+        hit is not None
+        and hit[1] == stamp
+        and all(a is b for a, b in zip(hit[0], idx, strict=True))
+    ):
+        _FIX_PLANS.move_to_end(key)
+        return hit[2]
+    n, dev = qp.n, mask.device
+    free = ~mask
+    new = torch.full((n,), -1, dtype=torch.long, device=dev)
+    nf = int(free.sum())
+    new[free] = torch.arange(nf, device=dev)
+
+    def split(i: Tensor):
+        keep = free[i[1]]
+        drop = ~keep
+        kidx = torch.stack([i[0][keep], new[i[1][keep]]])
+        return keep.nonzero().squeeze(1), drop.nonzero().squeeze(1), i[0][drop], i[1][drop], kidx
+
+    r, cidx = qp.H_idx
+    ww = free[r] & free[cidx]
+    wp = free[r] & mask[cidx]
+    pp = mask[r] & mask[cidx]
+    plan = dict(
+        nf=nf,
+        free=free.nonzero().squeeze(1),
+        A=split(qp.A_idx),
+        G=split(qp.G_idx),
+        H=(
+            ww.nonzero().squeeze(1),
+            wp.nonzero().squeeze(1),
+            r[wp],
+            cidx[wp],
+            pp.nonzero().squeeze(1),
+            r[pp],
+            cidx[pp],
+            torch.stack([new[r[ww]], new[cidx[ww]]]),
+        ),
+    )
+    _FIX_PLANS[key] = (idx, stamp, plan)
+    while len(_FIX_PLANS) > 8:
+        _FIX_PLANS.popitem(last=False)
+    return plan

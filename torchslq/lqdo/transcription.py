@@ -395,11 +395,14 @@ class Transcription:
 
         if cached is not None and bool(olq.all()):
             return cached
-        rows = None if cached is None else (~olq).nonzero().squeeze(1)
+        rows = None
+        if cached is not None:  # only the rows that are not OLQ are differentiated again
+            rows = self._memos.get(("non-OLQ rows", name))
+            if rows is None:
+                rows = self._memos[("non-OLQ rows", name)] = (~olq).nonzero().squeeze(1)
         val, jac, _ = row_derivatives(fn, zz, rows=rows)
         if cached is not None:
-            J = cached[0].clone()
-            J[:, :, ~olq] = jac.reshape(B, R, -1, zz.shape[1])
+            J = cached[0].index_copy(2, rows, jac.reshape(B, R, -1, zz.shape[1]))
         else:
             J = jac.reshape(B, R, k, zz.shape[1])
         r = val.reshape(B, R, k) - (J * zz.reshape(B, R, 1, -1)).sum(-1)
