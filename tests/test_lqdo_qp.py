@@ -169,3 +169,29 @@ def test_sparse_solvers_against_dense_kkt_and_dense_ip(solver):
     assert float(db.z[0, trb.idx_x[:, 1]].min()) >= -0.45 - 1e-8
     assert float(db.z[0, trb.idx_x[:, 1]].min()) <= -0.45 + 1e-6  # the bound is active
     assert float(db.value) > float(s.value[0]) + 1e-3  # and costs something
+
+
+def test_convex_qp_with_an_inactive_bound_is_its_equality_part():
+    """The co-design QP (convex; its only bound p >= 0 inactive) is solved as its
+    equality-constrained part (one LU: 1 iteration) with the dense interior point's
+    solution; with p's upper bound made active the LU's point is infeasible and the
+    interior point runs, the bound then holding with equality."""
+    from torchslq.lqdo.cases import codesign_transfer
+
+    tr = transcribe(codesign_transfer(), "TR", nodes=30)
+    z = torch.ones(1, tr.n)
+    qp = tr.qp(z)
+    assert qp.convex is True
+    s, d = solve_sparse(qp), solve_dense(qp)
+    assert s.iterations == 1 and (s.status == 0).all()
+    torch.testing.assert_close(s.z, d.z, rtol=0, atol=1e-7)
+    torch.testing.assert_close(s.lam, d.lam, rtol=0, atol=1e-6)
+    p_free = float(s.z[0, tr.idx_p])
+    ub = qp.ub.clone()
+    ub[:, tr.idx_p] = 0.5 * p_free
+    qpa = replace(qp, ub=ub)
+    sa, da = solve_sparse(qpa), solve_dense(qpa)
+    assert sa.iterations > 1 and (sa.status == 0).all()
+    assert float(sa.z[0, tr.idx_p]) == pytest.approx(0.5 * p_free, abs=1e-7)
+    torch.testing.assert_close(sa.z, da.z, rtol=0, atol=1e-6)
+    assert float(sa.value) > float(s.value) + 1e-6

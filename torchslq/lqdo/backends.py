@@ -10,6 +10,10 @@
   differentiation of the KKT conditions at the solution (OptNet, Amos & Kolter 2017):
   the backward pass is one symmetric (LDL') solve with the KKT matrix of the active set.
 
+An equality-constrained batch is one sparse LU of its KKT matrix, and so is a convex
+batch with few inequalities whose equality-constrained solution satisfies them (it is then
+the QP's solution; otherwise the solver runs).
+
 Both return a :class:`QPSolution` with the multipliers in the convention
 ``H z + f + A' lam + G' mu = 0`` (``mu >= 0``), which the two-level method uses for its
 exact upper-level gradient.
@@ -26,7 +30,7 @@ import torch
 from torch import Tensor
 
 from ..status import Status
-from .qp import DenseQP, SparseQP
+from .qp import DenseQP, SparseQP, few_inequalities
 
 __all__ = ["QPSolution", "qp_solve", "solve", "solve_dense", "solve_sparse", "SPARSE_SOLVERS"]
 
@@ -78,11 +82,16 @@ def solve_sparse(
     B, n, me, mi = qp.batch, qp.n, qp.me, qp.mi
     N = B * n
     no_bounds = not bool((torch.isfinite(qp.lb).any() | torch.isfinite(qp.ub).any()).item())
+    inactive = None
+    if (B * mi or not no_bounds) and qp.convex:
+        inactive = _equality_part(qp)
     if B * mi == 0 and no_bounds:
         # equality constraints only: the QP is its KKT linear system (one sparse LU)
         with _CLARABEL_LOCK:
             x, lam, ok = _kkt_lu(qp)
         mu, iters = np.zeros(0), 1
+    elif inactive is not None:
+        (x, lam), mu, ok, iters = inactive, np.zeros(B * mi), True, 1
     elif solver == "clarabel":
         with _CLARABEL_LOCK:
             x, lam, mu, ok, iters = _clarabel(qp, tol, max_iter)
@@ -239,7 +248,35 @@ def _pattern_key(qp: SparseQP) -> int:
     return key
 
 
-def _kkt_lu(qp: SparseQP):
+def _equality_part(qp: SparseQP):
+    """For a convex QP with few inequalities (bounds included): the solution of its
+    equality-constrained part, ``(x, lam)`` as from :func:`_kkt_lu`, if that satisfies
+    every inequality and bound (to ``1e-9`` relative), else None. Then it is the QP's
+    solution with zero inequality multipliers (the KKT conditions hold and the QP is
+    convex), found by one sparse LU instead of an interior point (the co-design QPs,
+    whose only bound ``p >= 0`` is inactive)."""
+    import numpy as np
+
+    B, n = qp.batch, qp.n
+    nb = int((torch.isfinite(qp.lb).sum(1) + torch.isfinite(qp.ub).sum(1)).amax())
+    if not few_inequalities(n, qp.mi + nb):
+        return None
+    with _CLARABEL_LOCK:
+        x, lam, ok = _kkt_lu(qp, check=True)
+    if not ok:
+        return None
+    z = torch.as_tensor(x, dtype=qp.f.dtype, device=qp.f.device).reshape(B, n)
+    tol = 1e-9
+    if bool(
+        (z < qp.lb - tol * (1 + qp.lb.abs())).any() | (z > qp.ub + tol * (1 + qp.ub.abs())).any()
+    ):
+        return None
+    if qp.mi and bool((qp.residuals(z)[1] > tol * (1 + qp.h.abs())).any()):
+        return None
+    return np.asarray(x), np.asarray(lam)
+
+
+def _kkt_lu(qp: SparseQP, check: bool = False):
     """An equality-constrained batch as one sparse LU of its KKT matrix ``[[H, A'], [A,
     0]]`` (block-diagonal over the batch). The CSC structure of the matrix is kept per
     pattern, so a repeated solve (the two-level lower level) fills in numbers only.
@@ -278,6 +315,8 @@ def _kkt_lu(qp: SparseQP):
         ok = bool(np.all(np.isfinite(sol)))
     except RuntimeError:  # singular KKT matrix
         sol, ok = np.full(N + M, np.nan), False
+    if ok and check:  # a nearly singular KKT matrix: the LU's solution is not one
+        ok = bool(np.abs(K @ sol - rhs).max() <= 1e-9 * max(1.0, float(np.abs(rhs).max())))
     return sol[:N], sol[N:], ok
 
 

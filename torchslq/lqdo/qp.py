@@ -57,6 +57,10 @@ class SparseQP:
         A_idx, A_val, b: equality constraints ``A z = b``, ``b (B, me)``.
         G_idx, G_val, h: inequality constraints ``G z <= h``, ``h (B, mi)``.
         lb, ub: ``(B, n)`` simple bounds (``-inf``/``inf`` where absent).
+        convex: True when ``H`` is known to be positive semidefinite (the transcription
+            knows it from its per-node blocks); None when unknown. A convex QP whose
+            inequalities are few may be tried as its equality-constrained part first
+            (:func:`~torchslq.lqdo.backends.solve_sparse`).
     """
 
     n: int
@@ -72,6 +76,7 @@ class SparseQP:
     h: Tensor
     lb: Tensor
     ub: Tensor
+    convex: bool | None = None
 
     @property
     def batch(self) -> int:
@@ -210,10 +215,19 @@ class SparseQP:
             h=self.h - Gh,
             lb=self.lb[:, free],
             ub=self.ub[:, free],
+            convex=self.convex,  # H of the free variables: a principal submatrix
         )
 
 
 _FIX_PLANS: OrderedDict = OrderedDict()  # see _fix_plan
+
+
+def few_inequalities(n: int, m: int) -> bool:
+    """Whether ``m`` inequality rows and finite bounds are few for ``n`` variables: a
+    convex QP with that few is tried as its equality-constrained part first (one sparse
+    LU, kept if its solution satisfies them), since then they are likely all inactive
+    (the co-design problems' only bound ``p >= 0``)."""
+    return m <= max(1, n // 20)
 
 
 def _fix_plan(qp: SparseQP, mask: Tensor) -> dict:

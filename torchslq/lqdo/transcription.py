@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from .problem import LQDOProblem, row_derivatives
-from .qp import SparseQP
+from .qp import SparseQP, few_inequalities
 
 __all__ = ["Transcription", "transcribe", "lgl"]
 
@@ -303,6 +303,17 @@ class Transcription:
             lambda: (cat(P.u_lb, P.xi_lb, P.p_lb), cat(P.u_ub, P.xi_ub, P.p_ub)),
         )
 
+    def _bound_count(self, B: int) -> int:
+        """The most finite simple bounds of an element (both sides counted)."""
+        P = self.problem
+
+        def build():
+            lb, ub = self._bounds(B)
+            return int((torch.isfinite(lb).sum(1) + torch.isfinite(ub).sum(1)).amax())
+
+        deps = (P.u_lb, P.xi_lb, P.p_lb, P.u_ub, P.xi_ub, P.p_ub)
+        return self._memo(("bound count", B), deps, build)
+
     # ------------------------------------------------------------------ node rows
     def _path_rows(self, z: Tensor) -> tuple[Tensor, Tensor]:
         """``t (B nt,)`` and ``[u_k, xi_k, p] (B nt, nu + nx + np)`` at every node."""
@@ -566,6 +577,11 @@ class Transcription:
         P, B, nt, nx = self.problem, z.shape[0], self.nt, self.problem.nx
         dev, dt = z.device, z.dtype
         n = self.n
+        lb, ub = self.bounds(B)  # copies: a caller may tighten a QP's bounds in place
+        # whether H is positive semidefinite (every node's block is) is worth knowing for a
+        # QP with few inequalities (see SparseQP.convex)
+        few = few_inequalities(n, self.mi + self._bound_count(B))
+        convex: bool | None = True
         # ---------------- objective
         H_idx, H_val = [], []
         f = z.new_zeros(B, n)
@@ -600,13 +616,15 @@ class Transcription:
 
                 ii, jj, idx = self._pattern_index(("H", name), self._widen(name, Hk), build)
                 fk = z.new_zeros(B, n).index_add(1, loc.reshape(-1), gk.reshape(B, -1))
-                blk = (idx, Hk[:, :, ii, jj].reshape(B, -1), fk, ck.sum(1))
+                psd = _is_psd(Hk) if (const or few) else None
+                blk = (idx, Hk[:, :, ii, jj].reshape(B, -1), fk, ck.sum(1), psd)
                 if const:
                     self._cache[key] = blk
             H_idx.append(blk[0])
             H_val.append(blk[1])
             f = f + blk[2]
             c = c + blk[3]
+            convex = None if (convex is None or blk[4] is None) else (convex and blk[4])
         # ---------------- equalities
         A_idx, A_val, b = [], [], []
         Jf, rf = self._linear("dynamics", z, True)  # (B, nt, nx, nz), (B, nt, nx)
@@ -681,7 +699,6 @@ class Transcription:
             r0 = add_linear("path_ineq", True, h, G_idx, G_val, r0)
         if self.k["boundary_ineq"]:
             r0 = add_linear("boundary_ineq", False, h, G_idx, G_val, r0)
-        lb, ub = self.bounds(B)  # copies: a caller may tighten a QP's bounds in place
         if not H_idx:
             H_idx, H_val = [self._no_index], [z.new_zeros(B, 0)]
         return SparseQP(
@@ -698,6 +715,7 @@ class Transcription:
             h=torch.cat(h, 1) if h else z.new_zeros(B, 0),
             lb=lb,
             ub=ub,
+            convex=convex,
         )
 
 
@@ -718,6 +736,16 @@ def transcribe(
         qp = tr.qp(tr.initial_guess())     # the reference LQDO QP (Prob. 14)
     """
     return Transcription(problem, method=method, nodes=nodes, mesh=mesh, dtype=dtype, device=device)
+
+
+def _is_psd(H: Tensor) -> bool:
+    """Whether every symmetric block ``H (..., k, k)`` is positive semidefinite (its
+    smallest eigenvalue at least ``-1e-12`` times its largest magnitude)."""
+    if H.numel() == 0:
+        return True
+    lam = torch.linalg.eigvalsh(0.5 * (H + H.mT))
+    scale = lam.abs().amax(-1).clamp_min(1e-300)
+    return bool((lam[..., 0] >= -1e-12 * scale).all())
 
 
 def _psd_part(H: Tensor) -> Tensor:
