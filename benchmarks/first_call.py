@@ -5,10 +5,11 @@ and torchslq, builds the user-models benchmark's problem (``UserCartPole`` of
 ``examples/constrained_cartpole.py`` under ``torchslq.discretize(..., 0.05, "rk4")``,
 T = 50, B = 1) and solves it twice with ``ILQR`` (``max_iter = 500``, ``tol = 1e-6``);
 it reports the import times, the first solve (generated code found or made, kernels
-loaded) and the second (the steady state). ``cold``: an empty generated-code cache
-(``TORCHSLQ_CACHE_DIR``), as on a machine right after installing; ``warm``: the next
-process with that cache. numba's cache of the library's own kernels is warm in both
-(it lives beside the installed package).
+loaded), the second (the steady state) and whether the process imported torch's
+compiler stack (``torch._dynamo``: a second of imports, which code generation avoids).
+``cold``: an empty generated-code cache (``TORCHSLQ_CACHE_DIR``), as on a machine right
+after installing; ``warm``: the next process with that cache. numba's cache of the
+library's own kernels is warm in both (it lives beside the installed package).
 
     .venv/bin/python benchmarks/first_call.py              # 3 cold and 3 warm processes
 """
@@ -54,7 +55,8 @@ r2 = ts.ILQR(max_iter=500, tol=1e-6, progress=False).solve(problem, x0)
 t5 = time.perf_counter()
 assert bool(r1.converged.all()) and torch.equal(r1.u, r2.u)
 print(json.dumps(dict(import_torch=t1 - t0, import_torchslq=t2 - t1, first_solve=t4 - t3,
-                      second_solve=t5 - t4, iterations=int(r1.iterations[0]))))
+                      second_solve=t5 - t4, iterations=int(r1.iterations[0]),
+                      compiler_stack="torch._dynamo" in sys.modules)))
 """
 
 
@@ -119,11 +121,14 @@ def main(argv: list[str] | None = None) -> int:
             f"| {kind} | {s['import_torch']:.2f} | {s['import_torchslq']:.2f} | "
             f"{s['first_solve']:.2f} | {s['second_solve']:.2f} |"
         )
-    lines += ["", "Every process:", "", "| cache | repeat | " + " | ".join(keys) + " |",
-              "|---|---|" + "---|" * len(keys)]  # fmt: skip
+    lines += ["", "Every process:", "",
+              "| cache | repeat | " + " | ".join(keys) + " | torch._dynamo imported |",
+              "|---|---|" + "---|" * (len(keys) + 1)]  # fmt: skip
     for r in rows:
         lines.append(
-            f"| {r['cache']} | {r['repeat']} | " + " | ".join(f"{r[k]:.2f}" for k in keys) + " |"
+            f"| {r['cache']} | {r['repeat']} | "
+            + " | ".join(f"{r[k]:.2f}" for k in keys)
+            + f" | {'yes' if r['compiler_stack'] else 'no'} |"
         )
     out.with_suffix(".md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))

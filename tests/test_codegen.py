@@ -86,6 +86,21 @@ class Branches(ts.ContinuousDynamics):
         return torch.stack([a + torch.maximum(x[..., 1], u[..., 0]), b], -1)
 
 
+class Constants(ts.ContinuousDynamics):
+    """Tensors that are neither inputs nor parameters: a plain tensor attribute and a
+    tensor literal in forward (constants of the traced graph)."""
+
+    state_dim, control_dim = 2, 1
+
+    def __init__(self):
+        super().__init__()
+        self.K = torch.tensor([[0.0, 1.0], [-2.0, -0.5]], dtype=torch.float64)
+
+    def forward(self, x, u, t=None):
+        w = torch.tensor([0.0, 1.5], dtype=torch.float64)
+        return x @ self.K.mT + w * u + 0.1 * torch.sin(x) * x[..., :1]
+
+
 def _reference(model, x, u):
     """forward, [f_x | f_u] and per-output Hessians in z = (x, u) by torch.func, row by row."""
     n = x.shape[-1]
@@ -101,7 +116,9 @@ def _reference(model, x, u):
     return F, J, H
 
 
-@pytest.mark.parametrize("model_cls", [UserCartPole, DampedPendulum, LinearModel, Branches])
+@pytest.mark.parametrize(
+    "model_cls", [UserCartPole, DampedPendulum, LinearModel, Branches, Constants]
+)
 def test_generated_functions_equal_forward_and_torch_func_derivatives(model_cls):
     model = model_cls()
     assert codegen.explain(model) == "compiled"
@@ -689,3 +706,143 @@ def test_a_changed_helper_in_another_file_is_traced_again(tmp_path, monkeypatch)
     out = np.zeros(1)
     hooks.rhs(np.array([1.0]), np.array([0.0]), hooks.params(model), out)
     assert out[0] == pytest.approx(-5.0)
+
+
+class CaughtBranch(ts.ContinuousDynamics):
+    """A branch on the values whose failure to trace the forward itself catches."""
+
+    state_dim, control_dim = 1, 1
+
+    def forward(self, x, u, t=None):
+        try:
+            positive = bool((x > 0).all())
+        except Exception:
+            positive = False
+        return -x + u if positive else x + u
+
+
+class ItemScale(ts.ContinuousDynamics):
+    state_dim, control_dim = 1, 1
+
+    def forward(self, x, u, t=None):
+        return x / (1.0 + x.abs().max().item()) + u  # a number read from the state
+
+
+class EqualBranch(ts.ContinuousDynamics):
+    state_dim, control_dim = 1, 1
+
+    def forward(self, x, u, t=None):
+        return -x + u if torch.equal(x, torch.zeros_like(x)) else x + u
+
+
+@pytest.mark.parametrize("model_cls", [ValueBranch, CaughtBranch, ItemScale, EqualBranch])
+def test_data_dependent_control_flow_is_rejected_not_traced_as_one_branch(model_cls, monkeypatch):
+    """The trace runs forward on zeros: a branch or number read from the values would
+    hold the zeros' branch. Each model keeps the torch path: its solve equals the one
+    with code generation off."""
+    model = model_cls()
+    why = codegen.explain(model)
+    assert "could not be traced" in why and "DataDependent" in why
+    assert model.compiled_rhs() is None
+    cost = ts.QuadraticCost(torch.eye(1, dtype=torch.float64), torch.eye(1, dtype=torch.float64))
+    x0 = torch.tensor([[1.0], [-0.5]], dtype=torch.float64)
+    res = ts.ILQR(max_iter=3).solve(ts.Problem(ts.discretize(model, 0.1), cost, 5), x0)
+    monkeypatch.setenv("TORCHSLQ_CODEGEN", "0")
+    ref = ts.ILQR(max_iter=3).solve(ts.Problem(ts.discretize(model_cls(), 0.1), cost, 5), x0)
+    assert torch.equal(res.u, ref.u) and torch.equal(res.x, ref.x)
+    assert not torch.equal(res.x[:, 1:], res.x[:, :-1])  # the states move
+
+
+def test_the_traced_graph_is_functional_aten_ops_with_constants_as_get_attr():
+    from torchslq.dynamics._trace import Untraceable, trace
+
+    K = torch.tensor([2.0, -1.0], dtype=torch.float64)
+
+    def fn(x, u):
+        out = torch.zeros_like(x)
+        out[..., 0] = x[..., 1] * K[0]  # an in-place write through a view
+        out[:, 1:] += u
+        return out.t().contiguous()
+
+    x, u = torch.randn(2, 2, dtype=torch.float64), torch.randn(2, 1, dtype=torch.float64)
+    gm = trace(fn, x, u)
+    calls = [node for node in gm.graph.nodes if node.op == "call_function"]
+    assert calls and all(isinstance(node.target, torch._ops.OpOverload) for node in calls)
+    assert any(node.target.__name__.startswith("select_copy") for node in calls)
+    for node in calls:  # no mutation; a view only of a constant (of the rest: *_copy ops)
+        assert not node.target._schema.is_mutable, node.target
+        if any(r.alias_info is not None for r in node.target._schema.returns):
+            assert node.args[0].op == "get_attr", node.target
+    consts = [getattr(gm, n.target) for n in gm.graph.nodes if n.op == "get_attr"]
+    assert len(consts) == 1 and torch.equal(consts[0], K)
+    assert [n.op for n in gm.graph.nodes].count("placeholder") == 2
+    torch.testing.assert_close(gm(x, u), fn(x, u), rtol=0, atol=0)
+
+    def writes_a_captured_tensor(x, u):
+        K.mul_(2.0)  # a tensor functionalization does not own: refused before it runs
+        return x
+
+    with pytest.raises(Untraceable, match="in-place"):
+        trace(writes_a_captured_tensor, x, u)
+    assert torch.equal(K, torch.tensor([2.0, -1.0], dtype=torch.float64))
+
+
+def test_a_cold_build_and_solve_import_no_compiler_stack(tmp_path):
+    """Tracing, generating and checking a model's code in a fresh process with an empty
+    cache, and solving on it, import neither torch._dynamo nor torch._inductor (over a
+    second of imports, which torch's make_fx and fake tensors pay)."""
+    import json
+    import os
+    import subprocess
+    import sys
+
+    script = tmp_path / "cold.py"
+    script.write_text(
+        "import json, sys\n"
+        "import torch\n"
+        "import torchslq as ts\n"
+        "from torchslq.dynamics import codegen\n"
+        "\n"
+        "class Pendulum(ts.ContinuousDynamics):\n"
+        "    state_dim, control_dim = 2, 1\n"
+        "    def forward(self, x, u, t=None):\n"
+        "        out = torch.zeros_like(x)\n"
+        "        out[..., 0] = x[..., 1]\n"
+        "        out[..., 1] = -9.81 * torch.sin(x[..., 0]) + u[..., 0]\n"
+        "        return out\n"
+        "\n"
+        "def loaded():\n"
+        "    return [k for k in ('torch._dynamo', 'torch._inductor') if k in sys.modules]\n"
+        "\n"
+        "model = Pendulum()\n"
+        "before = loaded()\n"
+        "why = codegen.explain(model)\n"
+        "after_build = loaded()\n"
+        "f64 = torch.float64\n"
+        "cost = ts.QuadraticCost(torch.eye(2, dtype=f64), torch.eye(1, dtype=f64))\n"
+        "problem = ts.Problem(ts.discretize(model, 0.05), cost, 10)\n"
+        "res = ts.ILQR(max_iter=3).solve(problem, torch.ones(2, 2, dtype=f64))\n"
+        "print(json.dumps(dict(why=why, before=before, after_build=after_build,\n"
+        "                      after_solve=loaded(), finite=bool(torch.isfinite(res.cost).all()))))\n"
+    )
+    cache = tmp_path / "cache"
+    env = dict(os.environ, TORCHSLQ_CACHE_DIR=str(cache), TORCHSLQ_CODEGEN="1")
+    out = subprocess.run(
+        [sys.executable, str(script)], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    got = json.loads(out.stdout.strip().splitlines()[-1])
+    assert got["why"] == "compiled" and got["finite"]
+    assert list(cache.glob("generated_v*/m_*.checked"))  # traced, generated and checked here
+    assert got["before"] == [] and got["after_build"] == [], got
+    assert got["after_solve"] == [], got
+
+
+def test_a_model_first_built_in_inference_mode_is_compiled(tmp_path, monkeypatch):
+    """The build's check differentiates the forward by autograd, which records nothing
+    in inference mode: it runs outside it."""
+    monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path / "cache"))  # traced and checked here
+    model = DampedPendulum()
+    with torch.inference_mode():
+        assert codegen.explain(model) == "compiled"
+    assert list((tmp_path / "cache").glob("generated_v*/m_*.checked"))

@@ -10,9 +10,10 @@ functions (:meth:`~torchslq.ContinuousDynamics.compiled_rhs`,
 from the model's own ``forward``, so a user's model runs on the same kernels as a model
 with hand-written compiled code:
 
-1. **trace** ``forward`` on two symbolic rows (``torch.fx`` ``make_fx`` on fake tensors,
-   functionalized, so in-place writes and views become plain ops; Python control flow
-   that depends on the values cannot be traced and the model is left on the torch path);
+1. **trace** ``forward`` on two rows into a ``torch.fx`` graph of aten ops
+   (:mod:`torchslq.dynamics._trace`: functionalized, so in-place writes and views
+   become plain ops; Python control flow that depends on the values cannot be traced
+   and the model is left on the torch path);
 2. **evaluate** the traced aten graph on numpy arrays of ``sympy`` expressions in the
    row's entries ``x_i``, ``u_j`` and the model's parameters ``p_k`` (its parameters and
    buffers, flattened), and check the rows are independent and alike (a model that
@@ -24,16 +25,18 @@ with hand-written compiled code:
    in a module file under the cache directory (``$TORCHSLQ_CACHE_DIR``, default
    ``~/.cache/torchslq``), keyed on a hash of the traced graph, so a later process
    imports them (numba's disk cache) without running steps 2-4 again;
-5. **check** the compiled functions against the model's ``forward`` and
-   ``torch.func`` derivatives at random points; a mismatch leaves the model on the
-   torch path with a warning.
+5. **check** the compiled functions against the model's ``forward`` and its
+   autograd derivatives at random points; a mismatch leaves the model on the torch
+   path with a warning.
 
-A later process skips step 1 as well when it can: tracing imports torch's compiler
-stack (over a second). A *source index* maps a key of what the traced graph depends on
-and is known without tracing (the source files of the model's classes, its structure,
-the generator's and torch's versions) to the module; a module found that way is used
-when its step equals the model's ``forward`` at random points (a function the model
-calls from another file may have changed), else the model is traced as above.
+None of these steps imports torch's compiler stack (``torch._dynamo``,
+``torch._inductor``: over a second in a fresh process, which ``make_fx``, fake tensors
+and ``torch.func``'s reverse mode pay). A later process skips step 1 as well when it
+can. A *source index* maps a key of what the traced graph depends on and is known
+without tracing (the source files of the model's classes, its structure, the
+generator's and torch's versions) to the module; a module found that way is used when
+its step equals the model's ``forward`` at random points (a function the model calls
+from another file may have changed), else the model is traced as above.
 
 A discrete :class:`~torchslq.Dynamics` is generated the same way: its step, its
 Jacobians and its Hessian blocks (:meth:`~torchslq.Dynamics.compiled_step`,
@@ -58,7 +61,6 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import importlib.util
-import logging
 import os
 import sys
 import threading
@@ -322,12 +324,12 @@ def _hooks_of(module, named: list[tuple[str, Tensor]]) -> GeneratedHooks:
 # ------------------------------------------------------------------------- source index
 def _source_key(model: nn.Module, kind: str, n: int, m: int, named, lift_floats: bool):
     """A key of what the traced graph depends on that is known without tracing (which
-    imports torch's compiler stack, over a second in a fresh process): the source files
-    of the classes of the model's modules, its structure (tensor names and shapes, plain
-    attributes; the floats' values where they are traced as constants), the generator
-    and torch's version. None without a cache or when a class has no source file. A
-    model's ``forward`` may still call code elsewhere: a hit is checked against it
-    numerically (:func:`_from_source_index`)."""
+    runs the forward op by op and hashes its graph): the source files of the classes of
+    the model's modules, its structure (tensor names and shapes, plain attributes; the
+    floats' values where they are traced as constants), the generator and torch's
+    version. None without a cache or when a class has no source file. A model's
+    ``forward`` may still call code elsewhere: a hit is checked against it numerically
+    (:func:`_from_source_index`)."""
     if _cache_dir() is None:
         return None
     import inspect
@@ -395,11 +397,12 @@ def _same_step(model: nn.Module, hooks: GeneratedHooks, n: int, m: int) -> bool:
 
 
 def _trace(model: nn.Module, n: int, m: int, named: list[tuple[str, Tensor]]):
-    from torch.func import functional_call, functionalize
-
-    with warnings.catch_warnings():  # its first import warns about torch's own code
-        warnings.simplefilter("ignore", DeprecationWarning)
-        from torch.fx.experimental.proxy_tensor import make_fx
+    """The aten graph (a ``torch.fx.GraphModule``) of ``model``'s ``forward`` on two
+    rows: placeholders ``x`` ``(2, n)``, ``u`` ``(2, m)`` and one per ``named`` tensor
+    (its shape; a float attribute's, named ``@path.attr``, is 0-d and set on the module
+    for the trace), constants as ``get_attr`` nodes. Raises :class:`_Unsupported`
+    where the forward cannot be traced (:func:`_make_graph`)."""
+    from torch.func import functional_call
 
     names = [k for k, _ in named]
 
@@ -413,11 +416,13 @@ def _trace(model: nn.Module, n: int, m: int, named: list[tuple[str, Tensor]]):
                 tensors[k] = p
         return functional_call(model, tensors, (x, u))
 
+    # real tensors: the trace runs the forward once on them (two rows of zeros, copies
+    # of the parameters, so nothing the forward does reaches the model's own tensors)
     x = torch.zeros(2, n, dtype=torch.float64)
     u = torch.zeros(2, m, dtype=torch.float64)
-    ps = [t.detach().to("cpu", torch.float64) for _, t in named]
-    with _state_restored(model):  # a forward that caches tensors must not keep fake ones
-        return _make_graph(fn, x, u, ps, make_fx, functionalize)
+    ps = [t.detach().to("cpu", torch.float64, copy=True) for _, t in named]
+    with _state_restored(model):  # a forward that caches tensors must not keep traced ones
+        return _make_graph(fn, x, u, ps)
 
 
 @contextlib.contextmanager
@@ -446,22 +451,17 @@ def _state_restored(model: nn.Module):
                     d[k].extend(v)
 
 
-def _make_graph(fn, x, u, ps, make_fx, functionalize):
-    # a model that cannot be traced is an expected outcome here, not an error to log
-    quiet = logging.getLogger("torch._subclasses.fake_tensor")
-    level = quiet.level
-    quiet.setLevel(logging.CRITICAL)
+def _make_graph(fn, x, u, ps):
+    """:func:`torchslq.dynamics._trace.trace` of ``fn(x, u, *ps)``; any error it raises
+    (an op on tensors of mismatched shapes, a value read back into Python) and a graph
+    of more than ``MAX_GRAPH_NODES`` ops as :class:`_Unsupported`."""
+    from ._trace import trace
+
     try:
-        with warnings.catch_warnings():
-            # torch's tracing machinery, imported on first use, warns about its own code
-            warnings.simplefilter("ignore", DeprecationWarning)
-            traced = make_fx(functionalize(fn, remove="mutations_and_views"), tracing_mode="fake")
-            gm = traced(x, u, *ps)
+        gm = trace(fn, x, u, *ps)
     except Exception as e:
         first = str(e).strip().splitlines()[0] if str(e).strip() else ""
         raise _Unsupported(f"forward could not be traced ({type(e).__name__}: {first})") from e
-    finally:
-        quiet.setLevel(level)
     calls = sum(1 for node in gm.graph.nodes if node.op == "call_function")
     if calls > MAX_GRAPH_NODES:
         raise _Unsupported(f"forward is {calls} ops (more than {MAX_GRAPH_NODES})")
@@ -651,13 +651,27 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
     jac = [J[i][c] for i in range(n) for c in range(nz)]
     hes = list(H.values())
     src += reads(jac + hes)
-    lines, vals = body(jac, "j")
-    src += lines + [f"    fz[{i}, {c}] = {vals[i * nz + c]}" for i in range(n) for c in range(nz)]
+    # one elimination over the Jacobian and the Hessians (they share most terms): the
+    # subexpressions the Jacobian reads before the return of a Jacobian-only call (an
+    # empty H), the rest after it; fewer ops compile faster (numba's typing and lowering
+    # take about a millisecond per op) and the Hessian pass reuses the Jacobian's terms
+    subs, reduced = sympy.cse(jac + hes, symbols=sympy.numbered_symbols("j"), order="none")
+    need = set().union(*(e.free_symbols for e in reduced[: len(jac)]))
+    for sym, e in reversed(subs):  # subs are in dependency order
+        if sym in need:
+            need |= e.free_symbols
+    vals = [printer.doprint(e) for e in reduced[: len(jac)]]
+    src += [f"    {sym.name} = {printer.doprint(e)}" for sym, e in subs if sym in need]
+    src += [f"    fz[{i}, {c}] = {vals[i * nz + c]}" for i in range(n) for c in range(nz)]
     src += ["    if H.shape[0] == 0:", "        return"]
     if hes:
-        lines, vals = body(hes, "h")
-        src += lines
-        val = dict(zip(H, vals, strict=True))
+        src += [f"    {sym.name} = {printer.doprint(e)}" for sym, e in subs if sym not in need]
+        val = {}
+        for k, (key, e) in enumerate(zip(H, reduced[len(jac) :], strict=True)):
+            val[key] = printer.doprint(e)
+            if key[1] != key[2] and not (e.is_Symbol or e.is_Number):
+                src.append(f"    h{k} = {val[key]}")  # written to H[j, a, b] and H[j, b, a]
+                val[key] = f"h{k}"
         for j in outs:
             for a in ents:
                 for b in ents:
@@ -790,10 +804,41 @@ _MODULE_NAMES = (
 
 
 # ------------------------------------------------------------------------- check
+def _reference_derivatives(model: nn.Module, state: dict, x: Tensor, u: Tensor):
+    """``(J, H)``: the Jacobian ``[f_x | f_u]`` ``(n, n + m)`` and the per-output
+    Hessians ``(n, n + m, n + m)`` in ``z = (x, u)`` of the model's ``forward`` at one
+    row ``x`` ``(n,)``, ``u`` ``(m,)`` (float64), by ``torch.autograd.grad``.
+
+    The forward runs on ``n`` copies of the row and output ``i`` is read from copy
+    ``i`` (rows are independent: the generated code is per row), so the Jacobian is one
+    reverse pass and the Hessians ``n + m`` more. ``torch.func.jacrev`` would give the
+    same numbers but imports ``torch._dynamo`` (over a second in a fresh process)."""
+    n, m = x.shape[-1], u.shape[-1]
+    # autograd records nothing in inference mode, and its tensors cannot be saved for
+    # backward: clones made outside it
+    with torch.inference_mode(False), torch.enable_grad():
+        z = torch.cat([x, u]).expand(n, n + m).clone().requires_grad_(True)
+        state = {k: t.clone() for k, t in state.items()}
+        y = torch.func.functional_call(model, state, (z[:, :n], z[:, n:]))
+        if not y.requires_grad:  # an output of constants
+            return torch.zeros(n, n + m, dtype=z.dtype), torch.zeros(n, n + m, n + m, dtype=z.dtype)
+        (J,) = torch.autograd.grad(
+            y.diagonal().sum(), z, create_graph=True, allow_unused=True, materialize_grads=True
+        )
+        H = torch.zeros(n, n + m, n + m, dtype=z.dtype)
+        if J.requires_grad:  # else the forward is linear in z
+            for a in range(n + m):
+                (H[:, a],) = torch.autograd.grad(
+                    J[:, a].sum(), z, retain_graph=True, allow_unused=True, materialize_grads=True
+                )
+    return J.detach(), H
+
+
 def _check(model: nn.Module, hooks: GeneratedHooks, n: int, m: int) -> None:
-    """The compiled functions against the model's ``forward`` and ``torch.func``
-    derivatives at a few random points (float64); raises :class:`_Unsupported` on a
-    mismatch (which a tracing error would give) with a warning."""
+    """The compiled functions against the model's ``forward`` and its autograd
+    derivatives (:func:`_reference_derivatives`) at a few random points (float64);
+    raises :class:`_Unsupported` on a mismatch (which a tracing error would give) with a
+    warning."""
     from .base import CompiledDerivatives
 
     gen = torch.Generator().manual_seed(0)
@@ -817,11 +862,7 @@ def _check(model: nn.Module, hooks: GeneratedHooks, n: int, m: int) -> None:
             ref = f(x[r], u[r])
         if not bool(torch.isfinite(ref).all()):
             continue
-        Jx, Ju = torch.func.jacrev(f, argnums=(0, 1))(x[r], u[r])
-        Jref = torch.cat([Jx, Ju], -1)
-        # reverse over reverse (torch.func.hessian's forward mode imports seconds of code)
-        fz_ = lambda z: f(z[:n], z[n:])  # noqa: E731
-        Href = torch.func.jacrev(torch.func.jacrev(fz_))(torch.cat([x[r], u[r]]))
+        Jref, Href = _reference_derivatives(model, state, x[r], u[r])
         out = np.zeros(n)
         fz = np.zeros((n, n + m))
         Hc = np.zeros((n, n + m, n + m))
