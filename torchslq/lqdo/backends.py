@@ -81,10 +81,14 @@ def solve_sparse(
     t0 = time.perf_counter()
     B, n, me, mi = qp.batch, qp.n, qp.me, qp.mi
     N = B * n
-    no_bounds = not bool((torch.isfinite(qp.lb).any() | torch.isfinite(qp.ub).any()).item())
+    lbn, ubn = (t.detach().cpu().double().numpy().reshape(B, n) for t in (qp.lb, qp.ub))
+    fl, fu = np.isfinite(lbn), np.isfinite(ubn)
+    no_bounds = not (fl.any() or fu.any())
     inactive = None
     if (B * mi or not no_bounds) and qp.convex:
-        inactive = _equality_part(qp)
+        nb = int((fl.sum(1) + fu.sum(1)).max())
+        if few_inequalities(n, mi + nb):
+            inactive = _equality_part(qp, lbn.reshape(-1), ubn.reshape(-1))
     if B * mi == 0 and no_bounds:
         # equality constraints only: the QP is its KKT linear system (one sparse LU)
         with _CLARABEL_LOCK:
@@ -248,32 +252,28 @@ def _pattern_key(qp: SparseQP) -> int:
     return key
 
 
-def _equality_part(qp: SparseQP):
-    """For a convex QP with few inequalities (bounds included): the solution of its
-    equality-constrained part, ``(x, lam)`` as from :func:`_kkt_lu`, if that satisfies
-    every inequality and bound (to ``1e-9`` relative), else None. Then it is the QP's
-    solution with zero inequality multipliers (the KKT conditions hold and the QP is
-    convex), found by one sparse LU instead of an interior point (the co-design QPs,
-    whose only bound ``p >= 0`` is inactive)."""
+def _equality_part(qp: SparseQP, lb, ub):
+    """For a convex QP with few inequalities (bounds included; ``lb``, ``ub`` the bounds
+    as flat numpy arrays): the solution of its equality-constrained part, ``(x, lam)`` as
+    from :func:`_kkt_lu`, if that satisfies every inequality and bound (to ``1e-9``
+    relative), else None. Then it is the QP's solution with zero inequality multipliers
+    (the KKT conditions hold and the QP is convex), found by one sparse LU instead of an
+    interior point (the co-design QPs, whose only bound ``p >= 0`` is inactive)."""
     import numpy as np
 
-    B, n = qp.batch, qp.n
-    nb = int((torch.isfinite(qp.lb).sum(1) + torch.isfinite(qp.ub).sum(1)).amax())
-    if not few_inequalities(n, qp.mi + nb):
-        return None
     with _CLARABEL_LOCK:
         x, lam, ok = _kkt_lu(qp, check=True)
     if not ok:
         return None
-    z = torch.as_tensor(x, dtype=qp.f.dtype, device=qp.f.device).reshape(B, n)
     tol = 1e-9
-    if bool(
-        (z < qp.lb - tol * (1 + qp.lb.abs())).any() | (z > qp.ub + tol * (1 + qp.ub.abs())).any()
-    ):
-        return None
-    if qp.mi and bool((qp.residuals(z)[1] > tol * (1 + qp.h.abs())).any()):
-        return None
-    return np.asarray(x), np.asarray(lam)
+    with np.errstate(invalid="ignore"):  # inf - inf where a bound is absent
+        if np.any(x < lb - tol * (1 + np.abs(lb))) or np.any(x > ub + tol * (1 + np.abs(ub))):
+            return None
+    if qp.mi:
+        z = torch.as_tensor(x, dtype=qp.f.dtype, device=qp.f.device).reshape(qp.batch, qp.n)
+        if bool((qp.residuals(z)[1] > tol * (1 + qp.h.abs())).any()):
+            return None
+    return x, lam
 
 
 def _kkt_lu(qp: SparseQP, check: bool = False):
@@ -296,14 +296,18 @@ def _kkt_lu(qp: SparseQP, check: bool = False):
         ar, ac = (Ai[0][None] + me * off).reshape(-1), (Ai[1][None] + n * off).reshape(-1)
         rows = np.concatenate([hr, ac, N + ar])  # H, A' (upper right), A (lower left)
         cols = np.concatenate([hc, N + ar, ac])
-        entry = _csc_structure(rows, cols, N + M)
+        pos, ind, ptr, nnz = _csc_structure(rows, cols, N + M)
+        # one matrix object per pattern, its numbers replaced per solve (scipy's
+        # constructor checks cost as much as the LU of a small KKT matrix)
+        K = sp.csc_matrix((np.zeros(nnz), ind, ptr), shape=(N + M,) * 2)
+        entry = (pos, nnz, K)
         _remember(key, entry)
     else:
         _SPARSE_CACHE.move_to_end(key)
-    pos, ind, ptr, nnz = entry
+    pos, nnz, K = entry
     Av = qp.A_val.detach().cpu().double().numpy().reshape(-1)
     vals = np.concatenate([qp.H_val.detach().cpu().double().numpy().reshape(-1), Av, Av])
-    K = sp.csc_matrix((np.bincount(pos, weights=vals, minlength=nnz), ind, ptr), shape=(N + M,) * 2)
+    K.data[:] = np.bincount(pos, weights=vals, minlength=nnz)
     rhs = np.concatenate(
         [
             -qp.f.detach().cpu().double().numpy().reshape(-1),

@@ -113,20 +113,21 @@ class TwoLevel:
         zref[:, mask] = p
         red = tr.qp(zref).fix(mask, p)
         sol = solve(red, self.backend, **self.qp_options)
-        z = zref.clone()
-        z[:, ~mask] = sol.z.detach()
+        # the parameters are the last variables of z (eq. 3)
+        z = torch.cat([sol.z.detach(), p.detach()], 1)
         grad = p.new_zeros(B, P.np)
         if gradient:
             with torch.enable_grad():
                 pp = p.detach().requires_grad_(True)
-                zz = z.detach().clone()
-                zz = torch.cat([zz[:, : tr.off_p], pp], 1)
-                L = tr.objective(zz)
-                L = L + (sol.lam.detach() * tr.equalities(zz)).sum(1)
+                zz = torch.cat([z[:, : tr.off_p], pp], 1)
+                v = tr.objective(zz)
+                L = v + (sol.lam.detach() * tr.equalities(zz)).sum(1)
                 if tr.mi:
                     L = L + (sol.mu.detach() * tr.inequalities(zz)).sum(1)
                 grad = torch.autograd.grad(L.sum(), pp)[0]
-        value = tr.objective(z).detach()
+            value = v.detach()  # zz holds the numbers of z
+        else:
+            value = tr.objective(z).detach()
         return LowerLevel(value=value, grad=grad.detach(), z=z, status=sol.status, qp=sol)
 
     # ------------------------------------------------------------------ upper level
@@ -154,10 +155,17 @@ class TwoLevel:
         s_lo = torch.where(torch.isfinite(lb), 0.0, -float("inf")).to(p0)
         s_hi = torch.where(fin, 1.0, torch.where(torch.isfinite(ub), ub - lo, float("inf"))).to(p0)
 
+        # without logarithmic parameters the maps are affine: the same numbers, fewer ops
+        any_log = bool(logs.any())
+
         def to_p(s):
+            if not any_log:
+                return lo + span * s
             return torch.where(logs, lb * torch.exp(lspan * s), lo + span * s)
 
         def dp_ds(s):
+            if not any_log:
+                return span.expand_as(s)
             return torch.where(logs, to_p(s) * lspan, span)
 
         def clamp(s):
@@ -182,6 +190,8 @@ class TwoLevel:
         alphas = 0.5 ** torch.arange(12, dtype=p0.dtype, device=p0.device)
         K = alphas.numel()
         pg = torch.full_like(v, float("inf"))
+        base = torch.arange(B, device=p0.device)
+        eye = torch.eye(m, dtype=p0.dtype, device=p0.device)
         # a first step of at most 0.1 in the scaled variables (BFGS has no scale yet)
         first = True
         for _ in range(self.max_iter):
@@ -201,7 +211,6 @@ class TwoLevel:
                 first = False
             # Armijo trials in passes (the full step first: it is taken in most
             # iterations), each pass one batched lower-level solve of B x (pass size) QPs
-            base = torch.arange(B, device=p0.device)
             found = torch.zeros(B, dtype=torch.bool, device=p0.device)
             s_new, v_new, g_new, z_new = s, v, g, z
             for lo_k, hi_k in ((0, 1), (1, 4), (4, K)):
@@ -218,9 +227,10 @@ class TwoLevel:
                 ok &= torch.isfinite(vt) & (evt.status.reshape(kk, B) == 0) & need[None]
                 hit = ok.any(0)
                 k = ok.to(torch.int64).argmax(0)
-                s_new = torch.where(hit[:, None], trial[k, base], s_new)
+                tk = trial[k, base]
+                s_new = torch.where(hit[:, None], tk, s_new)
                 v_new = torch.where(hit, vt[k, base], v_new)
-                gt = evt.grad.reshape(kk, B, m)[k, base] * dp_ds(trial[k, base])
+                gt = evt.grad.reshape(kk, B, m)[k, base] * dp_ds(tk)
                 g_new = torch.where(hit[:, None], gt, g_new)
                 z_new = torch.where(hit[:, None], evt.z.reshape(kk, B, -1)[k, base], z_new)
                 found = found | hit
@@ -230,7 +240,6 @@ class TwoLevel:
             sy = (sk * yk).sum(1)
             upd = move & (sy > 1e-12 * (sk.norm(dim=1) * yk.norm(dim=1)).clamp_min(1e-300))
             rho = torch.where(upd, 1.0 / sy.clamp_min(1e-300), torch.zeros_like(sy))
-            eye = torch.eye(m, dtype=p0.dtype, device=p0.device)
             V = eye - rho[:, None, None] * sk[:, :, None] * yk[:, None, :]
             Hn = V @ Hinv @ V.mT + rho[:, None, None] * sk[:, :, None] * sk[:, None, :]
             Hinv = torch.where(upd[:, None, None], Hn, Hinv)
