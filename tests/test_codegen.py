@@ -5,6 +5,7 @@ torch path's."""
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -846,3 +847,43 @@ def test_a_model_first_built_in_inference_mode_is_compiled(tmp_path, monkeypatch
     with torch.inference_mode():
         assert codegen.explain(model) == "compiled"
     assert list((tmp_path / "cache").glob("generated_v*/m_*.checked"))
+
+
+def test_a_solve_looks_up_a_models_generated_code_once(monkeypatch):
+    """Inside hooks_pinned (a solver's loop) a model's structure is checked once, not at
+    every lookup (three per iLQR iteration); outside it a change is seen again."""
+    from torchslq.systems import CartPole
+
+    calls = []
+    real = codegen._structure_key
+    monkeypatch.setattr(codegen, "_structure_key", lambda m: calls.append(1) or real(m))
+    dyn = ts.discretize(CartPole(), 0.05, "rk4").double()
+    cost = ts.QuadraticCost(
+        Q=torch.zeros(4, 4, dtype=torch.float64),
+        R=0.1 * torch.eye(1, dtype=torch.float64),
+        Qf=10 * torch.eye(4, dtype=torch.float64),
+    )
+    x0 = torch.tensor([[0.0, 0.3, 0.0, 0.0]], dtype=torch.float64)
+    problem = ts.Problem(dyn, cost, 20)
+    r = ts.ILQR(max_iter=30, progress=False).solve(problem, x0)
+    pinned = len(calls)  # (one lookup before the loop's block)
+    calls.clear()
+    monkeypatch.setattr(codegen, "hooks_pinned", contextlib.nullcontext)
+    r_unpinned = ts.ILQR(max_iter=30, progress=False).solve(problem, x0)
+    assert torch.equal(r.u, r_unpinned.u)
+    assert int(r.iterations.max()) >= 3 and pinned <= 2
+    assert len(calls) >= 3 * int(r.iterations.max())
+    monkeypatch.undo()
+
+    model = FloatBranch(2.0)  # a float attribute traced as a constant
+    with codegen.hooks_pinned():
+        h2 = codegen.generated_hooks(model)
+        model.k = 3.0
+        assert codegen.generated_hooks(model) is h2  # pinned: not looked at again
+    h3 = codegen.generated_hooks(model)  # outside: the change is seen
+    assert h3 is not h2
+    x1, u1 = torch.tensor([[0.5]], dtype=torch.float64), torch.tensor([[0.1]], dtype=torch.float64)
+    rhs, p = model.compiled_rhs()
+    out = np.zeros(1)
+    rhs(x1[0].numpy(), u1[0].numpy(), p, out)
+    np.testing.assert_allclose(out, model(x1, u1)[0].numpy(), rtol=1e-13)

@@ -249,7 +249,9 @@ def solve_constrained(
     )
     n, m = problem.state_dim, problem.control_dim
     lam, lam_T, bad_lam = _initial_multipliers(multipliers, x0, T, stage_eq, terminal_eq)
-    with torch.no_grad(), compiled_cost_evaluation():
+    from ..dynamics.codegen import hooks_pinned
+
+    with torch.no_grad(), compiled_cost_evaluation(), hooks_pinned():
         x = rollout(problem.transition, x0, u) if x_init is None else x_init
         zeros = x0.new_zeros(Bsz)
         J0 = problem.cost(x, u)

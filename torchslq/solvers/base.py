@@ -181,9 +181,12 @@ class DescentSolver(Solver):
             x_init = checked_x_init(x_init, x0, problem.horizon)
         u, x_init, extra = self.prepare(problem, x0, u, x_init)
         record = o.record(self.name)
+        from ..dynamics.codegen import hooks_pinned
+
         # every cost of the loop is evaluated without autograd, so quadratic costs may use
-        # the CPU kernel (whose last bits differ from the torch path's) throughout
-        with torch.no_grad(), compiled_cost_evaluation():
+        # the CPU kernel (whose last bits differ from the torch path's) throughout; the
+        # model's generated code is looked up once per solve
+        with torch.no_grad(), compiled_cost_evaluation(), hooks_pinned():
             x = rollout(problem.transition, x0, u) if x_init is None else x_init
             state = self.initial_state(problem, x0, u, x, **extra)
             out = iterate(
