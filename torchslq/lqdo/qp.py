@@ -15,6 +15,7 @@ for the sparse CPU solvers.
 
 from __future__ import annotations
 
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -220,6 +221,7 @@ class SparseQP:
 
 
 _FIX_PLANS: OrderedDict = OrderedDict()  # see _fix_plan
+_FIX_LOCK = threading.Lock()
 
 
 def few_inequalities(n: int, m: int) -> bool:
@@ -237,14 +239,15 @@ def _fix_plan(qp: SparseQP, mask: Tensor) -> dict:
     idx = (qp.H_idx, qp.A_idx, qp.G_idx)
     key = (tuple(id(t) for t in idx), qp.n, qp.me, qp.mi, mask.device, mask.cpu().numpy().tobytes())
     stamp = tuple(t._version for t in idx)
-    hit = _FIX_PLANS.get(key)
-    if (
-        hit is not None
-        and hit[1] == stamp
-        and all(a is b for a, b in zip(hit[0], idx, strict=True))
-    ):
-        _FIX_PLANS.move_to_end(key)
-        return hit[2]
+    with _FIX_LOCK:
+        hit = _FIX_PLANS.get(key)
+        if (
+            hit is not None
+            and hit[1] == stamp
+            and all(a is b for a, b in zip(hit[0], idx, strict=True))
+        ):
+            _FIX_PLANS.move_to_end(key)
+            return hit[2]
     n, dev = qp.n, mask.device
     free = ~mask
     new = torch.full((n,), -1, dtype=torch.long, device=dev)
@@ -277,7 +280,8 @@ def _fix_plan(qp: SparseQP, mask: Tensor) -> dict:
             torch.stack([new[r[ww]], new[cidx[ww]]]),
         ),
     )
-    _FIX_PLANS[key] = (idx, stamp, plan)
-    while len(_FIX_PLANS) > 8:
-        _FIX_PLANS.popitem(last=False)
+    with _FIX_LOCK:
+        _FIX_PLANS[key] = (idx, stamp, plan)
+        while len(_FIX_PLANS) > 8:
+            _FIX_PLANS.popitem(last=False)
     return plan
