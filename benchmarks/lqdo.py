@@ -110,8 +110,10 @@ def main(argv: list[str] | None = None) -> int:
         f"Total wall time {total:.0f} s.",
         "",
         "Ours: wall time of the whole solve (problem, transcription, OLQ detection, all QPs), "
-        "best of 3 after a warm-up (1 run for TR2000 and the suspension). QLIN = Algorithm 1 "
-        "(Clarabel QPs; the dense torch interior point where Clarabel fails on an LGL QP); "
+        "best of 3 after a warm-up (1 run for TR2000 and the suspension), the sparse solvers' "
+        "kept structures cleared before each run. QLIN = Algorithm 1 (Clarabel QPs; one sparse "
+        "LU for a QP without inequalities or a convex one whose few inequalities are inactive, "
+        "the co-design rows; the dense torch interior point where Clarabel fails); "
         "QLIN+merit = with the l1-merit line search, QLIN+TR = with the trust region on the "
         "parameters (and a second-order correction), SQP+TR = the trust region with the "
         "Lagrangian's Hessian (the safeguarded rows are compared with the paper's "
