@@ -120,8 +120,9 @@ def test_fused_search_equals_the_batched_search(per_element, bounded, quadratic)
         assert float(u_new[ok].min()) == -0.6 and float(u_new[ok].max()) == 0.8
 
 
-def _solve_both(solver, problem, x0, monkeypatch):
-    calls = []
+def _count_fused(monkeypatch) -> list[bool]:
+    """Record, for every line search from now on, whether it ran fused."""
+    calls: list[bool] = []
     fused = LineSearch._fused_armijo
 
     def counted(self, *args):
@@ -130,6 +131,11 @@ def _solve_both(solver, problem, x0, monkeypatch):
         return out
 
     monkeypatch.setattr(LineSearch, "_fused_armijo", counted)
+    return calls
+
+
+def _solve_both(solver, problem, x0, monkeypatch):
+    calls = _count_fused(monkeypatch)
     r_fused = solver.solve(problem, x0)
     monkeypatch.setattr(LineSearch, "_fused_armijo", lambda self, *args: None)
     r_torch = solver.solve(problem, x0)
@@ -168,15 +174,7 @@ def test_fused_search_not_taken_where_it_does_not_apply(monkeypatch):
     x0 = torch.zeros(2, 4, dtype=F64)
     x0[:, 1] = 0.2
     solver = ts.ILQR(max_iter=100, tol=1e-3, progress=False)
-    calls = []
-    fused = LineSearch._fused_armijo
-
-    def counted(self, *args):
-        out = fused(self, *args)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(LineSearch, "_fused_armijo", counted)
+    calls = _count_fused(monkeypatch)
     r32 = solver.solve(ts.Problem(dyn.float(), cost.float(), 20), x0.float())
     assert calls and not any(calls)
     assert bool(r32.converged.all())

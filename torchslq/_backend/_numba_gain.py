@@ -51,10 +51,15 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
     ``failed (B,)``: some ``Quu`` not positive definite or not finite (the pass of that
     element stops there; its outputs are meaningless).
     """
-    m = Kk.shape[2]
-    n = Kk.shape[3] - 1
-    dt = P.dtype
-    scratch = (
+    scratch = _gain_scratch(Kk.shape[3] - 1, Kk.shape[2], P.dtype)
+    _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gain_scratch(n, m, dt):
+    """The scratch arrays of :func:`_riccati_gain_rows` for ``n`` states and ``m``
+    controls (allocated by a kernel, which has numba's runtime)."""
+    return (
         np.empty((n, n), dtype=dt),
         np.empty((n, m), dtype=dt),
         np.empty(n, dtype=dt),
@@ -62,7 +67,6 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
         np.empty(m, dtype=dt),
         np.zeros((m, m), dtype=dt),
     )
-    _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
@@ -219,17 +223,7 @@ def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finit
     arrays of those three. For a small solve on one thread: each launch of a kernel
     costs 5-10 us of numba's argument typing, as much as the whole (4, 1) pass at
     ``T = 100``."""
-    m = Kk.shape[2]
-    n = Kk.shape[3] - 1
-    dt = P.dtype
-    scratch = (
-        np.empty((n, n), dtype=dt),
-        np.empty((n, m), dtype=dt),
-        np.empty(n, dtype=dt),
-        np.empty((m, n), dtype=dt),
-        np.empty(m, dtype=dt),
-        np.zeros((m, m), dtype=dt),
-    )
+    scratch = _gain_scratch(Kk.shape[3] - 1, Kk.shape[2], P.dtype)
     _riccati_gain_rows(0, Kk.shape[0], pieces, Kk, P, p, L, s, failed, scratch)
     nb = x.shape[0]
     lq_rollout_kernel(0, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u)

@@ -30,7 +30,7 @@ import torch
 from torch import Tensor
 
 from ..status import Status
-from .qp import DenseQP, SparseQP, few_inequalities
+from .qp import DenseQP, SparseQP, TensorKeyedCache, few_inequalities
 
 __all__ = ["QPSolution", "qp_solve", "solve", "solve_dense", "solve_sparse", "SPARSE_SOLVERS"]
 
@@ -212,7 +212,7 @@ def _max_step(v, dv):
 
 
 _SPARSE_CACHE: OrderedDict = OrderedDict()  # pattern key -> solver structures
-_PATTERN_KEYS: OrderedDict = OrderedDict()  # see _pattern_key
+_PATTERN_KEYS = TensorKeyedCache(16)  # see _pattern_key
 _CLARABEL_LOCK = threading.RLock()  # the cached solver objects are shared state
 
 
@@ -236,19 +236,10 @@ def _pattern_key(qp: SparseQP) -> int:
     an id is not reused while its entry lives) instead of hashing their bytes per QP."""
     idx = (qp.H_idx, qp.A_idx, qp.G_idx)
     ids = tuple(id(t) for t in idx)
-    stamp = tuple(t._version for t in idx)
-    hit = _PATTERN_KEYS.get(ids)
-    if (
-        hit is not None
-        and hit[1] == stamp
-        and all(a is b for a, b in zip(hit[0], idx, strict=True))
-    ):
-        _PATTERN_KEYS.move_to_end(ids)
-        return hit[2]
-    key = hash(tuple(t.detach().cpu().numpy().tobytes() for t in idx))
-    _PATTERN_KEYS[ids] = (idx, stamp, key)
-    while len(_PATTERN_KEYS) > 16:
-        _PATTERN_KEYS.popitem(last=False)
+    key = _PATTERN_KEYS.get(ids, idx)
+    if key is None:
+        key = hash(tuple(t.detach().cpu().numpy().tobytes() for t in idx))
+        _PATTERN_KEYS.put(ids, idx, key)
     return key
 
 

@@ -220,10 +220,6 @@ class SparseQP:
         )
 
 
-_FIX_PLANS: OrderedDict = OrderedDict()  # see _fix_plan
-_FIX_LOCK = threading.Lock()
-
-
 def few_inequalities(n: int, m: int) -> bool:
     """Whether ``m`` inequality rows and finite bounds are few for ``n`` variables: a
     convex QP with that few is tried as its equality-constrained part first (one sparse
@@ -232,22 +228,57 @@ def few_inequalities(n: int, m: int) -> bool:
     return m <= max(1, n // 20)
 
 
+class TensorKeyedCache:
+    """The last ``size`` values computed from some tensors, found again by the tensors'
+    identity and version: the entry holds the tensors, so an id is not reused while it
+    lives, and an in-place change of one (a new version) misses. For index tensors that
+    a transcription keeps while a QP's pattern is unchanged, instead of hashing their
+    bytes per QP. Thread-safe."""
+
+    def __init__(self, size: int):
+        self.size = size
+        self._entries: OrderedDict = OrderedDict()
+        self._lock = threading.Lock()
+
+    def get(self, key, tensors: tuple[Tensor, ...]):
+        """The value stored under ``key`` for ``tensors``, or None."""
+        stamp = tuple(t._version for t in tensors)
+        with self._lock:
+            hit = self._entries.get(key)
+            if (
+                hit is None
+                or hit[1] != stamp
+                or not all(a is b for a, b in zip(hit[0], tensors, strict=True))
+            ):
+                return None
+            self._entries.move_to_end(key)
+            return hit[2]
+
+    def put(self, key, tensors: tuple[Tensor, ...], value) -> None:
+        """Store ``value`` under ``key`` for ``tensors`` (their current versions)."""
+        stamp = tuple(t._version for t in tensors)
+        with self._lock:
+            self._entries[key] = (tensors, stamp, value)
+            while len(self._entries) > self.size:
+                self._entries.popitem(last=False)
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+
+
+_FIX_PLANS = TensorKeyedCache(8)  # see _fix_plan
+
+
 def _fix_plan(qp: SparseQP, mask: Tensor) -> dict:
     """The index part of :meth:`SparseQP.fix` for ``qp``'s pattern and ``mask``, kept for
-    the last few patterns: recognised by the identity and version of the index tensors
-    (held here, so an id is not reused while its entry lives) and the mask's values."""
+    the last few patterns (:class:`TensorKeyedCache`: the index tensors' identity and
+    version, and the mask's values)."""
     idx = (qp.H_idx, qp.A_idx, qp.G_idx)
     key = (tuple(id(t) for t in idx), qp.n, qp.me, qp.mi, mask.device, mask.cpu().numpy().tobytes())
-    stamp = tuple(t._version for t in idx)
-    with _FIX_LOCK:
-        hit = _FIX_PLANS.get(key)
-        if (
-            hit is not None
-            and hit[1] == stamp
-            and all(a is b for a, b in zip(hit[0], idx, strict=True))
-        ):
-            _FIX_PLANS.move_to_end(key)
-            return hit[2]
+    plan = _FIX_PLANS.get(key, idx)
+    if plan is not None:
+        return plan
     n, dev = qp.n, mask.device
     free = ~mask
     new = torch.full((n,), -1, dtype=torch.long, device=dev)
@@ -280,8 +311,5 @@ def _fix_plan(qp: SparseQP, mask: Tensor) -> dict:
             torch.stack([new[r[ww]], new[cidx[ww]]]),
         ),
     )
-    with _FIX_LOCK:
-        _FIX_PLANS[key] = (idx, stamp, plan)
-        while len(_FIX_PLANS) > 8:
-            _FIX_PLANS.popitem(last=False)
+    _FIX_PLANS.put(key, idx, plan)
     return plan
