@@ -394,3 +394,38 @@ def test_invalid_bounds_of_one_element_are_its_status():
         ts.ILQR(u_min=torch.full((T, m), float("nan"), dtype=F64), progress=False).solve(
             problem, x0
         )
+
+
+def test_lqr_solve_checks_clean_data_at_once_and_faults_per_element(monkeypatch):
+    """Data without faults skip the per-element check (a mask per argument, more than a
+    small solve costs) and give what the solve gives without validation; data with a
+    fault take it (statuses above). The one-pass check is conservative: finite data
+    whose sum overflows are sent to the per-element check, which finds them finite."""
+    import sys
+
+    S = sys.modules["torchslq.lq.solve"]
+    calls = []
+    real = S._input_faults
+    monkeypatch.setattr(S, "_input_faults", lambda *a: calls.append(1) or real(*a))
+    g = torch.Generator().manual_seed(7)
+    Bsz, T, n, m = 3, 8, 3, 2
+    A = torch.eye(n, dtype=F64) + 0.1 * torch.randn(Bsz, T, n, n, generator=g, dtype=F64)
+    Bm = 0.5 * torch.randn(Bsz, T, n, m, generator=g, dtype=F64)
+    Q, R = torch.eye(n, dtype=F64), torch.eye(m, dtype=F64)
+    x0 = torch.randn(Bsz, n, generator=g, dtype=F64)
+    q = torch.randn(Bsz, T + 1, n, generator=g, dtype=F64)
+    sol = ts.lqr_solve(A, Bm, Q, R, x0, q=q)
+    ref = ts.lqr_solve(A, Bm, Q, R, x0, q=q, validate=False)
+    assert calls == [] and ts.status_names(sol.status) == ["converged"] * Bsz
+    assert torch.equal(sol.x, ref.x) and torch.equal(sol.u, ref.u)
+    bad = A.clone()
+    bad[2, 0, 0, 0] = float("inf")
+    assert ts.status_names(ts.lqr_solve(bad, Bm, Q, R, x0, q=q).status)[2] == "non_finite"
+    assert calls == [1]
+    big = q.clone()
+    big[0, 0, 0] = big[1, 0, 0] = 1e308  # finite, but their sum is not
+    Qt, Rt = Q.expand(T + 1, n, n), R.expand(T, m, m)  # with time dims, as lqr_solve
+    assert not S._data_clean(A, Bm, Qt, Rt, x0, big, None, None, None)
+    nonfinite, not_pd = real(A, Bm, Qt, Rt, x0, big, None, None, None, torch.Size([Bsz]))
+    assert not bool(nonfinite.any()) and not bool(not_pd.any())
+    assert S._data_clean(A, Bm, Qt, Rt, x0, q, None, None, None)

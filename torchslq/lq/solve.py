@@ -371,6 +371,18 @@ def _input_faults(A, B, Q, R, x0, q, r, S, c, batch: torch.Size) -> tuple[Tensor
     return nonfinite, not_pd & ~nonfinite
 
 
+def _data_clean(A, B, Q, R, x0, q, r, S, c) -> bool:
+    """Whether :func:`_input_faults` would find nothing, in a few ops and one host sync:
+    every argument's sum is finite (NaN and infinities propagate into a sum, so a finite
+    sum means finite entries; finite data whose sum overflows only send the caller to the
+    exact check) and every ``R`` is positive definite (the same factorisation as there).
+    The per-element check costs more than a small solve (about 130 us at (4, 1), B = 1:
+    a mask per argument, broadcast over the batch)."""
+    total = sum(t.sum() for t in (A, B, Q, R, x0, q, r, S, c) if t is not None)
+    info = torch.linalg.cholesky_ex(0.5 * (R + R.mT)).info
+    return bool(torch.isfinite(total) & (info == 0).all())
+
+
 def _overflowed(F: Tensor, H: Tensor, Vh: Tensor, m: int) -> Tensor:
     """``(B,)``: elements whose backward recursion overflowed (finite data, but a
     non-finite ``Quu`` at the first failing step) rather than met a ``Quu`` that is not
@@ -567,12 +579,17 @@ def lqr_solve(
             batch = _batch_shape(A, B, Q, R, x0, q, r, S, c)
         except RuntimeError as err:
             raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
-        nonfinite, not_pd = _input_faults(A, B, Q, R, x0, q, r, S, c, batch)
-        # an element with an R that is not positive definite is not solved (NaN data
-        # make its factorisation fail: no solution, a zero gradient)
-        if bool(not_pd.any()):
-            R = torch.where(not_pd.reshape(*not_pd.shape, 1, 1, 1), float("nan"), R)
-    if method != "scan" and not (validate and bool((nonfinite | not_pd).any())):
+        faulty = not _data_clean(A, B, Q, R, x0, q, r, S, c)
+        if faulty:  # which elements, or an error naming the argument
+            nonfinite, not_pd = _input_faults(A, B, Q, R, x0, q, r, S, c, batch)
+            # an element with an R that is not positive definite is not solved (NaN data
+            # make its factorisation fail: no solution, a zero gradient)
+            if bool(not_pd.any()):
+                R = torch.where(not_pd.reshape(*not_pd.shape, 1, 1, 1), float("nan"), R)
+            faulty = bool((nonfinite | not_pd).any())
+        # below, validate means: some element's data have a fault (its status says which)
+        validate = faulty
+    if method != "scan" and not validate:
         # on the CPU: the gain-form kernels straight from the data, with or without a
         # graph (None where they do not apply, or an element failed: the homogeneous
         # path below then classifies the failures)
