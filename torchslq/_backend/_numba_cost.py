@@ -23,8 +23,6 @@ def quadratic_cost_row(x, u, b, xr, ur, Q, QT, R, stage_states):
     (the weights and references as in :func:`quadratic_cost_kernel`); also the cost of
     the fused line search's trials (:mod:`._numba_search`)."""
     T = u.shape[0]
-    n = x.shape[1]
-    m = u.shape[1]
     xr_t = xr.shape[1] > 1
     ur_t = ur.shape[1] > 1
     Q_t = Q.shape[1] > 1
@@ -36,22 +34,22 @@ def quadratic_cost_row(x, u, b, xr, ur, Q, QT, R, stage_states):
     br = b if R.shape[0] > 1 else 0
     s = 0.0
     for t in range(0 if stage_states else T, T + 1):
-        tx = t if xr_t else 0
-        tq = t if Q_t else 0
-        for i in range(n):
-            di = x[t, i] - xr[bxr, tx, i]
-            v = 0.0
-            for j in range(n):
-                w = Q[bq, tq, i, j] if t < T else QT[bqt, i, j]
-                v += w * (x[t, j] - xr[bxr, tx, j])
-            s += di * v
+        W = Q[bq, t if Q_t else 0] if t < T else QT[bqt]
+        s = _add_form(s, x[t], xr[bxr, t if xr_t else 0], W)
     for t in range(T):
-        tu = t if ur_t else 0
-        tr = t if R_t else 0
-        for i in range(m):
-            di = u[t, i] - ur[bur, tu, i]
-            v = 0.0
-            for j in range(m):
-                v += R[br, tr, i, j] * (u[t, j] - ur[bur, tu, j])
-            s += di * v
+        s = _add_form(s, u[t], ur[bur, t if ur_t else 0], R[br, t if R_t else 0])
     return 0.5 * s
+
+
+@numba.njit(cache=True, nogil=True, _nrt=False, inline="always")
+def _add_form(s, z, ref, W):
+    """``s + (z - ref)' W (z - ref)``, the terms added to ``s`` one row of ``W`` at a
+    time (the same sums in the same order for the states' and the controls' forms)."""
+    k = z.shape[0]
+    for i in range(k):
+        di = z[i] - ref[i]
+        v = 0.0
+        for j in range(k):
+            v += W[i, j] * (z[j] - ref[j])
+        s += di * v
+    return s

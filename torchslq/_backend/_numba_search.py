@@ -6,8 +6,8 @@ passes Armijo's test on the expected improvement. On torch ops each pass of tria
 rollout kernel, a cost kernel and some thirty small ops to choose and gather the steps
 (:func:`torchslq.solvers.line_search.armijo_search`); for a few elements that glue is
 most of an iteration. Here the whole search of an element is one loop: the trials in
-turn, each rolled out (the model's compiled step, :func:`._numba_kernels._closed_loop_rows`'
-operations) and costed (:func:`._numba_cost.quadratic_cost_row`) until one passes. The
+turn, each rolled out (:func:`._numba_kernels._closed_loop_rows`, the rollout
+kernel's loop) and costed (:func:`._numba_cost.quadratic_cost_row`) until one passes. The
 steps, costs and trajectories are those of ``armijo_search`` (whose batched passes
 return what serial backtracking returns), bit for bit: the same operations in the same
 order.
@@ -19,7 +19,7 @@ import numba
 import numpy as np
 
 from ._numba_cost import quadratic_cost_row
-from ._numba_kernels import _feedback_row, _model_step
+from ._numba_kernels import _closed_loop_rows
 
 
 @numba.njit(nogil=True, cache=True)
@@ -49,36 +49,30 @@ def armijo_rollout_kernel(
             for those three).
     """
     work = np.empty((8, x.shape[2]), dtype=x.dtype)  # the model step's scratch
+    no_skip = np.zeros(0, dtype=np.bool_)
     _armijo_rows(
         b0, b1, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, grid, J0, slope, curv,
         quadratic, c1, roundoff, active, xr, ur, Q, QT, R, stage_states, x, u, alpha, J,
-        ok, work,
+        ok, no_skip, work,
     )  # fmt: skip
 
 
 @numba.njit(nogil=True, cache=True, _nrt=False)
-def _trial(b, a, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, work):
+def _trial(b, a, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, no_skip, work):
     """The feedback rollout of element ``b`` with step ``a`` into ``x[b]``, ``u[b]``:
-    the feedforward ``ū + a k`` first, then :func:`._numba_kernels._feedback_row` (the
-    torch path's and the rollout kernel's order of operations)."""
-    T = u.shape[1]
-    m = u.shape[2]
-    n = x.shape[2]
-    for j in range(n):
-        x[b, 0, j] = xbar[b, 0, j]
-    for t in range(T):
-        ut = u[b, t]
-        for i in range(m):
-            ut[i] = ubar[b, t, i] + a * k[b, t, i]
-        xt = x[b, t]
-        _feedback_row(xt, xbar, K, lo, hi, b, t, ut)
-        _model_step(step, rhs, mode, xt, ut, p, x[b, t + 1], work)
+    the feedforward ``ū + a k`` written into ``u[b]``, then the rollout kernel's own row
+    loop (:func:`._numba_kernels._closed_loop_rows`, ``no_skip`` an empty mask)."""
+    for t in range(u.shape[1]):
+        for i in range(u.shape[2]):
+            u[b, t, i] = ubar[b, t, i] + a * k[b, t, i]
+    x0 = xbar[:, 0]
+    _closed_loop_rows(b, b + 1, step, rhs, mode, p, x0, xbar, K, lo, hi, no_skip, u, x, work)
 
 
 @numba.njit(nogil=True, cache=True, _nrt=False)
 def _armijo_rows(
     b0, b1, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, grid, J0, slope, curv, quadratic,
-    c1, roundoff, active, xr, ur, Q, QT, R, stage_states, x, u, alpha, J, ok, work,
+    c1, roundoff, active, xr, ur, Q, QT, R, stage_states, x, u, alpha, J, ok, no_skip, work,
 ):  # fmt: skip
     """The loop of :func:`armijo_rollout_kernel` (no reference counting:
     :mod:`._numba_kernels`' docstring)."""
@@ -92,7 +86,7 @@ def _armijo_rows(
         J_first = inf
         for j in range(grid.shape[0]):
             a = grid[j]
-            _trial(b, a, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, work)
+            _trial(b, a, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, no_skip, work)
             Jj = quadratic_cost_row(x[b], u[b], b, xr, ur, Q, QT, R, stage_states)
             if np.isnan(Jj):
                 Jj = inf  # a trial that blew up is never chosen
@@ -110,7 +104,9 @@ def _armijo_rows(
             # the decrease is below rounding: the full step, if it is no worse than J0
             tol = roundoff * max(abs(J0[b]), 1.0)
             if abs(slope[b]) <= tol and J_first <= J0[b] + tol:
-                _trial(b, grid[0], step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, work)
+                _trial(
+                    b, grid[0], step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, no_skip, work
+                )
                 alpha[b] = grid[0]
                 J[b] = J_first
                 ok[b] = True
