@@ -189,10 +189,7 @@ class QuadraticCost(nn.Module):
         batch dim of per-element weights aligns with the dim just before time.
         """
         T = self._check_traj(x, u)
-        Qs = self._time_varying(self.Q, T, "Q", 2)  # (Bq, T or 1, n, n)
-        QT = self.Qf if self.Qf is not None else Qs[:, -1]  # (n, n) or (Bq, n, n)
-        Rs = self._time_varying(self.R, T, "R", 2)
-        xr, ur = self.references(T, x)
+        Qs, QT, Rs, xr, ur = self._value_inputs(T, x)
         terms = _compiled_terms(x, u, xr, ur, Qs, QT, Rs)
         if terms is not None:
             return _quadratic_cost_compiled(x, u, terms)
@@ -279,11 +276,16 @@ class QuadraticCost(nn.Module):
         float64 CPU tensors, autograd, dimensions over 32). A fused line search
         (:func:`torchslq.solvers.descent.LineSearch`) evaluates its trials with them."""
         T = self._check_traj(x, u)
+        Qs, QT, Rs, xr, ur = self._value_inputs(T, x)
+        return _compiled_terms(x, u, xr, ur, Qs, QT, Rs)
+
+    def _value_inputs(self, T: int, like: Tensor) -> tuple[Tensor, ...]:
+        """``(Qs (Bq, T or 1, n, n), QT (n, n) or (Bq, n, n), Rs (Br, T or 1, m, m), x°,
+        u°)``: what the cost's value reads, for a horizon ``T``."""
         Qs = self._time_varying(self.Q, T, "Q", 2)
         QT = self.Qf if self.Qf is not None else Qs[:, -1]
         Rs = self._time_varying(self.R, T, "R", 2)
-        xr, ur = self.references(T, x)
-        return _compiled_terms(x, u, xr, ur, Qs, QT, Rs)
+        return (Qs, QT, Rs, *self.references(T, like))
 
 
 # the CPU kernel's dense per-row forms are for small weights (diagonal ones of large

@@ -365,8 +365,7 @@ def _input_faults(A, B, Q, R, x0, q, r, S, c, batch: torch.Size) -> tuple[Tensor
         if t is not None:
             flags = ~torch.isfinite(t).flatten(t.ndim - core[name]).all(-1)
             nonfinite = nonfinite | _element_faults(name, flags, batch, "contains nan or inf")
-    Rsym = 0.5 * (R + R.mT)
-    info = torch.linalg.cholesky_ex(torch.nan_to_num(Rsym)).info.ne(0).any(-1)
+    info = _cholesky_info(R).ne(0).any(-1)
     not_pd = _element_faults("R", info, batch, "must be symmetric positive definite")
     return nonfinite, not_pd & ~nonfinite
 
@@ -379,8 +378,13 @@ def _data_clean(A, B, Q, R, x0, q, r, S, c) -> bool:
     The per-element check costs more than a small solve (about 130 us at (4, 1), B = 1:
     a mask per argument, broadcast over the batch)."""
     total = sum(t.sum() for t in (A, B, Q, R, x0, q, r, S, c) if t is not None)
-    info = torch.linalg.cholesky_ex(0.5 * (R + R.mT)).info
-    return bool(torch.isfinite(total) & (info == 0).all())
+    return bool(torch.isfinite(total) & (_cholesky_info(R) == 0).all())
+
+
+def _cholesky_info(R: Tensor) -> Tensor:
+    """``cholesky_ex``'s ``info`` for the symmetric part of every ``R`` (NaN made finite,
+    so that a non-finite ``R`` reports what its finite entries give)."""
+    return torch.linalg.cholesky_ex(torch.nan_to_num(0.5 * (R + R.mT))).info
 
 
 def _overflowed(F: Tensor, H: Tensor, Vh: Tensor, m: int) -> Tensor:
