@@ -76,6 +76,11 @@ def _sync(device: str) -> None:
         torch.cuda.synchronize()
 
 
+def _free(device: str) -> None:
+    if device.startswith("cuda"):
+        torch.cuda.empty_cache()
+
+
 def timed(fn, device: str, budget: float) -> tuple[float, object]:
     out = fn()  # warm-up
     _sync(device)
@@ -136,6 +141,12 @@ def main(argv: list[str] | None = None) -> None:
         help="B*T cap for sequential_torch (T dispatch-bound steps, slow on the CPU)",
     )
     p.add_argument("--budget", type=float, default=2.0)
+    p.add_argument(
+        "--time-limit",
+        type=float,
+        default=float("inf"),
+        help="seconds: rows not started by then are listed as skipped (results kept)",
+    )
     p.add_argument("--backward", action="store_true")
     p.add_argument("--quick", action="store_true", help="T in (100, 1000), B in (1, 32)")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results"))
@@ -169,6 +180,7 @@ def main(argv: list[str] | None = None) -> None:
         "m": a.m,
         "backward": a.backward,
         "load_start": os.getloadavg()[0],
+        "skipped_for_time": [],
     }
     rows: list[dict] = []
 
@@ -196,7 +208,14 @@ def main(argv: list[str] | None = None) -> None:
             "|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
-            ms = {k: (f"{1e3 * r[k]:.2f}" if r.get(k) is not None else "-") for k in a.methods}
+            ms = {
+                k: (
+                    f"{1e3 * r[k]:.2f}"
+                    if r.get(k) is not None
+                    else (r[k + "_error"] if r.get(k + "_error") else "-")
+                )
+                for k in a.methods
+            }
             seqs = [r[k] for k in ("sequential", "sequential_torch") if r.get(k) is not None]
             sp = f"{min(seqs) / r['scan']:.2f}" if seqs and r.get("scan") else "-"
             diff = f"{r['x_rel_diff']:.1e}" if r.get("x_rel_diff") is not None else "-"
@@ -206,6 +225,19 @@ def main(argv: list[str] | None = None) -> None:
                 f"| {r['dtype']} | {r['threads']} | {r['T']} | {r['B']} | {ms.get('sequential', '-')} "
                 f"| {ms.get('sequential_torch', '-')} | {ms.get('scan', '-')} | {sp} | {tsp} | {diff} |"
             )
+        if meta.get("command_2"):  # rows measured by a second run on the same machine
+            lines += [
+                "",
+                f"Rows {', '.join(meta['rows_from_command_2'])}: from a second run on the "
+                f"same machine, `{meta['command_2']}`.",
+            ]
+        if meta.get("skipped_for_time"):
+            lines += [
+                "",
+                "Not measured (the run's time limit came first): "
+                + ", ".join(meta["skipped_for_time"])
+                + ".",
+            ]
         (out / f"{a.name}.md").write_text("\n".join(lines) + "\n")
 
     if a.rerender:  # the markdown of an earlier run, from its JSON (its command kept)
@@ -217,6 +249,7 @@ def main(argv: list[str] | None = None) -> None:
         )
         write(measured=False)
         return
+    started = time.perf_counter()
     for dt_name in a.dtypes:
         dtype = getattr(torch, dt_name)
         for threads in a.threads:
@@ -225,13 +258,23 @@ def main(argv: list[str] | None = None) -> None:
                 for B in a.B:
                     if B * T > a.max_elements:
                         continue
+                    if time.perf_counter() - started > a.time_limit:
+                        meta["skipped_for_time"].append(f"{dt_name} T={T} B={B}")
+                        continue
                     args = problem(B, T, a.n, a.m, dtype, device)
                     row: dict = {"dtype": dt_name, "threads": threads, "T": T, "B": B}
                     xs = {}
                     for method in methods:
                         if method == "sequential_torch" and B * T > a.torch_max_elements:
                             continue
-                        t, x = timed(run_method(args, method, a.backward), device, a.budget)
+                        try:
+                            t, x = timed(run_method(args, method, a.backward), device, a.budget)
+                        except torch.OutOfMemoryError:  # a size the device cannot hold
+                            row[method + "_error"] = "out of memory"
+                            del args
+                            _free(device)
+                            args = problem(B, T, a.n, a.m, dtype, device)
+                            continue
                         row[method] = t
                         xs[method] = x
                     if "scan" in xs and "sequential" in xs:
@@ -241,6 +284,8 @@ def main(argv: list[str] | None = None) -> None:
                         )
                     rows.append(row)
                     print(row, flush=True)
+                    del args, xs
+                    _free(device)
                     write()
     write()
 

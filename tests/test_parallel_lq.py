@@ -282,18 +282,29 @@ def test_method_argument():
 
 
 def test_auto_follows_the_measured_rule(backend):
-    """``auto``: the sequential kernel, except a single problem with T >= 100 on the CPU
-    torch path (where benchmarks/results/parallel_lq.md measured the scan faster)."""
+    """``auto`` (the default): the sequential kernel, except a single problem with
+    T >= 100 on the CPU torch path (where benchmarks/results/parallel_lq.md measured the
+    scan faster) and, on a CUDA GPU, T >= 100 with batches up to 2048
+    (benchmarks/results/parallel_lq_cuda.md)."""
     cpu = torch.device("cpu")
     scan_one = "scan" if backend == "torch" else "sequential"
     assert choose_method(100, 1, cpu, F64) == scan_one
     assert choose_method(10000, 1, cpu, torch.float32) == scan_one
     assert choose_method(99, 1, cpu, F64) == "sequential"
     assert choose_method(10000, 32, cpu, F64) == "sequential"
-    assert choose_method(10000, 1, "cuda", F64) == "sequential"  # not measured
+    for T, bsz, expected in (
+        (4096, 1, "scan"),
+        (100, 1024, "scan"),
+        (10000, 1024, "scan"),
+        (99, 1, "sequential"),
+        (1000, 4096, "sequential"),
+        (10000, 2048, "sequential"),  # over the sizes measured
+    ):
+        for dt in (F64, torch.float32):
+            assert choose_method(T, bsz, "cuda", dt) == expected, (T, bsz, dt)
     for bsz, T in ((1, 120), (2, 5)):
         args = random_problem(1, bsz, T, 3, 2)
-        auto = lqr_solve(**args, method="auto")
+        auto = lqr_solve(**args)
         ref = lqr_solve(**args, method=choose_method(T, bsz, cpu, F64))
         for name in FIELDS:
             assert torch.equal(getattr(auto, name), getattr(ref, name)), name

@@ -342,16 +342,26 @@ def choose_method(T: int, batch: int, device: torch.device | str, dtype: torch.d
     Args:
         T: horizon. batch: number of problems (the flat batch). device, dtype: the data's.
 
-    Measured (2-core CPU, n = 4, m = 2, float64 and float32): the compiled sequential
-    kernel beats the scan everywhere (3-30x); the sequential recursion as torch ops (the
-    CPU path without the compiled kernel) loses to the scan for a single problem
-    (``batch == 1``) at T = 100, 1000 and 10000 (1.5-13x) and is as fast or faster from
-    ``batch = 32`` on. No GPU has been measured yet, so on other devices ``"auto"`` keeps
-    the sequential kernel until a GPU run of the benchmark sets the rule here.
+    Measured (``n = 4``, ``m = 2``, float64 and float32, forward):
+
+    * 2-core CPU (``parallel_lq.md``): the compiled sequential kernel beats the scan
+      everywhere (3-30x); the sequential recursion as torch ops (the CPU path without
+      the compiled kernel) loses to the scan for a single problem (``batch == 1``) at
+      T = 100, 1000 and 10000 (1.5-13x) and is as fast or faster from ``batch = 32`` on.
+    * H100 (``parallel_lq_cuda.md``): the sequential pass is a chain of ``T`` small
+      kernel launches whatever the batch (0.3-0.5 ms per step), the scan's time grows
+      with ``batch * T``. The scan is faster at every measured T >= 100 up to
+      ``batch = 1024`` (1.8-2.3x at T = 100, 2.4-154x from T = 1000; 40-61x at
+      T = 4096, B <= 64) and about as fast at ``batch = 4096`` (0.66-1.32x). Rule:
+      ``T >= 100`` and ``batch <= 2048`` (the crossover of the two trends lies between
+      1024 and 4096) and ``batch * T <= 1.1e7`` (the largest sizes measured with it:
+      the scan keeps every level in memory).
     """
     kind = torch.device(device).type
     if kind == "cpu" and dtype in (torch.float32, torch.float64) and not compiled_available():
         return "scan" if batch == 1 and T >= 100 else "sequential"
+    if kind == "cuda" and T >= 100 and batch <= 2048 and batch * T <= 1.1e7:
+        return "scan"
     return "sequential"
 
 
@@ -511,7 +521,7 @@ def lqr_solve(
     c: Tensor | None = None,
     *,
     validate: bool = True,
-    method: str = "sequential",
+    method: str = "auto",
 ) -> LQRSolution:
     """Solve a batch of finite-horizon LQ problems (module docstring gives the problem).
 
@@ -531,13 +541,15 @@ def lqr_solve(
             a zero gradient; the others are solved as without it); in data shared by the
             whole batch it is a ``ValueError`` naming the argument.
         method: the backend, the same results either way (up to rounding):
-            ``"sequential"`` (default) the Riccati recursion, ``T`` dependent steps (on
-            the CPU one compiled loop); ``"scan"`` the parallel-in-time associative scan
+            ``"sequential"`` the Riccati recursion, ``T`` dependent steps (on the CPU
+            one compiled loop); ``"scan"`` the parallel-in-time associative scan
             (:mod:`torchslq.lq.scan`; Särkkä & García-Fernández 2023), ``O(log T)``
             levels of batched ops, its backward pass by scans too (an element whose
             scan fails is redone by the recursion, so the statuses are the same);
-            ``"auto"`` picks ``"scan"`` only where it measured faster
-            (:func:`choose_method`, ``docs/scale.md``).
+            ``"auto"`` (default) picks ``"scan"`` only where it measured faster
+            (:func:`choose_method`: on a CUDA GPU for ``T >= 100`` and batches up to
+            2048; on the CPU, with the compiled kernel, never), else ``"sequential"``
+            (``docs/scale.md``).
 
     All leading (batch) dims broadcast together, and a time dim of 1 broadcasts over
     time; a fully unbatched problem (``A (T,n,n)``, ``x0 (n,)``) returns unbatched
