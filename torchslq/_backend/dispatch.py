@@ -119,14 +119,16 @@ def set_compiled(enabled: bool) -> bool:
     return old
 
 
-def can_use_compiled(*tensors: Tensor) -> bool:
-    """Whether the compiled path applies to a pass over ``tensors`` (see module docs)."""
+def can_use_compiled(*tensors: Tensor, differentiable: bool = False) -> bool:
+    """Whether the compiled path applies to a pass over ``tensors`` (see module docs);
+    ``differentiable``: the caller wraps the pass in its own autograd function, so
+    tensors that require grad do not rule it out."""
     if not compiled_available():
         return False
     dtype = tensors[0].dtype
     if dtype not in (torch.float32, torch.float64):
         return False
-    grad = torch.is_grad_enabled()
+    grad = torch.is_grad_enabled() and not differentiable
     for t in tensors:
         if t.device.type != "cpu" or t.dtype != dtype or (grad and t.requires_grad):
             return False
@@ -757,12 +759,16 @@ def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray,
     may be None) as the kernels' ``pieces``: arrays ``(1 or prod(batch), 1 or steps,
     ...)``, an absent piece an empty array."""
     npd = _np_dtype(dtype)
-    return tuple(
-        np.zeros((0,) * d, dtype=npd)
-        if p is None
-        else _flat(_one_time_step(p, d - 2), batch, d - 1)
-        for p, d in zip(pieces, PIECE_NDIMS, strict=True)
-    )
+    nb = math.prod(batch)
+    out = []
+    for p, d in zip(pieces, PIECE_NDIMS, strict=True):
+        if p is None:
+            out.append(np.zeros((0,) * d, dtype=npd))
+        elif p.ndim == d and p.shape[0] in (1, nb) and p.is_contiguous():
+            out.append(p.detach().numpy())  # as the kernels take it (the common case)
+        else:
+            out.append(_flat(_one_time_step(p, d - 2), batch, d - 1))
+    return tuple(out)
 
 
 def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, ...], int]:
@@ -770,10 +776,11 @@ def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, 
     gain kernels' ``pieces`` (:func:`_piece_arrays`) and the data's own batch size: 1
     where every piece is shared by the batch (one Riccati pass serves all), else
     ``prod(batch)``; ``batch`` is the full batch shape (x0's included)."""
-    shared = all(
-        p is None or math.prod(p.shape[: p.ndim - d + 1]) == 1
-        for p, d in zip(pieces, PIECE_NDIMS, strict=True)
-    )
+    shared = True
+    for p, d in zip(pieces, PIECE_NDIMS, strict=True):
+        if p is not None and math.prod(p.shape[: p.ndim - d + 1]) != 1:
+            shared = False
+            break
     arrays = _piece_arrays(pieces, (1,) if shared else batch, pieces[0].dtype)
     return arrays, 1 if shared else math.prod(batch)
 
@@ -798,24 +805,24 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     nb = x0.shape[0]
     dtype = x0.dtype
-    Kk = torch.empty(data_batch, T, m, n + 1, dtype=dtype)
-    P = torch.empty(data_batch, T + 1, n, n, dtype=dtype)
-    p = torch.empty(data_batch, T + 1, n, dtype=dtype)
-    L = torch.empty(data_batch, T, m, m, dtype=dtype)
-    s = torch.empty(data_batch, dtype=dtype)
-    failed = torch.empty(data_batch, dtype=torch.bool)
-    x = torch.empty(nb, T + 1, n, dtype=dtype)
-    u = torch.empty(nb, T, m, dtype=dtype)
-    lam = torch.empty(nb, T + 1, n, dtype=dtype)
-    cost = torch.empty(nb, dtype=dtype)
-    finite = torch.empty(nb, dtype=torch.bool)
-    Kkn, Pn, pn, sn = Kk.numpy(), P.numpy(), p.numpy(), s.numpy()
-    xn, un = x.numpy(), u.numpy()
     x0n = x0.detach().contiguous().numpy()
+    # outputs allocated by numpy and shared with torch (a torch allocation and its numpy
+    # view cost several times numpy's, which counts at B = 1)
+    npd = x0n.dtype
+    Kkn = np.empty((data_batch, T, m, n + 1), npd)
+    Pn = np.empty((data_batch, T + 1, n, n), npd)
+    pn = np.empty((data_batch, T + 1, n), npd)
+    Ln = np.empty((data_batch, T, m, m), npd)
+    sn = np.empty(data_batch, npd)
+    failedn = np.empty(data_batch, np.bool_)
+    xn = np.empty((nb, T + 1, n), npd)
+    un = np.empty((nb, T, m), npd)
+    lamn = np.empty((nb, T + 1, n), npd)
+    costn = np.empty(nb, npd)
+    finiten = np.empty(nb, np.bool_)
     if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
         args = (
-            pieces, x0n, Kkn, Pn, pn, L.numpy(), sn, failed.numpy(), xn, un, lam.numpy(),
-            cost.numpy(), finite.numpy(),
+            pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten,
         )  # fmt: skip
         if dtype in _SLP_CALLED:  # (entering the switch costs a few us per call)
             gain.gain_solve_kernel(*args)
@@ -825,19 +832,15 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
             _SLP_CALLED.add(dtype)
     else:
         with slp_vectorized():  # for its register-blocked products, on the first call
-            _launch(
-                gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, L.numpy(), sn,
-                failed.numpy(),
-            )  # fmt: skip
+            _launch(gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn, failedn)
         _launch(
             _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0n, xn, un
         )
-        _launch(
-            gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lam.numpy(), cost.numpy(), finite.numpy()
-        )
+        _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lamn, costn, finiten)
+    t = torch.from_numpy
     return {
-        "Kk": Kk, "P": P, "p": p, "L": L, "failed": failed,
-        "x": x, "u": u, "lam": lam, "cost": cost, "finite": finite,
+        "Kk": t(Kkn), "P": t(Pn), "p": t(pn), "L": t(Ln), "failed": t(failedn),
+        "x": t(xn), "u": t(un), "lam": t(lamn), "cost": t(costn), "finite": t(finiten),
     }  # fmt: skip
 
 

@@ -112,8 +112,8 @@ class RiccatiFactors:
 def with_time(t: Tensor | None, tail_ndim: int, steps: int) -> Tensor | None:
     """Expand the time dim of an argument to ``steps``: a constant (no time dim, e.g.
     ``(n, n)``) or a time dim of 1 broadcasts over the horizon."""
-    if t is None:
-        return None
+    if t is None or (t.ndim > tail_ndim and t.shape[-tail_ndim - 1] == steps):
+        return t
     if t.ndim == tail_ndim:
         t = t.unsqueeze(0)
     return t.expand(*t.shape[: -tail_ndim - 1], steps, *t.shape[-tail_ndim:])

@@ -177,11 +177,16 @@ def _homog(x: Tensor) -> Tensor:
     return torch.cat([x, x.new_ones(*x.shape[:-1], 1)], dim=-1)
 
 
+assert int(Status.CONVERGED) == 0  # lq_status relies on it
+
+
 def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
     """Per-element :class:`torchslq.Status` of an LQ solve from ``(B,)`` bool masks:
     ``NOT_POSITIVE_DEFINITE`` where ``failed`` (some ``Quu`` not PD; None: nowhere),
     else ``CONVERGED`` where ``finite``, else ``NON_FINITE``."""
-    status = torch.where(finite, int(Status.CONVERGED), int(Status.NON_FINITE))
+    # CONVERGED is 0: one product instead of a where over two scalars (which allocates
+    # both as tensors; it counts at B = 1)
+    status = (~finite).long() * int(Status.NON_FINITE)
     return (
         status if failed is None else status.masked_fill(failed, int(Status.NOT_POSITIVE_DEFINITE))
     )
@@ -469,7 +474,7 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
     the homogeneous path then classifies the failures."""
     data = (A, B, Q, R, x0, q, r, S, c)
     present = [t for t in data if t is not None]
-    if x0.device.type != "cpu" or not can_use_compiled(*(t.detach() for t in present)):
+    if x0.device.type != "cpu" or not can_use_compiled(*present, differentiable=True):
         return None
     T, n = A.shape[-3], A.shape[-1]
     batch = _batch_shape(*data)
@@ -481,7 +486,7 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
     if x0f.shape != (nb, n):
         x0f = x0f.expand(*batch, n).reshape(nb, n)
     sol = lq_gain_solve(pieces, data_batch, x0f, T)
-    if bool(sol["failed"].any()):
+    if sol["failed"].numpy().any():
         return None
 
     flat = len(batch) == 1
