@@ -31,6 +31,7 @@ from torchslq.lq import (
     riccati_scan,
     rollout_linear,
     rollout_scan,
+    scan_memory_bytes,
 )
 
 F64 = torch.float64
@@ -298,7 +299,7 @@ def test_auto_follows_the_measured_rule(backend):
         (10000, 1024, "scan"),
         (99, 1, "sequential"),
         (1000, 4096, "sequential"),
-        (10000, 2048, "sequential"),  # over the sizes measured
+        (10000, 2049, "sequential"),  # past the crossover
     ):
         for dt in (F64, torch.float32):
             assert choose_method(T, bsz, "cuda", dt) == expected, (T, bsz, dt)
@@ -308,3 +309,73 @@ def test_auto_follows_the_measured_rule(backend):
         ref = lqr_solve(**args, method=choose_method(T, bsz, cpu, F64))
         for name in FIELDS:
             assert torch.equal(getattr(auto, name), getattr(ref, name)), name
+
+
+def test_auto_keeps_the_scan_within_device_memory(monkeypatch):
+    """On a GPU ``auto`` runs the scan only where its estimated memory is at most half of
+    what the device has free (the device's free memory is what the test sets)."""
+    import torchslq.lq.solve as solve_mod
+
+    need = solve_mod.scan_memory_bytes(4096, 64, 4, F64)
+    assert need == 30 * 25 * 8 * 64 * 4096
+    for free, expected in ((2 * need, "scan"), (2 * need - 1, "sequential"), (None, "scan")):
+        monkeypatch.setattr(solve_mod, "_device_bytes_free", lambda dev, free=free: free)
+        assert choose_method(4096, 64, "cuda", F64, n=4) == expected, free
+    assert choose_method(4096, 64, "cuda", F64) == "scan"  # no n: no memory test
+
+
+def test_scan_memory_estimate_bounds_the_measured_peak():
+    """``scan_memory_bytes`` against the peak resident memory a scan solve adds, measured
+    in a fresh process (the CPU's allocations are the GPU's): an upper bound, and not a
+    loose one (within 2x)."""
+    code = (
+        "import torch, sys\n"
+        "sys.path.insert(0, 'tests')\n"
+        "from test_lq_kernel import random_problem\n"
+        "import torchslq as ts\n"
+        "torch.set_num_threads(1)\n"
+        "args = random_problem(0, 16, 2048, 4, 2)\n"
+        "ts.lqr_solve(**random_problem(1, 1, 8, 4, 2), method='scan')  # code loaded\n"
+        "def kb(key):\n"
+        "    for line in open('/proc/self/status'):\n"
+        "        if line.startswith(key):\n"
+        "            return int(line.split()[1]) * 1024\n"
+        "open('/proc/self/clear_refs', 'w').write('5')\n"
+        "base = kb('VmRSS')\n"
+        "with torch.no_grad():\n"
+        "    ts.lqr_solve(**args, validate=False, method='scan')\n"
+        "print(kb('VmHWM') - base)\n"
+    )
+    import os
+    import subprocess
+    import sys
+
+    if not os.path.exists("/proc/self/clear_refs"):
+        pytest.skip("needs Linux /proc/self/clear_refs to measure a peak")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    out = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True,
+        env={**os.environ, "OMP_NUM_THREADS": "1"},
+    )  # fmt: skip
+    peak = int(out.stdout.strip().splitlines()[-1])
+    estimate = scan_memory_bytes(2048, 16, 4, F64)
+    assert 0.5 * estimate < peak <= estimate, (peak, estimate)
+
+
+def test_auto_falls_back_to_the_recursion_when_the_scan_runs_out_of_memory(monkeypatch):
+    import torchslq.lq.solve as solve_mod
+
+    args = random_problem(3, 3, 120, 3, 2)
+    ref = lqr_solve(**args, method="sequential")
+
+    def out_of_memory(*a, **k):
+        raise torch.OutOfMemoryError("the scan's levels do not fit")
+
+    monkeypatch.setattr(solve_mod, "riccati_scan_homogeneous", out_of_memory)
+    monkeypatch.setattr(solve_mod, "choose_method", lambda *a, **k: "scan")
+    sol = lqr_solve(**args)  # auto: picks the scan, which fails, then the recursion
+    for name in FIELDS:
+        assert_rel(getattr(sol, name), getattr(ref, name), 1e-12, name)
+    assert torch.equal(sol.status, ref.status)
+    with pytest.raises(torch.OutOfMemoryError):
+        lqr_solve(**args, method="scan")  # asked for by name: the error is the caller's

@@ -29,7 +29,14 @@ from .scan import (
     rollout_scan,
     rollout_scan_homogeneous,
 )
-from .solve import LQRSolution, choose_method, lq_adjoint_solve, lq_objective, lqr_solve
+from .solve import (
+    LQRSolution,
+    choose_method,
+    lq_adjoint_solve,
+    lq_objective,
+    lqr_solve,
+    scan_memory_bytes,
+)
 
 __all__ = [
     "BoxQPResult",
@@ -40,6 +47,7 @@ __all__ = [
     "associative_scan",
     "box_qp",
     "choose_method",
+    "scan_memory_bytes",
     "compiled_available",
     "dare",
     "dare_gain",

@@ -339,13 +339,46 @@ def _element_faults(name: str, fault: Tensor, batch: torch.Size, what: str) -> T
     return fault.expand(batch)
 
 
-def choose_method(T: int, batch: int, device: torch.device | str, dtype: torch.dtype) -> str:
+# Peak extra memory of the scan, in numbers per element per (n+1)^2: measured 18-25
+# (n = 2, 4, 12, 32; float64 and float32; forward, and forward + backward) as resident
+# memory on the CPU; a GPU allocates the same tensors (its caching allocator rounds them
+# up). Every level's elements and the combinations' temporaries live at once; the
+# sequential recursion needs a quarter of it or less.
+SCAN_NUMBERS_PER_ELEMENT = 30
+
+
+def scan_memory_bytes(T: int, batch: int, n: int, dtype: torch.dtype) -> int:
+    """An upper estimate of the extra memory ``lqr_solve(method="scan")`` takes for
+    ``batch`` problems of horizon ``T`` and ``n`` states: ``30 (n+1)^2`` numbers of
+    ``dtype`` per element (``SCAN_NUMBERS_PER_ELEMENT``, from measurements)."""
+    itemsize = torch.empty((), dtype=dtype).element_size()
+    return SCAN_NUMBERS_PER_ELEMENT * (n + 1) ** 2 * itemsize * batch * T
+
+
+def _device_bytes_free(device: torch.device) -> int | None:
+    """Memory the allocator can still hand out on ``device`` (CUDA: the driver's free
+    memory plus what PyTorch's caching allocator holds unused); None where unknown."""
+    if device.type != "cuda" or not torch.cuda.is_available():
+        return None
+    free, _total = torch.cuda.mem_get_info(device)
+    cached = torch.cuda.memory_reserved(device) - torch.cuda.memory_allocated(device)
+    return int(free + cached)
+
+
+def choose_method(
+    T: int, batch: int, device: torch.device | str, dtype: torch.dtype, n: int | None = None
+) -> str:
     """The backend ``lqr_solve(method="auto")`` runs: ``"scan"`` only where the benchmark
     (``benchmarks/parallel_lq.py``, ``benchmarks/results/parallel_lq.md``) measured it
-    faster than the sequential kernel, else ``"sequential"``.
+    faster than the sequential kernel and, on a GPU, where it fits in memory; else
+    ``"sequential"``.
 
     Args:
         T: horizon. batch: number of problems (the flat batch). device, dtype: the data's.
+        n: the state dimension; given, a GPU runs the scan only where its estimated
+            memory (:func:`scan_memory_bytes`) is at most half of what the device has
+            free (``lqr_solve`` passes it; it also falls back to the sequential kernel
+            if the scan runs out of memory all the same).
 
     Measured (``n = 4``, ``m = 2``, float64 and float32, forward):
 
@@ -359,13 +392,16 @@ def choose_method(T: int, batch: int, device: torch.device | str, dtype: torch.d
       ``batch = 1024`` (1.8-2.3x at T = 100, 2.4-154x from T = 1000; 40-61x at
       T = 4096, B <= 64) and about as fast at ``batch = 4096`` (0.66-1.32x). Rule:
       ``T >= 100`` and ``batch <= 2048`` (the crossover of the two trends lies between
-      1024 and 4096) and ``batch * T <= 1.1e7`` (the largest sizes measured with it:
-      the scan keeps every level in memory).
+      1024 and 4096), and the memory test above.
     """
-    kind = torch.device(device).type
-    if kind == "cpu" and dtype in (torch.float32, torch.float64) and not compiled_available():
+    dev = torch.device(device)
+    if dev.type == "cpu" and dtype in (torch.float32, torch.float64) and not compiled_available():
         return "scan" if batch == 1 and T >= 100 else "sequential"
-    if kind == "cuda" and T >= 100 and batch <= 2048 and batch * T <= 1.1e7:
+    if dev.type == "cuda" and T >= 100 and batch <= 2048:
+        if n is not None:
+            free = _device_bytes_free(dev)
+            if free is not None and scan_memory_bytes(T, batch, n, dtype) > free // 2:
+                return "sequential"
         return "scan"
     return "sequential"
 
@@ -479,7 +515,7 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
     T, n = A.shape[-3], A.shape[-1]
     batch = _batch_shape(*data)
     nb = max(math.prod(batch), 1)
-    if method == "auto" and choose_method(T, nb, x0.device, x0.dtype) != "sequential":
+    if method == "auto" and choose_method(T, nb, x0.device, x0.dtype, n) != "sequential":
         return None
     pieces, data_batch = lq_gain_pieces((A, B, c, Q, R, S, q, r), batch)
     x0f = x0.detach()
@@ -553,8 +589,9 @@ def lqr_solve(
             scan fails is redone by the recursion, so the statuses are the same);
             ``"auto"`` (default) picks ``"scan"`` only where it measured faster
             (:func:`choose_method`: on a CUDA GPU for ``T >= 100`` and batches up to
-            2048; on the CPU, with the compiled kernel, never), else ``"sequential"``
-            (``docs/scale.md``).
+            2048 where it fits in half the free memory; on the CPU, with the compiled
+            kernel, never), else ``"sequential"``, which it also falls back to when the
+            scan runs out of memory (``docs/scale.md``).
 
     All leading (batch) dims broadcast together, and a time dim of 1 broadcasts over
     time; a fully unbatched problem (``A (T,n,n)``, ``x0 (n,)``) returns unbatched
@@ -626,9 +663,20 @@ def lqr_solve(
     Hf = _flat_batch(H, batch, nb, 3)
     VhTf = _flat_batch(VhT, batch, nb, 2)
     x0f = x0.expand(*batch, n).reshape(nb, n)
-    if method == "auto":
-        method = choose_method(T, nb, x0.device, x0.dtype)
-    x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f, method)
+    chosen = method == "auto"
+    if chosen:
+        method = choose_method(T, nb, x0.device, x0.dtype, n)
+    try:
+        x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f, method)
+    except torch.OutOfMemoryError:
+        if not (chosen and method == "scan"):
+            raise
+        # the scan keeps every level in memory (scan_memory_bytes); the recursion needs
+        # a quarter of it or less, so "auto" still solves what fits the device
+        if x0.device.type == "cuda":
+            torch.cuda.empty_cache()
+        method = "sequential"
+        x, u, Kk, Vh, _chol, failed = _LQRFunction.apply(Ff, Hf, VhTf, x0f, method)
 
     finite = torch.isfinite(x).flatten(1).all(1) & torch.isfinite(u).flatten(1).all(1)
     status = lq_status(failed, finite)
