@@ -12,6 +12,7 @@ import torch
 from torch import Tensor, nn
 
 from .._backend import _launch, can_use_compiled
+from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from ..status import Status
 
@@ -136,7 +137,13 @@ class QuadraticCost(nn.Module):
         return W
 
     def weights(self, T: int) -> tuple[Tensor, Tensor]:
-        """``Q (Bq, T+1, n, n)`` (index T is ``Qf``) and ``R (Br, T, m, m)``; batch dims 1 or B."""
+        """``Q (Bq, T+1, n, n)`` (index T is ``Qf``) and ``R (Br, T, m, m)``; batch dims 1 or B.
+
+        Within a solve computed once per horizon (:func:`torchslq._pinned.pinned`)."""
+        key = ("weights", T, torch.is_grad_enabled())  # (a graph to learnable weights)
+        return pinned(self, key, lambda: self._weights(T))
+
+    def _weights(self, T: int) -> tuple[Tensor, Tensor]:
         Qs = self._time_varying(self.Q, T, "Q", 2)
         if self.Qf is not None:
             QT = self.Qf if self.Qf.ndim == 3 else self.Qf.unsqueeze(0)
@@ -149,7 +156,12 @@ class QuadraticCost(nn.Module):
         return Qfull, self._time_varying(self.R, T, "R", 2)
 
     def references(self, T: int, like: Tensor) -> tuple[Tensor, Tensor]:
-        """``x° (Bx, T+1, n)`` and ``u° (Bu, T, m)`` (zeros when not given)."""
+        """``x° (Bx, T+1, n)`` and ``u° (Bu, T, m)`` (zeros when not given, with
+        ``like``'s dtype and device); within a solve computed once per horizon."""
+        key = ("references", T, like.dtype, like.device, torch.is_grad_enabled())
+        return pinned(self, key, lambda: self._references(T, like))
+
+    def _references(self, T: int, like: Tensor) -> tuple[Tensor, Tensor]:
         n, m = self.state_dim, self.control_dim
         xr = (
             like.new_zeros(1, 1, n)
@@ -282,10 +294,15 @@ class QuadraticCost(nn.Module):
     def _value_inputs(self, T: int, like: Tensor) -> tuple[Tensor, ...]:
         """``(Qs (Bq, T or 1, n, n), QT (n, n) or (Bq, n, n), Rs (Br, T or 1, m, m), x°,
         u°)``: what the cost's value reads, for a horizon ``T``."""
-        Qs = self._time_varying(self.Q, T, "Q", 2)
-        QT = self.Qf if self.Qf is not None else Qs[:, -1]
-        Rs = self._time_varying(self.R, T, "R", 2)
-        return (Qs, QT, Rs, *self.references(T, like))
+
+        def inputs():
+            Qs = self._time_varying(self.Q, T, "Q", 2)
+            QT = self.Qf if self.Qf is not None else Qs[:, -1]
+            Rs = self._time_varying(self.R, T, "R", 2)
+            return Qs, QT, Rs
+
+        key = ("value_inputs", T, torch.is_grad_enabled())
+        return (*pinned(self, key, inputs), *self.references(T, like))
 
 
 # the CPU kernel's dense per-row forms are for small weights (diagonal ones of large

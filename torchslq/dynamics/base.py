@@ -116,6 +116,11 @@ class Dynamics(nn.Module):
             self.prefer_generated_derivatives
         ):
             return None  # the model's own derivatives (see linearize)
+        from .._pinned import pinned
+
+        return pinned(self, "kernel_hooks", self._generated_kernel_hooks_now)
+
+    def _generated_kernel_hooks_now(self):
         from .codegen import generated_hooks
 
         hooks = generated_hooks(self)

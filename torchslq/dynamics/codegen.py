@@ -59,7 +59,6 @@ torch path; :func:`explain` says why.
 from __future__ import annotations
 
 import contextlib
-import contextvars
 import hashlib
 import importlib.util
 import os
@@ -76,6 +75,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from .._pinned import _PINNED, solve_scope
 from ._symbolic import Unsupported as _Unsupported
 from ._symbolic import as_array, evaluate, symbols
 
@@ -197,28 +197,18 @@ def _generated_hooks(model: nn.Module) -> GeneratedHooks | None:
     return hooks
 
 
-# the models whose hooks a solve has looked up (see hooks_pinned): id -> (model, hooks)
-_PINNED: contextvars.ContextVar[dict | None] = contextvars.ContextVar(
-    "torchslq_pinned_hooks", default=None
-)
-
-
 @contextlib.contextmanager
 def hooks_pinned():
     """Within this block :func:`generated_hooks` answers for a model it has already
-    answered for in the block without looking at the model again. A solver's loop runs
-    inside it: checking the model's structure (its parameters' names and shapes, every
-    module's plain attributes) took about 30 us, three times per iteration, a tenth of
-    an iLQR iteration at B = 1; a model does not change its structure during a solve.
-    Nested blocks share the outermost one's answers."""
-    if _PINNED.get() is not None:
+    answered for in the block without looking at the model again, and
+    :func:`torchslq._pinned.pinned` keeps what a solve derives from its model and cost. A
+    solver's loop runs inside it: checking the model's structure (its parameters' names
+    and shapes, every module's plain attributes) took about 30 us, three times per
+    iteration, a tenth of an iLQR iteration at B = 1; a model does not change its
+    structure or values during a solve. Nested blocks share the outermost one's
+    answers."""
+    with solve_scope():
         yield
-        return
-    token = _PINNED.set({})
-    try:
-        yield
-    finally:
-        _PINNED.reset(token)
 
 
 def explain(model: nn.Module) -> str:

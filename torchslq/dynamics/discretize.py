@@ -11,6 +11,7 @@ from .._backend import (
     stage_congruence_compiled,
     step_rows_compiled,
 )
+from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
@@ -160,6 +161,11 @@ class DiscretizedDynamics(Dynamics):
         tensors and nothing (they, or the model's parameters) needs autograd; else None."""
         if self.method != "rk4" or not can_use_compiled(*tensors):
             return None
+        # the model's functions and parameter values, once per solve (codegen.pinned);
+        # whether its parameters need autograd depends on the grad mode of the call
+        return pinned(self, ("rk4_hooks", torch.is_grad_enabled()), self._rk4_hooks_now)
+
+    def _rk4_hooks_now(self):
         c = self.continuous
         if module_needs_grad(c):
             return None

@@ -169,7 +169,9 @@ def compiled_step_of(f):
     get = getattr(f, "compiled_step", None)
     if get is None or module_needs_grad(f):
         return None
-    return get()
+    from .._pinned import pinned
+
+    return pinned(f, "compiled_step", get)  # once per solve (the parameter array too)
 
 
 def costate_gradient(
