@@ -288,8 +288,16 @@ class QuadraticCost(nn.Module):
         float64 CPU tensors, autograd, dimensions over 32). A fused line search
         (:func:`torchslq.solvers.descent.LineSearch`) evaluates its trials with them."""
         T = self._check_traj(x, u)
-        Qs, QT, Rs, xr, ur = self._value_inputs(T, x)
-        return _compiled_terms(x, u, xr, ur, Qs, QT, Rs)
+        if not _compiled_costs.get():
+            return None
+
+        def terms():
+            Qs, QT, Rs, xr, ur = self._value_inputs(T, x)
+            return _compiled_terms(x, u, xr, ur, Qs, QT, Rs)
+
+        # the same arrays for every trajectory of a solve (one sync for the zero check)
+        key = ("compiled_terms", T, x.dtype, u.dtype, x.device, x.requires_grad or u.requires_grad)
+        return pinned(self, (*key, torch.is_grad_enabled()), terms)
 
     def _value_inputs(self, T: int, like: Tensor) -> tuple[Tensor, ...]:
         """``(Qs (Bq, T or 1, n, n), QT (n, n) or (Bq, n, n), Rs (Br, T or 1, m, m), x°,
