@@ -145,14 +145,19 @@ def pendulum(device, dtype=F64, batch=4, horizon=30, seed=0):
 # ----------------------------------------------------------------------------- LQ kernel
 
 
-def test_lqr_solve_forward_and_backward_match_cpu(device):
-    args = lq_problem()
+@pytest.mark.parametrize("method, T", [("sequential", 12), ("scan", 1), ("scan", 37), ("scan", 64)])
+def test_lqr_solve_forward_and_backward_match_cpu(device, method, T):
+    """Forward and implicit backward on the device by ``method`` (the parallel-in-time
+    scan with its scan backward, too; T = 37 is odd and not a power of two) against the
+    sequential kernel on the CPU."""
+    args = lq_problem(seed=0 if method == "sequential" else 5, T=T)
     ref, ref_loss, ref_g = lq_loss_and_grads(args, "cpu")
-    sol, loss, g = lq_loss_and_grads(args, device)
+    sol, loss, g = lq_loss_and_grads(args, device, method=method)
+    rtol, atol = (1e-10, 1e-12) if method == "sequential" else (1e-9, 1e-11)
     for name in ("x", "u", "cost", "K", "k", "lam", "status"):
         assert on(device, getattr(sol, name)), f"sol.{name} on {getattr(sol, name).device}"
     for name in ("x", "u", "cost", "K", "k", "lam"):
-        assert_close(getattr(sol, name), getattr(ref, name), 1e-10, 1e-12, name)
+        assert_close(getattr(sol, name), getattr(ref, name), rtol, atol, name)
     assert torch.equal(sol.status.cpu(), ref.status)
     assert_close(loss, ref_loss, 1e-10)
     for k in ref_g:
@@ -171,23 +176,6 @@ def test_lqr_solve_float32_close_to_float64(device):
     for k in ref_g:
         assert bool(torch.isfinite(g[k]).all()), k
         assert_close(g[k], ref_g[k], 1e-2, 1e-3, f"float32 d loss / d {k}")
-
-
-@pytest.mark.parametrize("T", [1, 37, 64])
-def test_lqr_solve_scan_matches_cpu_sequential(device, T):
-    """The parallel-in-time backend on the device (forward and its scan backward) against
-    the sequential kernel on the CPU: T = 37 is odd and not a power of two."""
-    args = lq_problem(seed=5, T=T)
-    ref, ref_loss, ref_g = lq_loss_and_grads(args, "cpu")
-    sol, loss, g = lq_loss_and_grads(args, device, method="scan")
-    for name in ("x", "u", "cost", "K", "k", "lam"):
-        assert on(device, getattr(sol, name)), f"sol.{name} on {getattr(sol, name).device}"
-        assert_close(getattr(sol, name), getattr(ref, name), 1e-9, 1e-11, name)
-    assert torch.equal(sol.status.cpu(), ref.status)
-    assert_close(loss, ref_loss, 1e-10)
-    for k in ref_g:
-        assert on(device, g[k]), f"grad {k} on {g[k].device}"
-        assert_close(g[k], ref_g[k], 1e-9, 1e-11, f"d loss / d {k}")
 
 
 def test_lqr_solve_scan_statuses_match_cpu(device):
