@@ -111,11 +111,9 @@ def associative_scan(combine: Combine, elems: Sequence[Tensor], reverse: bool = 
         in ``2 ceil(log2 T)`` levels (odd-even recursion, Blelloch 1990).
     """
     elems = tuple(elems)
-    if reverse:
-        flipped = tuple(e.flip(1) for e in elems)
-        out = _prefix(lambda a, b: combine(b, a), flipped)
-        return tuple(o.flip(1) for o in out)
-    return _prefix(combine, elems)
+    # the suffix scan runs on the elements in place, not on flipped copies (a flip copies
+    # every element twice, a sixth of the scan's peak memory); same pairs, same order
+    return _suffix(combine, elems) if reverse else _prefix(combine, elems)
 
 
 def _prefix(combine: Combine, elems: Elems) -> Elems:
@@ -134,6 +132,34 @@ def _prefix(combine: Combine, elems: Elems) -> Elems:
         full[:, 1::2] = odd[i]
         if n_even > 0:
             full[:, 2::2] = rest[i]
+        out.append(full)
+    return tuple(out)
+
+
+def _suffix(combine: Combine, elems: Elems) -> Elems:
+    """``out_t = e_t ⊗ ... ⊗ e_{T-1}``: :func:`_prefix` mirrored. The pairs are the last
+    two elements, the two before them, ...: ``(s + 2k, s + 2k + 1)`` with ``s = T mod 2``
+    (element 0 alone when ``T`` is odd), all ascending slices."""
+    T = elems[0].shape[1]
+    if T < 2:
+        return elems
+    s = T % 2
+    pairs = combine(tuple(e[:, s::2] for e in elems), tuple(e[:, s + 1 :: 2] for e in elems))
+    head = _suffix(combine, pairs)  # the results at positions s, s + 2, ...
+    n_odd = (T - s) // 2 - 1  # positions s + 1, s + 3, ..., T - 3 (T - 1 is its own)
+    if n_odd > 0:
+        rest = combine(tuple(e[:, s + 1 : T - 2 : 2] for e in elems), tuple(h[:, 1:] for h in head))
+    if s:
+        first = combine(tuple(e[:, :1] for e in elems), tuple(h[:, :1] for h in head))
+    out = []
+    for i, e in enumerate(elems):
+        full = torch.empty_like(e)
+        full[:, T - 1] = e[:, T - 1]
+        full[:, s::2] = head[i]
+        if n_odd > 0:
+            full[:, s + 1 : T - 2 : 2] = rest[i]
+        if s:
+            full[:, :1] = first[i]
         out.append(full)
     return tuple(out)
 

@@ -339,11 +339,11 @@ def _element_faults(name: str, fault: Tensor, batch: torch.Size, what: str) -> T
     return fault.expand(batch)
 
 
-# Peak extra memory of the scan, in numbers per element per (n+1)^2: measured 18-25
+# Peak extra memory of the scan, in numbers per element per (n+1)^2: measured 15-23
 # (n = 2, 4, 12, 32; float64 and float32; forward, and forward + backward) as resident
 # memory on the CPU; a GPU allocates the same tensors (its caching allocator rounds them
 # up). Every level's elements and the combinations' temporaries live at once; the
-# sequential recursion needs a quarter of it or less.
+# sequential recursion needs a third of it or less.
 SCAN_NUMBERS_PER_ELEMENT = 30
 
 
@@ -672,7 +672,7 @@ def lqr_solve(
         if not (chosen and method == "scan"):
             raise
         # the scan keeps every level in memory (scan_memory_bytes); the recursion needs
-        # a quarter of it or less, so "auto" still solves what fits the device
+        # a third of it or less, so "auto" still solves what fits the device
         if x0.device.type == "cuda":
             torch.cuda.empty_cache()
         method = "sequential"
