@@ -327,7 +327,7 @@ def test_auto_keeps_the_scan_within_device_memory(monkeypatch):
 def test_scan_memory_estimate_bounds_the_measured_peak():
     """``scan_memory_bytes`` against the peak resident memory a scan solve adds, measured
     in a fresh process (the CPU's allocations are the GPU's): an upper bound, and not a
-    loose one (within 2x)."""
+    loose one (within 3x; measured about 0.6 of it)."""
     code = (
         "import torch, sys\n"
         "sys.path.insert(0, 'tests')\n"
@@ -359,7 +359,7 @@ def test_scan_memory_estimate_bounds_the_measured_peak():
     )  # fmt: skip
     peak = int(out.stdout.strip().splitlines()[-1])
     estimate = scan_memory_bytes(2048, 16, 4, F64)
-    assert 0.5 * estimate < peak <= estimate, (peak, estimate)
+    assert estimate / 3 < peak <= estimate, (peak, estimate)
 
 
 def test_auto_falls_back_to_the_recursion_when_the_scan_runs_out_of_memory(monkeypatch):
