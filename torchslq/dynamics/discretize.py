@@ -161,7 +161,7 @@ class DiscretizedDynamics(Dynamics):
         tensors and nothing (they, or the model's parameters) needs autograd; else None."""
         if self.method != "rk4" or not can_use_compiled(*tensors):
             return None
-        # the model's functions and parameter values, once per solve (codegen.pinned);
+        # the model's functions and parameter values, once per solve (torchslq._pinned);
         # whether its parameters need autograd depends on the grad mode of the call
         return pinned(self, ("rk4_hooks", torch.is_grad_enabled()), self._rk4_hooks_now)
 
