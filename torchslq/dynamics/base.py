@@ -17,6 +17,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from .._pinned import pinned
+
 __all__ = ["Dynamics", "ContinuousDynamics", "CompiledDerivatives"]
 
 
@@ -116,8 +118,6 @@ class Dynamics(nn.Module):
             self.prefer_generated_derivatives
         ):
             return None  # the model's own derivatives (see linearize)
-        from .._pinned import pinned
-
         return pinned(self, "kernel_hooks", self._generated_kernel_hooks_now)
 
     def _generated_kernel_hooks_now(self):

@@ -15,6 +15,7 @@ from .._backend import (
     costate_compiled,
     module_needs_grad,
 )
+from .._pinned import pinned
 from .._shapes import broadcast_shapes
 
 __all__ = ["checked_step", "costate_gradient", "rollout", "rollout_closed_loop"]
@@ -169,8 +170,6 @@ def compiled_step_of(f):
     get = getattr(f, "compiled_step", None)
     if get is None or module_needs_grad(f):
         return None
-    from .._pinned import pinned
-
     return pinned(f, "compiled_step", get)  # once per solve (the parameter array too)
 
 

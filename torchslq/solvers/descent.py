@@ -23,7 +23,6 @@ Levenberg-Marquardt ``mu``) lives in the :class:`DescentState`.
 
 from __future__ import annotations
 
-import functools
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
@@ -37,7 +36,7 @@ from ..lq.riccati import riccati_backward, rollout_linear
 from ..status import Status
 from .core import Advance as _Advance
 from .core import ElementState, Measure
-from .line_search import TrialRecorder, armijo_search, exact_search
+from .line_search import TrialRecorder, armijo_search, armijo_steps, exact_search
 from .options import DescentOptions
 from .stopping import ROUNDOFF_NOISE
 
@@ -201,13 +200,6 @@ def default_passes(
     return (1, 3)
 
 
-@functools.lru_cache(maxsize=32)
-def _armijo_grid(beta: float, max_backtracks: int, dtype: torch.dtype) -> Tensor:
-    """:func:`armijo_search`'s steps ``1, beta, beta^2, ...`` (the same floats), built
-    once (read only by the fused search's kernel)."""
-    return 1.0 * beta ** torch.arange(max_backtracks, dtype=dtype)
-
-
 @dataclass(frozen=True)
 class LineSearch:
     """The globalisation of a descent solver.
@@ -336,7 +328,7 @@ class LineSearch:
         if terms is None:
             return None
         # armijo_search's steps, the same floats
-        grid = _armijo_grid(self.beta, self.max_backtracks, J0.dtype)
+        grid = armijo_steps(1.0, self.beta, self.max_backtracks, J0.dtype, J0.device)
         return armijo_rollout_compiled(
             *compiled, x, u, d["K"], d["k"], state.lo, state.hi, grid, J0, d["slope"],
             curvature, self.c1, ROUNDOFF_NOISE * torch.finfo(J0.dtype).eps, running, terms,

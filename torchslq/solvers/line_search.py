@@ -8,6 +8,7 @@ simply never chosen.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable
 
 import torch
@@ -82,6 +83,16 @@ def _within_roundoff(J1: Tensor, J0: Tensor, slope: Tensor | None, noise: float)
     return (slope.abs() <= tol) & (J1 <= J0 + tol)
 
 
+@functools.lru_cache(maxsize=32)
+def armijo_steps(
+    alpha0: float, beta: float, max_backtracks: int, dtype: torch.dtype, device: torch.device
+) -> Tensor:
+    """The trial steps ``alpha0 beta^j`` (``j < max_backtracks``) of :func:`armijo_search`
+    and of the fused search (:class:`torchslq.solvers.descent.LineSearch`), built once
+    per setting; read-only."""
+    return alpha0 * beta ** torch.arange(max_backtracks, dtype=dtype, device=device)
+
+
 def armijo_search(
     evaluate: Callable[[Tensor], Tensor],
     J0: Tensor,
@@ -129,7 +140,7 @@ def armijo_search(
     Returns:
         ``(alpha (B,), J (B,), ok (B,) bool)``; ``alpha = 0`` where no step was accepted.
     """
-    grid = alpha0 * beta ** torch.arange(max_backtracks, dtype=J0.dtype, device=J0.device)
+    grid = armijo_steps(alpha0, beta, max_backtracks, J0.dtype, J0.device)
     sizes = [max_backtracks]
     if first_trials is not None:
         sizes = [max(1, min(first_trials, max_backtracks))]
