@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import threading
 import time
-from collections import OrderedDict
 from dataclasses import dataclass
 
 import torch
@@ -211,7 +210,8 @@ def _max_step(v, dv):
     return ratio.amin(-1).clamp(max=1.0)
 
 
-_SPARSE_CACHE: OrderedDict = OrderedDict()  # pattern key -> solver structures
+# pattern key -> solver structures, the last 8 (no tensors to hold: keyed by value)
+_SPARSE_CACHE = TensorKeyedCache(8)
 _PATTERN_KEYS = TensorKeyedCache(16)  # see _pattern_key
 _CLARABEL_LOCK = threading.RLock()  # the cached solver objects are shared state
 
@@ -222,12 +222,6 @@ def clear_sparse_caches() -> None:
     with _CLARABEL_LOCK:
         _SPARSE_CACHE.clear()
         _PATTERN_KEYS.clear()
-
-
-def _remember(key, entry) -> None:
-    _SPARSE_CACHE[key] = entry
-    while len(_SPARSE_CACHE) > 8:
-        _SPARSE_CACHE.popitem(last=False)
 
 
 def _pattern_key(qp: SparseQP) -> int:
@@ -279,7 +273,7 @@ def _kkt_lu(qp: SparseQP, check: bool = False):
     B, n, me = qp.batch, qp.n, qp.me
     N, M = B * n, B * me
     key = ("kkt", B, n, me, _pattern_key(qp))
-    entry = _SPARSE_CACHE.get(key)
+    entry = _SPARSE_CACHE.get(key, ())
     if entry is None:
         Hi, Ai = qp.H_idx.cpu().numpy(), qp.A_idx.cpu().numpy()
         off = np.arange(B)[:, None]
@@ -292,9 +286,7 @@ def _kkt_lu(qp: SparseQP, check: bool = False):
         # constructor checks cost as much as the LU of a small KKT matrix)
         K = sp.csc_matrix((np.zeros(nnz), ind, ptr), shape=(N + M,) * 2)
         entry = (pos, nnz, K)
-        _remember(key, entry)
-    else:
-        _SPARSE_CACHE.move_to_end(key)
+        _SPARSE_CACHE.put(key, (), entry)
     pos, nnz, K = entry
     Av = qp.A_val.detach().cpu().double().numpy().reshape(-1)
     vals = np.concatenate([qp.H_val.detach().cpu().double().numpy().reshape(-1), Av, Av])
@@ -364,7 +356,7 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
         np.float64
     )
     q = np_(qp.f).reshape(-1).astype(np.float64)
-    entry = None if fresh else _SPARSE_CACHE.get(key)
+    entry = None if fresh else _SPARSE_CACHE.get(key, ())
     if entry is None:
         pr = (Hi[0][up][None] + n * off).reshape(-1)
         pc = (Hi[1][up][None] + n * off).reshape(-1)
@@ -401,10 +393,9 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
         if max_iter is not None:
             st.max_iter = max_iter
         solver = clarabel.DefaultSolver(Pm, q, Am, bcon, cones, st)
-        _remember(key, (solver, Ppos, Pnnz, Apos, Annz))
+        _SPARSE_CACHE.put(key, (), (solver, Ppos, Pnnz, Apos, Annz))
     else:
         solver, Ppos, Pnnz, Apos, Annz = entry
-        _SPARSE_CACHE.move_to_end(key)
         solver.update(
             P=np.bincount(Ppos, weights=Hv, minlength=Pnnz),
             q=q,

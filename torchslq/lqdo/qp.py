@@ -233,7 +233,8 @@ class TensorKeyedCache:
     identity and version: the entry holds the tensors, so an id is not reused while it
     lives, and an in-place change of one (a new version) misses. For index tensors that
     a transcription keeps while a QP's pattern is unchanged, instead of hashing their
-    bytes per QP. Thread-safe."""
+    bytes per QP; with no tensors (``()``), a plain least-recently-used cache by key.
+    Thread-safe."""
 
     def __init__(self, size: int):
         self.size = size
