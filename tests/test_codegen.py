@@ -15,7 +15,7 @@ from numba.core import types as nb_types
 from torch import nn
 
 import torchslq as ts
-from torchslq.dynamics import CompiledDerivatives, codegen
+from torchslq.dynamics import CompiledDerivatives, codegen, dynamics_hessians, dynamics_vhp
 
 pytestmark = pytest.mark.codegen  # generated compiled code on (tests/conftest.py)
 
@@ -529,9 +529,79 @@ def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(mon
             torch.testing.assert_close(A[..., j], fd, rtol=1e-7, atol=1e-8)
         fd = (model(x, u + h) - model(x, u - h)) / (2 * h)
         torch.testing.assert_close(B[..., 0], fd, rtol=1e-7, atol=1e-8)
-    # second derivatives (DDP) and graphs through the Jacobians keep the torch ops
+    # graphs through the Jacobians keep the torch ops
     A2, _ = ts.linearize(model, x, u, create_graph=True)
     assert A2.requires_grad and calls == [True]
+
+
+def _without_quadratic_standin(monkeypatch):
+    """The step's torch ops instead of its Taylor expansion (the independent path)."""
+    monkeypatch.setattr(ts.DiscretizedDynamics, "quadratic_standin", lambda self, x, u: None)
+
+
+def test_a_generated_step_inside_a_model_enters_its_hessians_by_its_kernels(monkeypatch):
+    model = ResidualOnStep()
+    gen = torch.Generator().manual_seed(13)
+    x = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
+    u = torch.randn(3, 7, 1, generator=gen, dtype=torch.float64)
+    s = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
+    calls = []
+    original = ts.DiscretizedDynamics.quadratic_standin
+
+    def counting(self, *args):
+        out = original(self, *args)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(ts.DiscretizedDynamics, "quadratic_standin", counting)
+    H = dynamics_hessians(model, x, u)
+    V = dynamics_vhp(model, x, u, s)
+    assert calls == [True, True]  # one model call per pass, the step by its kernels
+    _without_quadratic_standin(monkeypatch)
+    Hr = dynamics_hessians(model, x, u)  # the RK4 stages' torch ops, twice differentiated
+    Vr = dynamics_vhp(model, x, u, s)
+    for got, ref in zip((*H, *V), (*Hr, *Vr), strict=True):
+        assert got.shape == ref.shape
+        torch.testing.assert_close(got, ref, rtol=1e-10, atol=1e-12)
+    # and central differences of the Jacobians
+    h = 1e-5
+    z = torch.cat([x, u], -1)
+    for j in range(5):
+        e = torch.zeros(5, dtype=torch.float64)
+        e[j] = h
+        Ap, Bp = ts.linearize(model, *(z + e).split([4, 1], -1))
+        Am, Bm = ts.linearize(model, *(z - e).split([4, 1], -1))
+        fd = (torch.cat([Ap, Bp], -1) - torch.cat([Am, Bm], -1)) / (2 * h)  # (3, 7, 4, 5)
+        col = (
+            torch.cat([H[0][..., j], H[2][..., j]], -1)
+            if j < 4
+            else torch.cat([H[2][..., 0, :], H[1][..., 0, :]], -1)
+        )  # d/dz_j of row i of [A | B], the output index first
+        torch.testing.assert_close(col, fd.movedim(-2, 0), rtol=1e-6, atol=1e-7)
+
+
+def test_ddp_on_a_model_with_a_generated_step_matches_its_torch_ops(monkeypatch):
+    """DDP's value mode takes every output's Hessian at every node: with the inner step
+    entering by its Taylor expansion, the iterates are those of the torch-ops path."""
+    problem = ts.Problem(
+        ResidualOnStep(),
+        ts.QuadraticCost(
+            Q=torch.zeros(4, 4, dtype=torch.float64),
+            R=0.02 * torch.eye(1, dtype=torch.float64),
+            Qf=200 * torch.eye(4, dtype=torch.float64),
+            x_ref=torch.tensor([0.0, math.pi, 0.0, 0.0], dtype=torch.float64),
+        ),
+        horizon=20,
+    )
+    x0 = torch.zeros(2, 4, dtype=torch.float64)
+    x0[:, 1] = torch.tensor([0.1, -0.2], dtype=torch.float64)
+    solver = ts.DDP(max_iter=6, tol=1e-14, progress=False)
+    r = solver.solve(problem, x0)
+    _without_quadratic_standin(monkeypatch)
+    rr = solver.solve(problem, x0)
+    assert int(r.iterations.min()) == 6
+    torch.testing.assert_close(r.u, rr.u, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(r.cost, rr.cost, rtol=1e-11, atol=0.0)
 
 
 class WrappedStep(ts.Dynamics):

@@ -15,7 +15,7 @@ from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
-from .linearize import first_order_only
+from .linearize import first_order_only, second_order_only
 
 __all__ = ["discretize", "DiscretizedDynamics"]
 
@@ -48,8 +48,12 @@ class DiscretizedDynamics(Dynamics):
 
     def forward(self, x: Tensor, u: Tensor) -> Tensor:
         f, dt = self.continuous, self.dt
-        if first_order_only() and (x.requires_grad or u.requires_grad):
-            out = self.linear_standin(x, u)
+        if x.requires_grad or u.requires_grad:
+            out = None
+            if first_order_only():
+                out = self.linear_standin(x, u)
+            elif second_order_only():
+                out = self.quadratic_standin(x, u)
             if out is not None:
                 return out
         if self.method == "rk4" and can_use_compiled(x, u) and not module_needs_grad(self):
@@ -90,6 +94,35 @@ class DiscretizedDynamics(Dynamics):
         A, B = jac
         dx, du = (x - x.detach()).unsqueeze(-1), (u - u.detach()).unsqueeze(-1)
         return value + (A @ dx).squeeze(-1) + (B @ du).squeeze(-1)
+
+    def quadratic_standin(self, x: Tensor, u: Tensor) -> Tensor | None:
+        """Inside the Hessian pass of :func:`~torchslq.dynamics.dynamics_hessians` /
+        :func:`~torchslq.dynamics.dynamics_vhp` of a model that calls this step
+        (:func:`~torchslq.dynamics.linearize.second_order_only`): the step's second-order
+        Taylor expansion at ``(x̄, ū)``, the detached inputs,
+
+            ``f_i + A_i dx + B_i du + dx' Hxx_i dx / 2 + du' Hux_i dx + du' Huu_i du / 2``
+
+        with ``dx = x - x̄``, ``du = u - ū`` and the compiled Jacobians and Hessians of
+        every output ``i``. Same value, first and second derivatives as :meth:`forward`
+        at the point, for two kernel calls instead of a double backward through the RK4
+        stages' torch ops; None where the compiled path does not apply."""
+        if self.method != "rk4" or module_needs_grad(self):
+            return None
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        n, m = x.shape[-1], u.shape[-1]
+        xd = x.detach().expand(*lead, n)
+        ud = u.detach().expand(*lead, m)
+        if not can_use_compiled(xd, ud):
+            return None
+        value = self._compiled_forward(xd, ud)
+        both = None if value is None else self.jacobians_and_hessians(xd, ud)
+        if both is None:
+            return None
+        A, B, (Hxx, Huu, Hux) = both  # Hessians (n, *lead, ., .): output first
+        H = torch.cat([torch.cat([Hxx, Hux.mT], -1), torch.cat([Hux, Huu], -1)], -2)
+        dz = torch.cat([x - x.detach(), u - u.detach()], -1).expand(*lead, n + m)
+        return value + _SecondOrderTaylor.apply(dz, torch.cat([A, B], -1), H.movedim(0, -3))
 
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
         """:meth:`forward` by the compiled step of the code generated from the continuous
@@ -315,6 +348,29 @@ class DiscretizedDynamics(Dynamics):
             if i > 0:
                 mu = torch.add(weights[i - 1] * s, (fx.mT @ mu.unsqueeze(-1))[..., 0], alpha=a * dt)
         return Hxx, Huu, Hux
+
+
+class _SecondOrderTaylor(torch.autograd.Function):
+    """``J dz + dz' H_i dz / 2`` per output ``i`` for ``dz (*lead, k)``, ``J (*lead, n, k)``,
+    ``H (*lead, n, k, k)`` symmetric, differentiable (twice) in ``dz`` only.
+
+    Its backward is written in ops on ``(*lead, k, k)`` (the cotangent contracted with
+    ``H`` first), so the Hessian pass's second, batched backward never handles the
+    ``(*lead, n, k, k)`` products autograd would record for the plain expression
+    (those made a learned residual's Hessians 2x slower than the network's alone)."""
+
+    @staticmethod
+    def forward(ctx, dz: Tensor, J: Tensor, H: Tensor) -> Tensor:
+        ctx.save_for_backward(dz, J, H)
+        Hdz = (H * dz[..., None, None, :]).sum(-1)  # (*lead, n, k)
+        return ((J + 0.5 * Hdz) * dz.unsqueeze(-2)).sum(-1)
+
+    @staticmethod
+    def backward(ctx, g: Tensor):
+        dz, J, H = ctx.saved_tensors
+        M = (g[..., :, None, None] * H).sum(-3)  # (*lead, k, k): sum_i g_i H_i
+        grad = (g.unsqueeze(-1) * J).sum(-2) + (M * dz.unsqueeze(-2)).sum(-1)
+        return grad, None, None
 
 
 def _accumulator(Hxx, Huu, Hux, hxx, huu, hux, dk) -> tuple[Tensor, Tensor, Tensor]:

@@ -41,14 +41,75 @@ def first_order_only() -> bool:
     return _FIRST_ORDER.get()
 
 
-def _has_linear_standins(f: Callable) -> bool:
-    """Whether a submodule of ``f`` can stand in by its compiled Jacobians (see
-    :func:`first_order_only`); the Jacobian pass then uses plain autograd, where the
-    submodule sees real tensors (inside ``torch.func`` transforms it cannot call its
-    compiled code)."""
+_SECOND_ORDER = contextvars.ContextVar("torchslq_second_order", default=False)
+
+
+def second_order_only() -> bool:
+    """Whether the model is being called by the Hessian pass of :func:`dynamics_vhp` /
+    :func:`dynamics_hessians` on plain autograd: first and second derivatives at the
+    point are taken and no graph to the model's parameters is kept, so a submodule may
+    stand in for its output by its second-order Taylor expansion at the point (what
+    :class:`torchslq.DiscretizedDynamics` does with generated compiled derivatives)."""
+    return _SECOND_ORDER.get()
+
+
+def _has_linear_standins(f: Callable, kind: str = "linear_standin") -> bool:
+    """Whether a submodule of ``f`` can stand in by its compiled derivatives (its
+    ``kind`` method: ``"linear_standin"``, see :func:`first_order_only`, or
+    ``"quadratic_standin"``, see :func:`second_order_only`); the derivative pass then
+    uses plain autograd, where the submodule sees real tensors (inside ``torch.func``
+    transforms it cannot call its compiled code)."""
     if not isinstance(f, nn.Module) or torch._C._functorch.peek_interpreter_stack() is not None:
         return False
-    return any(getattr(mod, "linear_standin", None) is not None for mod in f.modules())
+    return any(getattr(mod, kind, None) is not None for mod in f.modules())
+
+
+def _vhp_by_autograd(
+    f: Callable, x: Tensor, u: Tensor, weights: list[Tensor]
+) -> list[tuple[Tensor, Tensor, Tensor]]:
+    """``[(Hxx, Huu, Hux)]``, one per weight ``s`` ``(..., n)`` (``x``'s leading dims):
+    the Hessian blocks of ``s · f`` at every row, by double backward through *one* call
+    of ``f`` on the whole batch with :func:`second_order_only` set.
+
+    Per weight: the gradient of ``s · f`` with a graph, then its ``n + m`` rows pulled
+    back at once (``is_grads_batched``). (Batching the weights too, a second batched
+    backward through a batched one, measured 10x slower on a 5-64-64-4 MLP.)"""
+    n, m = x.shape[-1], u.shape[-1]
+    k = n + m
+    token = _SECOND_ORDER.set(True)
+    try:
+        with torch.enable_grad():
+            xg, ug = x.detach().requires_grad_(True), u.detach().requires_grad_(True)
+            out = f(xg, ug)
+            basis = torch.eye(k, dtype=x.dtype, device=x.device)
+            basis = basis.reshape(k, *([1] * (x.ndim - 1)), k)
+            bx, bu = basis[..., :n].expand(k, *x.shape), basis[..., n:].expand(k, *u.shape)
+            blocks = []
+            for j, s in enumerate(weights):
+                last = j == len(weights) - 1
+                gx, gu = torch.autograd.grad(
+                    out, (xg, ug), s.expand_as(out), create_graph=True, allow_unused=True
+                )
+                pairs = [
+                    (g, b) for g, b in ((gx, bx), (gu, bu)) if g is not None and g.requires_grad
+                ]
+                rows_x = rows_u = None
+                if pairs:  # else f is linear in (x, u): its second derivatives are 0
+                    rows_x, rows_u = torch.autograd.grad(
+                        [g for g, _ in pairs],
+                        (xg, ug),
+                        [b for _, b in pairs],
+                        is_grads_batched=True,
+                        retain_graph=not last,
+                        allow_unused=True,
+                    )
+                rows_x = x.new_zeros(k, *x.shape) if rows_x is None else rows_x
+                rows_u = u.new_zeros(k, *u.shape) if rows_u is None else rows_u
+                H = torch.cat([rows_x, rows_u], -1).movedim(0, -2)  # (..., k, k)
+                blocks.append((H[..., :n, :n], H[..., n:, n:], H[..., n:, :n]))
+    finally:
+        _SECOND_ORDER.reset(token)
+    return [tuple(b.detach().contiguous() for b in blk) for blk in blocks]
 
 
 def _jacobians_by_autograd(f: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
@@ -320,6 +381,10 @@ def dynamics_vhp(
     parts = _in_time_chunks(lambda *t: dynamics_vhp(f, *t), x, u, s)
     if parts is not None:  # outputs (..., T, ., .): time is dim x.ndim - 2
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 2) for i in range(3))
+    if s.shape[:-1] == x.shape[:-1] and _has_linear_standins(f, "quadratic_standin"):
+        # a submodule with compiled second derivatives (a discretised physics model
+        # under a learned residual) enters by its Taylor expansion, not its torch ops
+        return _vhp_by_autograd(f, x, u, [s])[0]
     with torch.no_grad():
         g = torch.func.grad(lambda a, b: (s * f(a, b)).sum(), argnums=(0, 1))
         basis = torch.eye(n + m, dtype=x.dtype, device=x.device)
@@ -432,6 +497,10 @@ def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor,
     parts = _in_time_chunks(lambda *t: dynamics_hessians(f, *t), x, u)
     if parts is not None:  # outputs (n, ..., T, ., .): time is dim x.ndim - 1
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 1) for i in range(3))
+    if _has_linear_standins(f, "quadratic_standin"):  # as in dynamics_vhp
+        eye = torch.eye(n, dtype=x.dtype, device=x.device)
+        blocks = _vhp_by_autograd(f, x.detach(), u.detach(), [eye[i] for i in range(n)])
+        return tuple(torch.stack([b[i] for b in blocks]) for i in range(3))
     basis = torch.eye(n, dtype=x.dtype, device=x.device)
     basis = basis.reshape(n, *([1] * (x.ndim - 1)), n).expand(n, *x.shape)
     return vmap(lambda s: dynamics_vhp(f, x, u, s))(basis)
