@@ -534,6 +534,21 @@ def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(mon
     assert A2.requires_grad and calls == [True]
 
 
+def test_a_generated_step_inside_a_model_in_a_large_batch():
+    """The autograd pass over POOL_ROWS rows or more (one output at a time) against the
+    torch.func pullback of the whole model."""
+    from torchslq.dynamics.linearize import POOL_ROWS
+
+    model = ResidualOnStep()
+    gen = torch.Generator().manual_seed(14)
+    x = torch.randn(2, POOL_ROWS // 2 + 5, 4, generator=gen, dtype=torch.float64)
+    u = torch.randn(2, POOL_ROWS // 2 + 5, 1, generator=gen, dtype=torch.float64)
+    A, B = ts.linearize(model, x, u)
+    Ar, Br = ts.linearize(model, x, u, method="jacrev")
+    torch.testing.assert_close(A, Ar, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(B, Br, rtol=1e-12, atol=1e-12)
+
+
 def _without_quadratic_standin(monkeypatch):
     """The step's torch ops instead of its Taylor expansion (the independent path)."""
     monkeypatch.setattr(ts.DiscretizedDynamics, "quadratic_standin", lambda self, x, u: None)

@@ -111,6 +111,36 @@ def test_methods_agree_with_each_other_and_finite_differences(name):
         torch.testing.assert_close(B, B_fd, atol=1e-8, rtol=1e-7, msg=f"{meth} vs FD")
 
 
+class StateOnly(Dynamics):
+    """Ignores its control: the pullback gives no gradient for ``u``."""
+
+    state_dim, control_dim = 3, 2
+
+    def forward(self, x, u):
+        return torch.tanh(x) * x.sum(-1, keepdim=True)
+
+
+@pytest.mark.parametrize("name", ["toy", "learned", "state_only"])
+def test_large_batches_pull_back_one_output_at_a_time(name):
+    """From POOL_ROWS rows on, the output basis is pulled back one vector at a time:
+    the same Jacobians as per-row jacrev (vmap over rows) and finite differences."""
+    from torchslq.dynamics.linearize import POOL_ROWS
+
+    model = {"toy": Toy(), "learned": LearnedDynamics(mlp(3, 2, seed=2), 3, 2)}.get(
+        name, StateOnly()
+    )
+    x, u = inputs(3, 2, lead=(2, POOL_ROWS // 2 + 3), seed=4)
+    A, B = linearize(model, x, u)
+    Ar, Br = linearize(model, x, u, method="jacrev")
+    torch.testing.assert_close(A, Ar, atol=1e-12, rtol=1e-12)
+    torch.testing.assert_close(B, Br, atol=1e-12, rtol=1e-12)
+    A_fd, B_fd = fd_jacobians(model, x, u)
+    torch.testing.assert_close(A, A_fd, atol=1e-8, rtol=1e-7)
+    torch.testing.assert_close(B, B_fd, atol=1e-8, rtol=1e-7)
+    if name == "state_only":
+        assert B.abs().max() == 0
+
+
 def test_plain_callable_and_float32():
     x, u = inputs(3, 2)
     A, B = linearize(lambda xx, uu: Toy()(xx, uu), x, u)
