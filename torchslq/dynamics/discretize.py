@@ -127,6 +127,21 @@ class DiscretizedDynamics(Dynamics):
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
         """:meth:`forward` by the compiled step of the code generated from the continuous
         model (None without one: a hand-written step may differ in the last bits)."""
+        # looked up once per solve: a learned model around this step calls it at every
+        # time step of every rollout
+        step = pinned(self, "generated_step", self._generated_step_now)
+        if step is None:
+            return None
+        if x.ndim == 2 and x.shape[0] == u.shape[0] and x.is_contiguous() and u.is_contiguous():
+            return step_rows_compiled(step[0], step[1], x.detach(), u.detach())
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        n, m = x.shape[-1], u.shape[-1]
+        xr = x.detach().expand(*lead, n).reshape(-1, n).contiguous()
+        ur = u.detach().expand(*lead, m).reshape(-1, m).contiguous()
+        return step_rows_compiled(step[0], step[1], xr, ur).view(*lead, n)
+
+    def _generated_step_now(self):
+        """:meth:`compiled_step` when it wraps generated code, else None."""
         from .._backend.bound import is_generated
         from .._backend.model_fns import step_source
 
@@ -134,11 +149,7 @@ class DiscretizedDynamics(Dynamics):
         source = None if step is None else step_source(step[0])
         if source is None or not is_generated(source[0]):
             return None
-        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
-        n, m = x.shape[-1], u.shape[-1]
-        xr = x.detach().expand(*lead, n).reshape(-1, n).contiguous()
-        ur = u.detach().expand(*lead, m).reshape(-1, m).contiguous()
-        return step_rows_compiled(step[0], step[1], xr, ur).view(*lead, n)
+        return step
 
     @property
     def has_analytic_jacobians(self) -> bool:
