@@ -129,8 +129,8 @@ def can_use_compiled(*tensors: Tensor, differentiable: bool = False) -> bool:
     if dtype not in (torch.float32, torch.float64):
         return False
     grad = torch.is_grad_enabled() and not differentiable
-    for t in tensors:
-        if t.device.type != "cpu" or t.dtype != dtype or (grad and t.requires_grad):
+    for t in tensors:  # (is_cpu: t.device.type builds a device object, 6x the cost)
+        if not t.is_cpu or t.dtype != dtype or (grad and t.requires_grad):
             return False
     # inside torch.func transforms tensors are wrappers without storage for numpy, and
     # under torch.compile tracing they are fake: the torch path is what gets traced
@@ -765,7 +765,8 @@ def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray,
         if p is None:
             out.append(np.zeros((0,) * d, dtype=npd))
         elif p.ndim == d and p.shape[0] in (1, nb) and p.is_contiguous():
-            out.append(p.detach().numpy())  # as the kernels take it (the common case)
+            # as the kernels take it (the common case)
+            out.append(p.detach().numpy() if p.requires_grad else p.numpy())
         else:
             out.append(_flat(_one_time_step(p, d - 2), batch, d - 1))
     return tuple(out)
@@ -778,7 +779,10 @@ def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, 
     ``prod(batch)``; ``batch`` is the full batch shape (x0's included)."""
     shared = True
     for p, d in zip(pieces, PIECE_NDIMS, strict=True):
-        if p is not None and math.prod(p.shape[: p.ndim - d + 1]) != 1:
+        if p is None:
+            continue
+        k = p.ndim - d + 1  # batch dims (the common case: one, no slice to take)
+        if (p.shape[0] != 1) if k == 1 else (k > 1 and math.prod(p.shape[:k]) != 1):
             shared = False
             break
     arrays = _piece_arrays(pieces, (1,) if shared else batch, pieces[0].dtype)
@@ -799,13 +803,11 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T, m)``, ``lam (B, T+1, n)``,
     ``cost (B,)`` (NaN where not finite), ``finite (B,)``. Call only where
     :func:`can_use_compiled` holds."""
-    from ._numba_gemm import slp_vectorized
-
     gain = _gain_kernels()
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     nb = x0.shape[0]
     dtype = x0.dtype
-    x0n = x0.detach().contiguous().numpy()
+    x0n = (x0.detach() if x0.requires_grad else x0).contiguous().numpy()
     # outputs allocated by numpy and shared with torch (a torch allocation and its numpy
     # view cost several times numpy's, which counts at B = 1)
     npd = x0n.dtype
@@ -827,10 +829,14 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
         if dtype in _SLP_CALLED:  # (entering the switch costs a few us per call)
             gain.gain_solve_kernel(*args)
         else:
+            from ._numba_gemm import slp_vectorized
+
             with slp_vectorized():  # for its register-blocked products, on the first call
                 gain.gain_solve_kernel(*args)
             _SLP_CALLED.add(dtype)
     else:
+        from ._numba_gemm import slp_vectorized
+
         with slp_vectorized():  # for its register-blocked products, on the first call
             _launch(gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn, failedn)
         _launch(

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from torch import Tensor
 from torch.autograd.function import once_differentiable
@@ -194,6 +195,14 @@ def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
 
 def _batch_shape(A, B, Q, R, x0, q, r, S, c) -> torch.Size:
     """The broadcast batch shape of :func:`lqr_solve`'s arguments (time dims given)."""
+    if A.ndim == 4:  # the common case, one batch dim: compared without slicing shapes
+        b = x0.shape[0] if x0.ndim == 2 else 1
+        b = A.shape[0] if b == 1 else b
+        if all(
+            t is None or t.ndim == k + 1 and t.shape[0] in (1, b)
+            for t, k in ((A, 3), (B, 3), (Q, 3), (R, 3), (x0, 1), (q, 2), (r, 2), (S, 3), (c, 2))
+        ):
+            return torch.Size((b,))
     return broadcast_shapes(
         A.shape[:-3], B.shape[:-3], Q.shape[:-3], R.shape[:-3], x0.shape[:-1],
         *(t.shape[:-2] for t in (q, r, c) if t is not None),
@@ -510,13 +519,13 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
     the homogeneous path then classifies the failures."""
     data = (A, B, Q, R, x0, q, r, S, c)
     present = [t for t in data if t is not None]
-    if x0.device.type != "cpu" or not can_use_compiled(*present, differentiable=True):
+    if not x0.is_cpu or not can_use_compiled(*present, differentiable=True):
         return None
     T, n = A.shape[-3], A.shape[-1]
     batch = _batch_shape(*data)
     nb = max(math.prod(batch), 1)
-    if method == "auto" and choose_method(T, nb, x0.device, x0.dtype, n) != "sequential":
-        return None
+    # method "auto" is "sequential" here: choose_method's rule on the CPU with the
+    # compiled kernels (not called: at B = 1 the call is a few percent of the solve)
     pieces, data_batch = lq_gain_pieces((A, B, c, Q, R, S, q, r), batch)
     x0f = x0.detach()
     if x0f.shape != (nb, n):
@@ -532,21 +541,19 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
             t = t.expand(nb, *t.shape[1:])
         return t if flat else t.reshape(tuple(batch) + tuple(t.shape[1:]))
 
-    finite = full(sol["finite"])
+    # the statuses on the kernel's numpy flags (CONVERGED is 0): a torch op costs more
+    status = torch.from_numpy(np.where(sol["finite"].numpy(), 0, int(Status.NON_FINITE)))
     if torch.is_grad_enabled() and any(t.requires_grad for t in present):
         x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
     else:
         x, u, cost = full(sol["x"]), full(sol["u"]), full(sol["cost"])
+    Kk = sol["Kk"]
+    if data_batch == nb and flat:  # every output as the kernel wrote it
+        K, k, V, v = Kk[..., :n], Kk[..., n], sol["P"], sol["p"]
+    else:
+        K, k, V, v = full(Kk[..., :n]), full(Kk[..., n]), full(sol["P"]), full(sol["p"])
     return LQRSolution(
-        x=x,
-        u=u,
-        K=full(sol["Kk"][..., :n]),
-        k=full(sol["Kk"][..., n]),
-        V=full(sol["P"]),
-        v=full(sol["p"]),
-        lam=full(sol["lam"]),
-        cost=cost,
-        status=lq_status(None, finite),
+        x=x, u=u, K=K, k=k, V=V, v=v, lam=full(sol["lam"]), cost=cost, status=full(status)
     )
 
 
