@@ -121,7 +121,7 @@ class DiscretizedDynamics(Dynamics):
             return None
         A, B, (Hxx, Huu, Hux) = both  # Hessians (n, *lead, ., .): output first
         H = torch.cat([torch.cat([Hxx, Hux.mT], -1), torch.cat([Hux, Huu], -1)], -2)
-        dz = torch.cat([x - x.detach(), u - u.detach()], -1).expand(*lead, n + m)
+        dz = torch.cat([(x - x.detach()).expand(*lead, n), (u - u.detach()).expand(*lead, m)], -1)
         return value + _SecondOrderTaylor.apply(dz, torch.cat([A, B], -1), H.movedim(0, -3))
 
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
