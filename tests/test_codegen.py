@@ -535,14 +535,16 @@ def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(mon
 
 
 def test_a_generated_step_inside_a_model_in_a_large_batch():
-    """The autograd pass over POOL_ROWS rows or more (one output at a time) against the
-    torch.func pullback of the whole model."""
-    from torchslq.dynamics.linearize import POOL_ROWS
+    """The autograd pass in a batch large enough to pull back one output at a time,
+    against torch.func's per-row Jacobians of the whole model."""
+    from torchslq.dynamics.linearize import POOL_ELEMENTS, _one_at_a_time
 
     model = ResidualOnStep()
+    half = POOL_ELEMENTS // 64 + 5  # rows x width 32 (the network's layers) past it
+    assert _one_at_a_time(2 * half, 32)
     gen = torch.Generator().manual_seed(14)
-    x = torch.randn(2, POOL_ROWS // 2 + 5, 4, generator=gen, dtype=torch.float64)
-    u = torch.randn(2, POOL_ROWS // 2 + 5, 1, generator=gen, dtype=torch.float64)
+    x = torch.randn(2, half, 4, generator=gen, dtype=torch.float64)
+    u = torch.randn(2, half, 1, generator=gen, dtype=torch.float64)
     A, B = ts.linearize(model, x, u)
     Ar, Br = ts.linearize(model, x, u, method="jacrev")
     torch.testing.assert_close(A, Ar, rtol=1e-12, atol=1e-12)

@@ -122,14 +122,16 @@ class StateOnly(Dynamics):
 
 @pytest.mark.parametrize("name", ["toy", "learned", "state_only"])
 def test_large_batches_pull_back_one_output_at_a_time(name):
-    """From POOL_ROWS rows on, the output basis is pulled back one vector at a time:
-    the same Jacobians as per-row jacrev (vmap over rows) and finite differences."""
-    from torchslq.dynamics.linearize import POOL_ROWS
+    """In a large batch the output basis is pulled back one vector at a time: the same
+    Jacobians as per-row jacrev (vmap over rows) and finite differences."""
+    from torchslq.dynamics.linearize import POOL_ELEMENTS, _one_at_a_time
 
     model = {"toy": Toy(), "learned": LearnedDynamics(mlp(3, 2, seed=2), 3, 2)}.get(
         name, StateOnly()
     )
-    x, u = inputs(3, 2, lead=(2, POOL_ROWS // 2 + 3), seed=4)
+    half = POOL_ELEMENTS // 6 + 3  # rows x width 3 (the state; the MLP's is 16) past it
+    assert _one_at_a_time(2 * half, 3)
+    x, u = inputs(3, 2, lead=(2, half), seed=4)
     A, B = linearize(model, x, u)
     Ar, Br = linearize(model, x, u, method="jacrev")
     torch.testing.assert_close(A, Ar, atol=1e-12, rtol=1e-12)

@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import jacfwd, jacrev, vjp, vmap
 
+from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from .base import Dynamics, state_control_dims
 
@@ -112,23 +113,48 @@ def _vhp_by_autograd(
     return [tuple(b.detach().contiguous() for b in blk) for blk in blocks]
 
 
-# from this many rows on, the output basis is pulled back one vector at a time instead
-# of batched (vmap / is_grads_batched): the batched pass's (n_out, rows, width)
-# intermediates leave the cache. A 5-64-64-4 MLP's Jacobian, one thread: 1.8x faster
-# at 25,600 rows, 1.15x at 3,200, equal near 500, 10% slower at 50.
-POOL_ROWS = 512
+# The output basis is pulled back one vector at a time instead of batched (vmap /
+# is_grads_batched) once rows x width reaches this: the batched pass's (n_out, rows,
+# width) intermediates then leave the cache, while below it the loop only multiplies the
+# op dispatches. "width": the model's widest nn.Linear output, or the state dimension.
+# Measured, one thread: a 5-64-64-4 MLP's Jacobian is 1.8x faster one at a time at
+# 25,600 rows, 1.15x at 3,200, equal near 500 (rows x width 32,000) and 10% slower at
+# 50; the cart-pole's RK4 step on torch ops (width 4) is 12% slower one at a time at
+# 3,200 rows and 5-10% faster at 25,600 (whole ILQR(shooting="multiple") solves).
+POOL_ELEMENTS = 1 << 16
+
+
+def _model_width(f: Callable) -> int:
+    """The widest ``nn.Linear`` output of ``f`` (0 without one), once per solve."""
+    if not isinstance(f, nn.Module):
+        return 0
+
+    def widest() -> int:
+        return max(
+            (mod.out_features for mod in f.modules() if isinstance(mod, nn.Linear)), default=0
+        )
+
+    return pinned(f, "linear_width", widest)
+
+
+def _one_at_a_time(rows: int, width: int) -> bool:
+    """Whether :func:`_pull_back_basis` pulls the basis back one vector at a time."""
+    return rows * width >= POOL_ELEMENTS
 
 
 def _pull_back_basis(
-    one: Callable[[Tensor, bool], tuple], out: Tensor, batched: Callable[[Tensor], tuple]
+    one: Callable[[Tensor, bool], tuple],
+    out: Tensor,
+    batched: Callable[[Tensor], tuple],
+    width: int = 0,
 ) -> tuple:
     """The output basis ``e_i`` pulled back through ``out (..., n_out)``: ``(n_out, ...)``
     stacks of what ``one(e_i expanded like out, last)`` / ``batched(basis)`` return
     (None entries for inputs the output does not depend on), one vector at a time from
-    :data:`POOL_ROWS` rows on."""
+    :data:`POOL_ELEMENTS` rows x ``max(width, n_out)`` on."""
     n_out = out.shape[-1]
     eye = torch.eye(n_out, dtype=out.dtype, device=out.device)
-    if out.shape[:-1].numel() < POOL_ROWS:
+    if not _one_at_a_time(out.shape[:-1].numel(), max(width, n_out)):
         basis = eye.reshape(n_out, *([1] * (out.ndim - 1)), n_out).expand(n_out, *out.shape)
         return batched(basis)
     rows = [one(eye[i].expand_as(out), i == n_out - 1) for i in range(n_out)]
@@ -155,6 +181,7 @@ def _jacobians_by_autograd(f: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, T
                 lambda b: torch.autograd.grad(
                     out, (xg, ug), b, is_grads_batched=True, allow_unused=True
                 ),
+                _model_width(f),
             )
     finally:
         _FIRST_ORDER.reset(token)
@@ -306,7 +333,7 @@ def linearize(
             # one call on the full (..., n) batch keeps per-element parameters aligned
             out, pullback = vjp(f, x, u)
             Jx, Ju = _pull_back_basis(  # (n_out, ..., n), (n_out, ..., m)
-                lambda c, last: pullback(c), out, vmap(pullback)
+                lambda c, last: pullback(c), out, vmap(pullback), _model_width(dynamics)
             )
             A, B = Jx.movedim(0, -2), Ju.movedim(0, -2)
         else:
