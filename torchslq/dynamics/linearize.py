@@ -15,6 +15,7 @@ import torch
 from torch import Tensor, nn
 from torch.func import jacfwd, jacrev, vjp, vmap
 
+from .._backend import can_use_compiled
 from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from .base import Dynamics, state_control_dims
@@ -63,6 +64,13 @@ def _has_linear_standins(f: Callable, kind: str = "linear_standin") -> bool:
     if not isinstance(f, nn.Module) or torch._C._functorch.peek_interpreter_stack() is not None:
         return False
     return any(getattr(mod, kind, None) is not None for mod in f.modules())
+
+
+def _quadratic_standins_apply(f: Callable, x: Tensor, u: Tensor) -> bool:
+    """Whether the Hessian pass takes :func:`_vhp_by_autograd`: a submodule of ``f`` has
+    a ``quadratic_standin`` and the data are where its kernels run (elsewhere, e.g. on a
+    GPU, the stand-in declines and the batched ``torch.func`` pass is the faster one)."""
+    return can_use_compiled(x.detach(), u.detach()) and _has_linear_standins(f, "quadratic_standin")
 
 
 def _vhp_by_autograd(
@@ -436,7 +444,7 @@ def dynamics_vhp(
     parts = _in_time_chunks(lambda *t: dynamics_vhp(f, *t), x, u, s)
     if parts is not None:  # outputs (..., T, ., .): time is dim x.ndim - 2
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 2) for i in range(3))
-    if s.shape[:-1] == x.shape[:-1] and _has_linear_standins(f, "quadratic_standin"):
+    if s.shape[:-1] == x.shape[:-1] and _quadratic_standins_apply(f, x, u):
         # a submodule with compiled second derivatives (a discretised physics model
         # under a learned residual) enters by its Taylor expansion, not its torch ops
         return _vhp_by_autograd(f, x, u, [s])[0]
@@ -552,7 +560,7 @@ def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor,
     parts = _in_time_chunks(lambda *t: dynamics_hessians(f, *t), x, u)
     if parts is not None:  # outputs (n, ..., T, ., .): time is dim x.ndim - 1
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 1) for i in range(3))
-    if _has_linear_standins(f, "quadratic_standin"):  # as in dynamics_vhp
+    if _quadratic_standins_apply(f, x, u):  # as in dynamics_vhp
         eye = torch.eye(n, dtype=x.dtype, device=x.device)
         blocks = _vhp_by_autograd(f, x.detach(), u.detach(), [eye[i] for i in range(n)])
         return tuple(torch.stack([b[i] for b in blocks]) for i in range(3))
