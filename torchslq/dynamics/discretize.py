@@ -13,6 +13,7 @@ from .._backend import (
 )
 from .._pinned import pinned
 from .._shapes import broadcast_shapes
+from ._taylor import second_order_taylor
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
 from .linearize import first_order_only, second_order_only
@@ -122,7 +123,7 @@ class DiscretizedDynamics(Dynamics):
         A, B, (Hxx, Huu, Hux) = both  # Hessians (n, *lead, ., .): output first
         H = torch.cat([torch.cat([Hxx, Hux.mT], -1), torch.cat([Hux, Huu], -1)], -2)
         dz = torch.cat([(x - x.detach()).expand(*lead, n), (u - u.detach()).expand(*lead, m)], -1)
-        return value + _SecondOrderTaylor.apply(dz, torch.cat([A, B], -1), H.movedim(0, -3))
+        return value + second_order_taylor(dz, torch.cat([A, B], -1), H.movedim(0, -3))
 
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
         """:meth:`forward` by the compiled step of the code generated from the continuous
@@ -359,29 +360,6 @@ class DiscretizedDynamics(Dynamics):
             if i > 0:
                 mu = torch.add(weights[i - 1] * s, (fx.mT @ mu.unsqueeze(-1))[..., 0], alpha=a * dt)
         return Hxx, Huu, Hux
-
-
-class _SecondOrderTaylor(torch.autograd.Function):
-    """``J dz + dz' H_i dz / 2`` per output ``i`` for ``dz (*lead, k)``, ``J (*lead, n, k)``,
-    ``H (*lead, n, k, k)`` symmetric, differentiable (twice) in ``dz`` only.
-
-    Its backward is written in ops on ``(*lead, k, k)`` (the cotangent contracted with
-    ``H`` first), so the Hessian pass's second, batched backward never handles the
-    ``(*lead, n, k, k)`` products autograd would record for the plain expression
-    (those made a learned residual's Hessians 2x slower than the network's alone)."""
-
-    @staticmethod
-    def forward(ctx, dz: Tensor, J: Tensor, H: Tensor) -> Tensor:
-        ctx.save_for_backward(dz, J, H)
-        Hdz = (H * dz[..., None, None, :]).sum(-1)  # (*lead, n, k)
-        return ((J + 0.5 * Hdz) * dz.unsqueeze(-2)).sum(-1)
-
-    @staticmethod
-    def backward(ctx, g: Tensor):
-        dz, J, H = ctx.saved_tensors
-        M = (g[..., :, None, None] * H).sum(-3)  # (*lead, k, k): sum_i g_i H_i
-        grad = (g.unsqueeze(-1) * J).sum(-2) + (M * dz.unsqueeze(-2)).sum(-1)
-        return grad, None, None
 
 
 def _accumulator(Hxx, Huu, Hux, hxx, huu, hux, dk) -> tuple[Tensor, Tensor, Tensor]:

@@ -14,10 +14,12 @@ from contextlib import nullcontext
 import torch
 from torch import Tensor, nn
 from torch.func import jacfwd, jacrev, vjp, vmap
+from torch.nn.modules.module import register_module_forward_hook
 
 from .._backend import can_use_compiled
 from .._pinned import pinned
 from .._shapes import broadcast_shapes
+from ._mlp import mlp_standin_hook, takes_mlp_standin
 from .base import Dynamics, state_control_dims
 
 __all__ = [
@@ -67,10 +69,22 @@ def _has_linear_standins(f: Callable, kind: str = "linear_standin") -> bool:
 
 
 def _quadratic_standins_apply(f: Callable, x: Tensor, u: Tensor) -> bool:
-    """Whether the Hessian pass takes :func:`_vhp_by_autograd`: a submodule of ``f`` has
-    a ``quadratic_standin`` and the data are where its kernels run (elsewhere, e.g. on a
-    GPU, the stand-in declines and the batched ``torch.func`` pass is the faster one)."""
-    return can_use_compiled(x.detach(), u.detach()) and _has_linear_standins(f, "quadratic_standin")
+    """Whether the Hessian pass takes :func:`_vhp_by_autograd`: a submodule of ``f`` is a
+    flat MLP (:func:`~torchslq.dynamics._mlp.takes_mlp_standin`), or has a
+    ``quadratic_standin`` and the data are where its kernels run (elsewhere, e.g. on a
+    GPU, that stand-in declines and the batched ``torch.func`` pass is the faster one)."""
+    if not isinstance(f, nn.Module) or torch._C._functorch.peek_interpreter_stack() is not None:
+        return False
+    kernels = None
+    for mod in f.modules():
+        if takes_mlp_standin(mod):
+            return True
+        if getattr(mod, "quadratic_standin", None) is not None:
+            if kernels is None:
+                kernels = can_use_compiled(x.detach(), u.detach())
+            if kernels:
+                return True
+    return False
 
 
 def _vhp_by_autograd(
@@ -86,10 +100,15 @@ def _vhp_by_autograd(
     n, m = x.shape[-1], u.shape[-1]
     k = n + m
     token = _SECOND_ORDER.set(True)
+    # flat MLPs inside f stand in by their structured expansion (only during this call)
+    hook = register_module_forward_hook(mlp_standin_hook)
     try:
         with torch.enable_grad():
             xg, ug = x.detach().requires_grad_(True), u.detach().requires_grad_(True)
-            out = f(xg, ug)
+            try:
+                out = f(xg, ug)
+            finally:
+                hook.remove()
             basis = torch.eye(k, dtype=x.dtype, device=x.device)
             basis = basis.reshape(k, *([1] * (x.ndim - 1)), k)
             bx, bu = basis[..., :n].expand(k, *x.shape), basis[..., n:].expand(k, *u.shape)
