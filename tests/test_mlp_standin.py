@@ -12,7 +12,7 @@ from torch import nn
 from torch.func import jacfwd, jacrev, vmap
 
 import torchslq as ts
-from torchslq.dynamics import _mlp, dynamics_hessians, dynamics_vhp
+from torchslq.dynamics import _mlp, dynamics_hessians, dynamics_vhp, linearize_with_hessians
 from torchslq.dynamics._mlp import MAX_INPUT, mlp_taylor
 
 F64 = torch.float64
@@ -103,6 +103,14 @@ def test_a_network_inside_a_model_enters_the_hessian_pass_by_its_layers(name, mo
     ref = _reference_hessians(model, x, u)
     for got, want in zip(H, ref, strict=True):
         torch.testing.assert_close(got, want, rtol=1e-11, atol=1e-13)
+    # DDP's entry: the Jacobians from the same pass as the Hessians
+    A, B, hessians = linearize_with_hessians(model, x, u)
+    A_ref, B_ref = ts.linearize(model, x, u, method="jacrev")
+    torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+    for got, want in zip(hessians(), ref, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-11, atol=1e-13)
+    assert calls == [True, True, True]
     weights = s.movedim(-1, 0)[..., None, None]  # (n, ..., 1, 1)
     for got, want in zip(V, ref, strict=True):  # s . f: the outputs' weighted sum
         torch.testing.assert_close(got, (weights * want).sum(0), rtol=1e-11, atol=1e-13)

@@ -88,11 +88,13 @@ def _quadratic_standins_apply(f: Callable, x: Tensor, u: Tensor) -> bool:
 
 
 def _vhp_by_autograd(
-    f: Callable, x: Tensor, u: Tensor, weights: list[Tensor]
+    f: Callable, x: Tensor, u: Tensor, weights: list[Tensor], gradients: list | None = None
 ) -> list[tuple[Tensor, Tensor, Tensor]]:
     """``[(Hxx, Huu, Hux)]``, one per weight ``s`` ``(..., n)`` (``x``'s leading dims):
     the Hessian blocks of ``s · f`` at every row, by double backward through *one* call
-    of ``f`` on the whole batch with :func:`second_order_only` set.
+    of ``f`` on the whole batch with :func:`second_order_only` set. ``gradients``: a list
+    to which the gradients ``(s · f_x, s · f_u)`` of each weight are appended (with the
+    output basis as weights: the rows of the Jacobians).
 
     Per weight: the gradient of ``s · f`` with a graph, then its ``n + m`` rows pulled
     back at once (``is_grads_batched``). (Batching the weights too, a second batched
@@ -118,6 +120,13 @@ def _vhp_by_autograd(
                 gx, gu = torch.autograd.grad(
                     out, (xg, ug), s.expand_as(out), create_graph=True, allow_unused=True
                 )
+                if gradients is not None:
+                    gradients.append(
+                        tuple(
+                            torch.zeros_like(t) if g is None else g.detach()
+                            for g, t in ((gx, x), (gu, u))
+                        )
+                    )
                 pairs = [
                     (g, b) for g, b in ((gx, bx), (gu, bu)) if g is not None and g.requires_grad
                 ]
@@ -523,6 +532,26 @@ def linearize_with_hessians(
         if out is not None:
             A, B, blocks = out
             return A, B, lambda: blocks
+    f = as_transition(dynamics)
+    rows = x.shape[:-1].numel()
+    if (
+        method == "auto"
+        and x.shape[:-1] == u.shape[:-1]
+        and rows <= HESSIAN_CHUNK_ROWS
+        and _quadratic_standins_apply(f, x, u)
+    ):
+        # the Hessian pass's first gradients with the output basis are the Jacobians'
+        # rows: one pass through the model (and its stand-ins) gives both
+        n = x.shape[-1]
+        eye = torch.eye(n, dtype=x.dtype, device=x.device)
+        grads: list = []
+        blocks = _vhp_by_autograd(
+            f, x.detach(), u.detach(), [eye[i] for i in range(n)], gradients=grads
+        )
+        A = torch.stack([g[0] for g in grads], -2)
+        B = torch.stack([g[1] for g in grads], -2)
+        hessians = tuple(torch.stack([b[i] for b in blocks]) for i in range(3))
+        return A, B, lambda: hessians
     A, B = linearize(dynamics, x, u, method=method)
     return A, B, lambda: dynamics_hessians(dynamics, x, u)
 
