@@ -69,14 +69,17 @@ def _has_linear_standins(f: Callable, kind: str = "linear_standin") -> bool:
 
 
 def _quadratic_standins_apply(f: Callable, x: Tensor, u: Tensor) -> bool:
-    """Whether the Hessian pass takes :func:`_vhp_by_autograd`: a submodule of ``f`` is a
-    flat MLP (:func:`~torchslq.dynamics._mlp.takes_mlp_standin`), or has a
-    ``quadratic_standin`` and the data are where its kernels run (elsewhere, e.g. on a
-    GPU, that stand-in declines and the batched ``torch.func`` pass is the faster one)."""
+    """Whether the Hessian pass takes :func:`_vhp_by_autograd`: a submodule of ``f`` (not
+    ``f`` itself, whose own derivatives the callers try first) is a flat MLP
+    (:func:`~torchslq.dynamics._mlp.takes_mlp_standin`), or has a ``quadratic_standin``
+    and the data are where its kernels run (elsewhere, e.g. on a GPU, that stand-in
+    declines and the batched ``torch.func`` pass is the faster one)."""
     if not isinstance(f, nn.Module) or torch._C._functorch.peek_interpreter_stack() is not None:
         return False
     kernels = None
     for mod in f.modules():
+        if mod is f:  # a stand-in stands in for a submodule called by f, not for f
+            continue
         if takes_mlp_standin(mod):
             return True
         if getattr(mod, "quadratic_standin", None) is not None:
