@@ -498,20 +498,26 @@ class ResidualOnStep(ts.Dynamics):
         return self.step(x, u) + 0.1 * self.net(torch.cat([x, u], -1))
 
 
-def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch):
-    model = ResidualOnStep()
-    gen = torch.Generator().manual_seed(12)
-    x = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
-    u = torch.randn(3, 7, 1, generator=gen, dtype=torch.float64)
-    calls = []
-    original = ts.DiscretizedDynamics.linear_standin
+def _count_standins(monkeypatch, name: str) -> list[bool]:
+    """Whether each call of the stand-in ``name`` of DiscretizedDynamics applied."""
+    calls: list[bool] = []
+    original = getattr(ts.DiscretizedDynamics, name)
 
     def counting(self, *args):
         out = original(self, *args)
         calls.append(out is not None)
         return out
 
-    monkeypatch.setattr(ts.DiscretizedDynamics, "linear_standin", counting)
+    monkeypatch.setattr(ts.DiscretizedDynamics, name, counting)
+    return calls
+
+
+def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch):
+    model = ResidualOnStep()
+    gen = torch.Generator().manual_seed(12)
+    x = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
+    u = torch.randn(3, 7, 1, generator=gen, dtype=torch.float64)
+    calls = _count_standins(monkeypatch, "linear_standin")
     A, B = ts.linearize(model, x, u)
     assert calls == [True]  # the step entered once, by its kernels
     # torch.func's pullback of the whole model (the step on its torch ops)
@@ -562,15 +568,7 @@ def test_a_generated_step_inside_a_model_enters_its_hessians_by_its_kernels(monk
     x = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
     u = torch.randn(3, 7, 1, generator=gen, dtype=torch.float64)
     s = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
-    calls = []
-    original = ts.DiscretizedDynamics.quadratic_standin
-
-    def counting(self, *args):
-        out = original(self, *args)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(ts.DiscretizedDynamics, "quadratic_standin", counting)
+    calls = _count_standins(monkeypatch, "quadratic_standin")
     H = dynamics_hessians(model, x, u)
     V = dynamics_vhp(model, x, u, s)
     assert calls == [True, True]  # one model call per pass, the step by its kernels

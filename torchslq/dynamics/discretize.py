@@ -81,17 +81,11 @@ class DiscretizedDynamics(Dynamics):
         detached inputs. Same value and first derivatives as :meth:`forward` for one
         kernel call each instead of the RK4 stages' torch ops forward and backward; None
         where the compiled path does not apply."""
-        if self.method != "rk4" or module_needs_grad(self):
-            return None
-        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
-        xd = x.detach().expand(*lead, x.shape[-1])
-        ud = u.detach().expand(*lead, u.shape[-1])
-        if not can_use_compiled(xd, ud):
-            return None
-        value = self._compiled_forward(xd, ud)
-        jac = None if value is None else self.compiled_jacobians(xd, ud)
+        point = self._standin_point(x, u)
+        jac = None if point is None else self.compiled_jacobians(point[1], point[2])
         if jac is None:
             return None
+        value = point[3]
         A, B = jac
         dx, du = (x - x.detach()).unsqueeze(-1), (u - u.detach()).unsqueeze(-1)
         return value + (A @ dx).squeeze(-1) + (B @ du).squeeze(-1)
@@ -108,22 +102,30 @@ class DiscretizedDynamics(Dynamics):
         every output ``i``. Same value, first and second derivatives as :meth:`forward`
         at the point, for two kernel calls instead of a double backward through the RK4
         stages' torch ops; None where the compiled path does not apply."""
-        if self.method != "rk4" or module_needs_grad(self):
-            return None
-        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
-        n, m = x.shape[-1], u.shape[-1]
-        xd = x.detach().expand(*lead, n)
-        ud = u.detach().expand(*lead, m)
-        if not can_use_compiled(xd, ud):
-            return None
-        value = self._compiled_forward(xd, ud)
-        both = None if value is None else self.jacobians_and_hessians(xd, ud)
+        point = self._standin_point(x, u)
+        both = None if point is None else self.jacobians_and_hessians(point[1], point[2])
         if both is None:
             return None
+        lead, _, _, value = point
+        n, m = x.shape[-1], u.shape[-1]
         A, B, (Hxx, Huu, Hux) = both  # Hessians (n, *lead, ., .): output first
         H = torch.cat([torch.cat([Hxx, Hux.mT], -1), torch.cat([Hux, Huu], -1)], -2)
         dz = torch.cat([(x - x.detach()).expand(*lead, n), (u - u.detach()).expand(*lead, m)], -1)
         return value + second_order_taylor(dz, torch.cat([A, B], -1), H.movedim(0, -3))
+
+    def _standin_point(self, x: Tensor, u: Tensor):
+        """``(lead, x̄, ū, value)``: the stand-ins' expansion point (the inputs detached,
+        broadcast to their common leading dims ``lead``) and the step's value there by
+        the generated kernel; None where the compiled path does not apply."""
+        if self.method != "rk4" or module_needs_grad(self):
+            return None
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
+        xd = x.detach().expand(*lead, x.shape[-1])
+        ud = u.detach().expand(*lead, u.shape[-1])
+        if not can_use_compiled(xd, ud):
+            return None
+        value = self._compiled_forward(xd, ud)
+        return None if value is None else (lead, xd, ud, value)
 
     def _compiled_forward(self, x: Tensor, u: Tensor) -> Tensor | None:
         """:meth:`forward` by the compiled step of the code generated from the continuous
