@@ -141,3 +141,37 @@ def test_ddp_on_a_learned_model_matches_the_autodiff_hessians(monkeypatch):
     assert int(r.iterations.min()) >= 3
     torch.testing.assert_close(r.u, rr.u, rtol=1e-10, atol=1e-12)
     torch.testing.assert_close(r.cost, rr.cost, rtol=1e-12, atol=0.0)
+
+
+def test_the_stand_in_is_confined_to_the_hessian_pass_context():
+    """The forward hook is process-wide: a network run by another thread during the pass
+    (a data loader, a second solve) keeps its own output and its parameters' gradients."""
+    import threading
+
+    other_net = net_with(ACTIVATIONS["tanh"], seed=7)
+    z = torch.randn(3, 5, generator=torch.Generator().manual_seed(2), dtype=F64)
+    (expected,) = torch.autograd.grad(other_net(z.requires_grad_()).sum(), other_net[0].weight)
+    seen = {}
+
+    class SpawnsAThread(ResidualModel):
+        def forward(self, x, u):
+            def other():
+                try:
+                    y = other_net(z.detach().requires_grad_()).sum()
+                    seen["grad"] = torch.autograd.grad(y, other_net[0].weight)[0]
+                except RuntimeError as err:  # the output replaced: no graph to the weight
+                    seen["error"] = err
+
+            worker = threading.Thread(target=other)
+            worker.start()
+            worker.join()
+            return super().forward(x, u)
+
+    model = SpawnsAThread(net_with(ACTIVATIONS["tanh"], seed=3))
+    x = torch.randn(2, 3, 4, dtype=F64)
+    u = torch.randn(2, 3, 1, dtype=F64)
+    H = dynamics_hessians(model, x, u)
+    assert "error" not in seen
+    torch.testing.assert_close(seen["grad"], expected, rtol=1e-14, atol=0.0)
+    for got, want in zip(H, _reference_hessians(ResidualModel(model.net), x, u), strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-11, atol=1e-13)

@@ -90,6 +90,11 @@ def _quadratic_standins_apply(f: Callable, x: Tensor, u: Tensor) -> bool:
     return False
 
 
+def _mlp_standin_here(module: nn.Module, args: tuple, output):
+    """:func:`~torchslq.dynamics._mlp.mlp_standin_hook` where :func:`second_order_only`."""
+    return mlp_standin_hook(module, args, output) if _SECOND_ORDER.get() else None
+
+
 def _vhp_by_autograd(
     f: Callable, x: Tensor, u: Tensor, weights: list[Tensor], gradients: list | None = None
 ) -> list[tuple[Tensor, Tensor, Tensor]]:
@@ -105,8 +110,9 @@ def _vhp_by_autograd(
     n, m = x.shape[-1], u.shape[-1]
     k = n + m
     token = _SECOND_ORDER.set(True)
-    # flat MLPs inside f stand in by their structured expansion (only during this call)
-    hook = register_module_forward_hook(mlp_standin_hook)
+    # flat MLPs inside f stand in by their structured expansion, only during this call
+    # and only in this context (the hook is global: another thread's modules pass)
+    hook = register_module_forward_hook(_mlp_standin_here)
     try:
         with torch.enable_grad():
             xg, ug = x.detach().requires_grad_(True), u.detach().requires_grad_(True)
