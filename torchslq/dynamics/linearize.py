@@ -542,13 +542,19 @@ def linearize_with_hessians(
             A, B, blocks = out
             return A, B, lambda: blocks
     f = as_transition(dynamics)
-    rows = x.shape[:-1].numel()
     if (
         method == "auto"
         and x.shape[:-1] == u.shape[:-1]
-        and rows <= HESSIAN_CHUNK_ROWS
+        and x.shape[:-1].numel() <= HESSIAN_CHUNK_ROWS
+        and not getattr(f, "has_analytic_jacobians", False)  # its own derivatives first
+        and not getattr(f, "has_analytic_vhp", False)
         and _quadratic_standins_apply(f, x, u)
     ):
+        fast = getattr(f, "compiled_jacobians", None)  # (code generated for all of f)
+        with torch.no_grad():
+            own = None if fast is None else fast(x.detach(), u.detach())
+        if own is not None:
+            return own[0], own[1], lambda: dynamics_hessians(dynamics, x, u)
         # the Hessian pass's first gradients with the output basis are the Jacobians'
         # rows: one pass through the model (and its stand-ins) gives both
         n = x.shape[-1]
