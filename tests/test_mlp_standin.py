@@ -175,3 +175,30 @@ def test_the_stand_in_is_confined_to_the_hessian_pass_context():
     torch.testing.assert_close(seen["grad"], expected, rtol=1e-14, atol=0.0)
     for got, want in zip(H, _reference_hessians(ResidualModel(model.net), x, u), strict=True):
         torch.testing.assert_close(got, want, rtol=1e-11, atol=1e-13)
+
+
+def test_a_model_with_its_own_jacobians_keeps_them(monkeypatch):
+    """linearize_with_hessians takes a model's analytic Jacobians as they are; only the
+    Hessians (lazily) come from the pass with the network's stand-in."""
+
+    class WithJacobians(ResidualModel):
+        has_analytic_jacobians = True
+
+        def jacobians(self, x, u):
+            rows = lambda xi, ui: ResidualModel.forward(self, xi, ui)  # noqa: E731
+            A, B = vmap(jacrev(rows, argnums=(0, 1)))(x.reshape(-1, 4), u.reshape(-1, 1))
+            return A.reshape(*x.shape, 4), B.reshape(*x.shape[:-1], 4, 1)
+
+    model = WithJacobians(net_with(ACTIVATIONS["tanh"], seed=4))
+    x = torch.randn(2, 3, 4, generator=torch.Generator().manual_seed(6), dtype=F64)
+    u = torch.randn(2, 3, 1, generator=torch.Generator().manual_seed(7), dtype=F64)
+    calls = []
+    original = _mlp.mlp_taylor
+    monkeypatch.setattr(_mlp, "mlp_taylor", lambda net, z: calls.append(1) or original(net, z))
+    A, B, hessians = linearize_with_hessians(model, x, u)
+    A_own, B_own = model.jacobians(x, u)
+    assert calls == [] and torch.equal(A, A_own) and torch.equal(B, B_own)
+    H = hessians()
+    assert calls == [1]
+    for got, want in zip(H, _reference_hessians(ResidualModel(model.net), x, u), strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-11, atol=1e-13)
