@@ -57,15 +57,14 @@ def second_order_only() -> bool:
     return _SECOND_ORDER.get()
 
 
-def _has_linear_standins(f: Callable, kind: str = "linear_standin") -> bool:
-    """Whether a submodule of ``f`` can stand in by its compiled derivatives (its
-    ``kind`` method: ``"linear_standin"``, see :func:`first_order_only`, or
-    ``"quadratic_standin"``, see :func:`second_order_only`); the derivative pass then
-    uses plain autograd, where the submodule sees real tensors (inside ``torch.func``
-    transforms it cannot call its compiled code)."""
+def _has_linear_standins(f: Callable) -> bool:
+    """Whether a submodule of ``f`` can stand in by its compiled Jacobians (see
+    :func:`first_order_only`); the Jacobian pass then uses plain autograd, where the
+    submodule sees real tensors (inside ``torch.func`` transforms it cannot call its
+    compiled code)."""
     if not isinstance(f, nn.Module) or torch._C._functorch.peek_interpreter_stack() is not None:
         return False
-    return any(getattr(mod, kind, None) is not None for mod in f.modules())
+    return any(getattr(mod, "linear_standin", None) is not None for mod in f.modules())
 
 
 def _quadratic_standins_apply(f: Callable, x: Tensor, u: Tensor) -> bool:
@@ -88,6 +87,20 @@ def _quadratic_standins_apply(f: Callable, x: Tensor, u: Tensor) -> bool:
             if kernels:
                 return True
     return False
+
+
+def _output_hessians_by_autograd(
+    f: Callable, x: Tensor, u: Tensor, gradients: list | None = None
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Every output's Hessian blocks ``(n, ..., ., .)`` (:func:`dynamics_hessians`'
+    layout) by :func:`_vhp_by_autograd` with the output basis as weights; ``gradients``
+    as there (then the Jacobians' rows)."""
+    n = x.shape[-1]
+    eye = torch.eye(n, dtype=x.dtype, device=x.device)
+    blocks = _vhp_by_autograd(
+        f, x.detach(), u.detach(), [eye[i] for i in range(n)], gradients=gradients
+    )
+    return tuple(torch.stack([b[i] for b in blocks]) for i in range(3))
 
 
 def _mlp_standin_here(module: nn.Module, args: tuple, output):
@@ -557,15 +570,10 @@ def linearize_with_hessians(
             return own[0], own[1], lambda: dynamics_hessians(dynamics, x, u)
         # the Hessian pass's first gradients with the output basis are the Jacobians'
         # rows: one pass through the model (and its stand-ins) gives both
-        n = x.shape[-1]
-        eye = torch.eye(n, dtype=x.dtype, device=x.device)
         grads: list = []
-        blocks = _vhp_by_autograd(
-            f, x.detach(), u.detach(), [eye[i] for i in range(n)], gradients=grads
-        )
+        hessians = _output_hessians_by_autograd(f, x, u, gradients=grads)
         A = torch.stack([g[0] for g in grads], -2)
         B = torch.stack([g[1] for g in grads], -2)
-        hessians = tuple(torch.stack([b[i] for b in blocks]) for i in range(3))
         return A, B, lambda: hessians
     A, B = linearize(dynamics, x, u, method=method)
     return A, B, lambda: dynamics_hessians(dynamics, x, u)
@@ -624,9 +632,7 @@ def dynamics_hessians(dynamics: Callable, x: Tensor, u: Tensor) -> tuple[Tensor,
     if parts is not None:  # outputs (n, ..., T, ., .): time is dim x.ndim - 1
         return tuple(torch.cat([p[i] for p in parts], dim=x.ndim - 1) for i in range(3))
     if _quadratic_standins_apply(f, x, u):  # as in dynamics_vhp
-        eye = torch.eye(n, dtype=x.dtype, device=x.device)
-        blocks = _vhp_by_autograd(f, x.detach(), u.detach(), [eye[i] for i in range(n)])
-        return tuple(torch.stack([b[i] for b in blocks]) for i in range(3))
+        return _output_hessians_by_autograd(f, x, u)
     basis = torch.eye(n, dtype=x.dtype, device=x.device)
     basis = basis.reshape(n, *([1] * (x.ndim - 1)), n).expand(n, *x.shape)
     return vmap(lambda s: dynamics_vhp(f, x, u, s))(basis)

@@ -186,8 +186,11 @@ def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
     ``NOT_POSITIVE_DEFINITE`` where ``failed`` (some ``Quu`` not PD; None: nowhere),
     else ``CONVERGED`` where ``finite``, else ``NON_FINITE``."""
     # CONVERGED is 0: one product instead of a where over two scalars (which allocates
-    # both as tensors; it counts at B = 1)
-    status = (~finite).long() * int(Status.NON_FINITE)
+    # both as tensors; it counts at B = 1), on the CPU on numpy's flags (cheaper still)
+    if finite.is_cpu:
+        status = torch.from_numpy(np.where(finite.numpy(), 0, int(Status.NON_FINITE)))
+    else:
+        status = (~finite).long() * int(Status.NON_FINITE)
     return (
         status if failed is None else status.masked_fill(failed, int(Status.NOT_POSITIVE_DEFINITE))
     )
@@ -511,12 +514,14 @@ class _GainLQRFunction(torch.autograd.Function):
         return (None, None, None, *out)
 
 
-def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
+def _solve_gain(A, B, Q, R, x0, q, r, S, c) -> LQRSolution | None:
     """:func:`lqr_solve` on the gain-form CPU kernels (:func:`lq_gain_solve`), with or
     without autograd (:class:`_GainLQRFunction`); the arguments as given, time dims
-    expanded. None where this does not apply (not on the CPU, a ``torch.func``
-    transform, ``auto`` choosing the scan) or where an element's factorisation failed:
-    the homogeneous path then classifies the failures."""
+    expanded. For ``method`` ``"sequential"`` or ``"auto"``, which is the sequential
+    kernel here (:func:`choose_method`'s rule on the CPU with the compiled kernels).
+    None where this does not apply (not on the CPU, a ``torch.func`` transform) or where
+    an element's factorisation failed: the homogeneous path then classifies the
+    failures."""
     data = (A, B, Q, R, x0, q, r, S, c)
     present = [t for t in data if t is not None]
     if not x0.is_cpu or not can_use_compiled(*present, differentiable=True):
@@ -524,8 +529,6 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
     T, n = A.shape[-3], A.shape[-1]
     batch = _batch_shape(*data)
     nb = max(math.prod(batch), 1)
-    # method "auto" is "sequential" here: choose_method's rule on the CPU with the
-    # compiled kernels (not called: at B = 1 the call is a few percent of the solve)
     pieces, data_batch = lq_gain_pieces((A, B, c, Q, R, S, q, r), batch)
     x0f = x0.detach()
     if x0f.shape != (nb, n):
@@ -541,8 +544,7 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, method: str) -> LQRSolution | None:
             t = t.expand(nb, *t.shape[1:])
         return t if flat else t.reshape(tuple(batch) + tuple(t.shape[1:]))
 
-    # the statuses on the kernel's numpy flags (CONVERGED is 0): a torch op costs more
-    status = torch.from_numpy(np.where(sol["finite"].numpy(), 0, int(Status.NON_FINITE)))
+    status = lq_status(None, sol["finite"])
     if torch.is_grad_enabled() and any(t.requires_grad for t in present):
         x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
     else:
@@ -658,7 +660,7 @@ def lqr_solve(
         # on the CPU: the gain-form kernels straight from the data, with or without a
         # graph (None where they do not apply, or an element failed: the homogeneous
         # path below then classifies the failures)
-        sol = _solve_gain(A, B, Q, R, x0, q, r, S, c, method)
+        sol = _solve_gain(A, B, Q, R, x0, q, r, S, c)
         if sol is not None:
             return sol
     F = homogeneous_dynamics(A, B, c)
