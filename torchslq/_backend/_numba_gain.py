@@ -31,14 +31,34 @@ import numba
 import numpy as np
 
 from ._numba_gemm import acc_tn
-from ._numba_kernels import _idx, lq_rollout_kernel
+from ._numba_kernels import _idx, lq_rollout_kernel, size_witness  # noqa: F401 (re-exported)
 
 # from this state dimension on, the adjoint pass runs its transposed products in row order
 ROW_ORDER_N = 8
 
 
+@numba.njit(
+    cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False, inline="always"
+)
+def _acc_tn_sized(C, X, Y, sign, upper, fixed, rows, cols, inner):
+    """``C += sign X'Y`` as :func:`._numba_gemm.acc_tn` (``X (inner, rows)``, ``Y
+    (inner, cols)``); where ``fixed`` (sizes known when compiled), plain loops in row
+    order, which LLVM unrolls for those sizes. Inlined, so that the constants reach it."""
+    if fixed:
+        for k in range(inner):
+            xk = X[k]
+            yk = Y[k]
+            for i in range(rows):
+                a = sign * xk[i]
+                ci = C[i]
+                for j in range(i if upper else 0, cols):
+                    ci[j] += a * yk[j]
+    else:
+        acc_tn(C, X, Y, sign, upper)
+
+
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
+def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed, nt, mt):
     """Gain-form Riccati pass (module docstring) of elements ``b0 <= b < b1``, one
     element at a time, the matrix products register-blocked (:func:`._numba_gemm.acc_tn`;
     compile it inside :func:`._numba_gemm.slp_vectorized`).
@@ -49,10 +69,10 @@ def riccati_gain_kernel(b0, b1, pieces, Kk, P, p, L, s, failed):
     Outputs ``Kk (B, T, m, n+1)`` (``[K_t, k_t]``), ``P (B, T+1, n, n)``, ``p (B, T+1,
     n)``, ``L (B, T, m, m)`` (lower Cholesky factors of ``Quu``), ``s (B,)`` and
     ``failed (B,)``: some ``Quu`` not positive definite or not finite (the pass of that
-    element stops there; its outputs are meaningless).
+    element stops there; its outputs are meaningless). ``nt, mt``: :func:`size_witness`.
     """
     scratch = _gain_scratch(Kk.shape[3] - 1, Kk.shape[2], P.dtype)
-    _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch)
+    _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch, nt, mt)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -70,13 +90,14 @@ def _gain_scratch(n, m, dt):
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
-def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch):
+def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch, nt, mt):
     """The loop of :func:`riccati_gain_kernel` (without reference counting, see
     :mod:`._numba_kernels`); ``scratch = (PA (n, n), PB (n, m), w (n,), Y (m, n), y (m,),
-    Lq (m, m))``."""
+    Lq (m, m))``; ``nt, mt``: :func:`size_witness`."""
     T = Kk.shape[1]
-    m = Kk.shape[2]
-    n = Kk.shape[3] - 1
+    fixed = len(nt) > 0
+    m = len(mt) if fixed else Kk.shape[2]
+    n = len(nt) if fixed else Kk.shape[3] - 1
     A, Bm, c, Q, R, S, q, r = pieces
     PA, PB, wv, Y, y, Lq = scratch
     has_c, has_S, has_q, has_r = c.shape[0] > 0, S.shape[0] > 0, q.shape[0] > 0, r.shape[0] > 0
@@ -117,8 +138,8 @@ def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch):
             # is read), Qux = B'PA (+ S below), qu = B'w (+ r below)
             PA[:] = 0.0
             PB[:] = 0.0
-            acc_tn(PA, Pn, At, 1.0, False)
-            acc_tn(PB, Pn, Bt, 1.0, False)
+            _acc_tn_sized(PA, Pn, At, 1.0, False, fixed, n, n, n)
+            _acc_tn_sized(PB, Pn, Bt, 1.0, False, fixed, n, m, n)
             br, tr = _idx(R, e, t)
             Rt = R[br, tr]
             for i in range(m):
@@ -128,9 +149,9 @@ def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch):
                 for kk in range(n):
                     acc += Bt[kk, i] * wv[kk]
                 y[i] = acc
-            acc_tn(Lq, Bt, PB, 1.0, False)
+            _acc_tn_sized(Lq, Bt, PB, 1.0, False, fixed, m, m, n)
             Y[:] = 0.0
-            acc_tn(Y, Bt, PA, 1.0, False)
+            _acc_tn_sized(Y, Bt, PA, 1.0, False, fixed, m, n, n)
             if has_S:
                 bs, ts = _idx(S, e, t)
                 St = S[bs, ts]
@@ -183,8 +204,8 @@ def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch):
                 for kk in range(m):
                     acc -= Y[kk, i] * y[kk]
                 pc[i] = acc
-            acc_tn(Pc, At, PA, 1.0, True)
-            acc_tn(Pc, Y, Y, -1.0, True)
+            _acc_tn_sized(Pc, At, PA, 1.0, True, fixed, n, n, n)
+            _acc_tn_sized(Pc, Y, Y, -1.0, True, fixed, n, n, m)
             for i in range(n):
                 for j in range(i + 1, n):
                     Pc[j, i] = Pc[i, j]
@@ -216,7 +237,7 @@ def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch):
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
-def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finite):
+def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finite, nt, mt):
     """A whole solve in one call: :func:`riccati_gain_kernel` over the data's batch
     (``Kk.shape[0]`` elements), :func:`._numba_kernels.lq_rollout_kernel` from ``x0``
     and :func:`value_kernel` over the solve's batch (``x.shape[0]`` elements), with the
@@ -224,21 +245,23 @@ def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finit
     costs 5-10 us of numba's argument typing, as much as the whole (4, 1) pass at
     ``T = 100``."""
     scratch = _gain_scratch(Kk.shape[3] - 1, Kk.shape[2], P.dtype)
-    _riccati_gain_rows(0, Kk.shape[0], pieces, Kk, P, p, L, s, failed, scratch)
+    _riccati_gain_rows(0, Kk.shape[0], pieces, Kk, P, p, L, s, failed, scratch, nt, mt)
     nb = x.shape[0]
-    lq_rollout_kernel(0, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u)
-    value_kernel(0, nb, P, p, s, x, u, lam, cost, finite)
+    lq_rollout_kernel(0, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u, nt, mt)
+    value_kernel(0, nb, P, p, s, x, u, lam, cost, finite, nt, mt)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
-def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
+def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite, nt, mt):
     """From the pass's value functions and the rollout ``x (B, T+1, n)``, ``u (B, T,
     m)`` of elements ``b0 <= b < b1``: the costates ``lam_t = P_t x_t + p_t``, the
     optimal cost ``x_0'P_0 x_0 / 2 + p_0'x_0 + s`` (NaN where not finite) and whether
     ``x, u`` are finite. ``P, p, s`` with a batch of 1 (shared data) or B; outputs
-    ``lam (B, T+1, n)``, ``cost (B,)``, ``finite (B,)``."""
+    ``lam (B, T+1, n)``, ``cost (B,)``, ``finite (B,)``; ``nt, mt``: :func:`size_witness`."""
     T1 = x.shape[1]
-    n = x.shape[2]
+    fixed = len(nt) > 0
+    n = len(nt) if fixed else x.shape[2]
+    m = len(mt) if fixed else u.shape[2]
     for e in range(b0, b1):
         bk = e if P.shape[0] > 1 else 0
         le = lam[e]
@@ -260,7 +283,7 @@ def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
             for i in range(n):
                 fin = fin and math.isfinite(x[e, t, i])
         for t in range(T1 - 1):
-            for i in range(u.shape[2]):
+            for i in range(m):
                 fin = fin and math.isfinite(u[e, t, i])
         J = s[bk]
         for i in range(n):
@@ -271,7 +294,33 @@ def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite):
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def adjoint_gain_kernel(
-    b0, b1, A, Bm, Kk, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr, gx0
+    b0,
+    b1,
+    A,
+    Bm,
+    Kk,
+    L,
+    P,
+    x,
+    u,
+    lam,
+    ok,
+    gx,
+    gu,
+    gJ,
+    vs,
+    ks,
+    gA,
+    gB,
+    gc,
+    gQ,
+    gR,
+    gS,
+    gq,
+    gr,
+    gx0,
+    nt,
+    mt,
 ):
     """Backward pass of the implicit differentiation (Amos et al. 2018, Sec. 4.2) for
     elements ``b0 <= b < b1``: the LQ problem with the forward problem's matrices and
@@ -315,20 +364,22 @@ def adjoint_gain_kernel(
     )
     _adjoint_gain_rows(
         b0, b1, A, Bm, Kk, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS,
-        gq, gr, gx0, scratch,
+        gq, gr, gx0, scratch, nt, mt,
     )  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
 def _adjoint_gain_rows(
     b0, b1, A, Bm, Kk, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr,
-    gx0, scratch,
+    gx0, scratch, nt, mt,
 ):  # fmt: skip
     """The loop of :func:`adjoint_gain_kernel` (without reference counting, see
-    :mod:`._numba_kernels`); ``scratch``: eight vectors, of sizes n, n, m, n, m, n, n, m."""
+    :mod:`._numba_kernels`); ``scratch``: eight vectors, of sizes n, n, m, n, m, n, n, m;
+    ``nt, mt``: :func:`size_witness`."""
     T = u.shape[1]
-    m = u.shape[2]
-    n = x.shape[2]
+    fixed = len(nt) > 0
+    m = len(mt) if fixed else u.shape[2]
+    n = len(nt) if fixed else x.shape[2]
     dx, dxn, du, dln, z, dlj, dxj, duj = scratch
     for e in range(b0, b1):
         if not ok[e]:

@@ -373,6 +373,7 @@ def lq_rollout_compiled(
         _flat(x0, batch, 1),
         x.numpy(),
         u.numpy(),
+        *_kernels().size_witness(n, m),
     )
     return x.reshape(*batch, T + 1, n), u.reshape(*batch, T, m)
 
@@ -825,6 +826,7 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
         args = (
             pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten,
+            *gain.size_witness(n, m),
         )  # fmt: skip
         if dtype in _SLP_CALLED:  # (entering the switch costs a few us per call)
             gain.gain_solve_kernel(*args)
@@ -838,11 +840,18 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
         from ._numba_gemm import slp_vectorized
 
         with slp_vectorized():  # for its register-blocked products, on the first call
-            _launch(gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn, failedn)
+            _launch(
+                gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn, failedn,
+                *gain.size_witness(n, m),
+            )  # fmt: skip
         _launch(
-            _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0n, xn, un
-        )
-        _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lamn, costn, finiten)
+            _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0n, xn, un,
+            *gain.size_witness(n, m),
+        )  # fmt: skip
+        _launch(
+            gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lamn, costn, finiten,
+            *gain.size_witness(n, m),
+        )  # fmt: skip
     t = torch.from_numpy
     return {
         "Kk": t(Kkn), "P": t(Pn), "p": t(pn), "L": t(Ln), "failed": t(failedn),
@@ -880,7 +889,7 @@ def lq_gain_gradients(
         ok.contiguous().numpy(), gx.contiguous().numpy(), gu.contiguous().numpy(),
         gJ.contiguous().numpy(), vs, ks,
         gA.numpy(), gB.numpy(), gc.numpy(), gQ.numpy(), gR.numpy(), gS.numpy(), gq.numpy(),
-        gr.numpy(), gx0.numpy(),
+        gr.numpy(), gx0.numpy(), *kern.size_witness(n, m),
     )  # fmt: skip
     if not bool(ok.all()):  # the kernel skipped these elements
         for g, need in zip(out, needs, strict=True):
