@@ -671,6 +671,47 @@ def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad,
     torch.testing.assert_close(first(fast.cost).detach(), cost, rtol=1e-9, atol=1e-10)
 
 
+@pytest.mark.parametrize("n, m", [(3, 1), (7, 4), (8, 2)])
+def test_size_specialised_gain_kernels_equal_the_general_ones(n, m, monkeypatch):
+    """Up to ``FIXED_MAX_N`` states and ``FIXED_MAX_M`` controls the gain-form kernels
+    are compiled for the problem's own sizes (``size_witness``); the same problem solved
+    by the kernels that read the sizes at run time (the limits set to zero) gives the
+    same solution and gradients, and both equal the dense KKT solution."""
+    import torchslq.lq.solve as solve_mod
+    from torchslq._backend import _numba_kernels as nk
+
+    if not solve_mod.compiled_available():
+        pytest.skip("numba kernels not importable")
+    fixed = n <= nk.FIXED_MAX_N and m <= nk.FIXED_MAX_M
+    assert (len(nk.size_witness(n, m)[0]) == n) == fixed
+    args = random_problem(seed=40 + n, bsz=2, T=6, n=n, m=m)
+    g = torch.Generator().manual_seed(4)
+    wx = torch.randn(2, 7, n, generator=g, dtype=F64)
+    wu = torch.randn(2, 6, m, generator=g, dtype=F64)
+
+    def run():
+        leaves = {k: v.clone().requires_grad_(True) for k, v in args.items()}
+        sol = lqr_solve(**leaves)
+        ((sol.x * wx).sum() + (sol.u * wu).sum() + sol.cost.sum()).backward()
+        return sol, {k: v.grad for k, v in leaves.items()}
+
+    spec, spec_grads = run()
+    monkeypatch.setattr(nk, "FIXED_MAX_N", 0)
+    monkeypatch.setattr(nk, "FIXED_MAX_M", 0)
+    assert nk.size_witness(n, m) == ((), ())
+    gen, gen_grads = run()
+    for name in ("x", "u", "K", "k", "V", "v", "lam", "cost"):
+        torch.testing.assert_close(
+            getattr(spec, name).detach(), getattr(gen, name).detach(), rtol=1e-12, atol=1e-12
+        )
+    for name, a in spec_grads.items():
+        torch.testing.assert_close(a, gen_grads[name], rtol=1e-11, atol=1e-11, msg=name)
+    x, u, lam, cost = dense_kkt(**{k: v[1] for k, v in args.items()})
+    torch.testing.assert_close(spec.x[1].detach(), x, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(spec.u[1].detach(), u, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(spec.cost[1].detach(), cost, rtol=1e-9, atol=1e-10)
+
+
 def test_gain_form_gradient_of_a_non_finite_element_is_zero():
     """Without validation, an element whose affine term is NaN solves to a non-finite
     trajectory on the gain-form path: its status is ``non_finite``, its gradients are
