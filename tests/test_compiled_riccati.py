@@ -405,10 +405,12 @@ def _pieces_cases():
 @pytest.mark.parametrize("case", list(_pieces_cases()))
 @pytest.mark.parametrize("extra", ["none", "reg", "bounds"])
 def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeypatch, case, extra):
-    """riccati_backward on the CPU hands the LQ data to the kernel, which assembles each
-    step's homogeneous F_t, H_t itself: the same factors as the torch path (and bitwise
-    as the kernel fed with the F, H built by homogeneous_dynamics/_cost), and the
-    homogeneous tensors are never built."""
+    """riccati_backward on the CPU hands the LQ data to a kernel, and the homogeneous
+    tensors are never built: the same factors as the torch path. With bounds the
+    homogeneous kernel assembles each step's F_t, H_t itself (bitwise the kernel fed
+    with the F, H built by homogeneous_dynamics/_cost); without, this small problem's
+    pass runs in gain form (riccati_gain_reg_kernel), equal to within rounding."""
+    from torchslq._backend import _numba_gain
     from torchslq.lq import riccati
 
     kw = _pieces_cases()[case]
@@ -425,12 +427,20 @@ def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeyp
     def forbidden(*a, **k):
         raise AssertionError("homogeneous tensors built on the compiled path")
 
+    gain_calls = []
+    gain_kernel = _numba_gain.riccati_gain_reg_kernel
     with monkeypatch.context() as mp:
         mp.setattr(riccati, "homogeneous_cost", forbidden)
         mp.setattr(riccati, "homogeneous_dynamics", forbidden)
+        mp.setattr(
+            _numba_gain,
+            "riccati_gain_reg_kernel",
+            lambda *a: gain_calls.append(1) or gain_kernel(*a),
+        )
         fast = ts.riccati_backward(**kw)
     assert fast.Kk.shape == ref.Kk.shape == (*batch, T, 2, 5)
     _close(fast, ref)
+    assert bool(gain_calls) == (extra != "bounds")
     if extra == "bounds":
         assert torch.equal(fast.clamped, ref.clamped)
         # (without linear terms the feedforward is zero and no bound binds)
@@ -445,7 +455,10 @@ def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeyp
         riccati.with_time(kw.get("S"), 2, T),
     )
     homog = riccati_homogeneous(F, H, VhT, kw.get("reg"), u_bounds=kw.get("u_bounds"))
-    assert torch.equal(fast.Kk, homog.Kk) and torch.equal(fast.Vh, homog.Vh)
+    if extra == "bounds":
+        assert torch.equal(fast.Kk, homog.Kk) and torch.equal(fast.Vh, homog.Vh)
+    else:
+        _close(fast, homog, rtol=1e-12)
 
 
 def test_riccati_backward_shape_errors_come_from_the_torch_path():

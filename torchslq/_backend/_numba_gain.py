@@ -86,6 +86,7 @@ def _gain_scratch(n, m, dt):
         np.empty((m, n), dtype=dt),
         np.empty(m, dtype=dt),
         np.zeros((m, m), dtype=dt),
+        np.zeros((0, 0), dtype=dt),  # an empty s2 (no per-step constants)
     )
 
 
@@ -93,147 +94,255 @@ def _gain_scratch(n, m, dt):
 def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch, nt, mt):
     """The loop of :func:`riccati_gain_kernel` (without reference counting, see
     :mod:`._numba_kernels`); ``scratch = (PA (n, n), PB (n, m), w (n,), Y (m, n), y (m,),
-    Lq (m, m))``; ``nt, mt``: :func:`size_witness`."""
+    Lq (m, m), an empty (0, 0) array)``; ``nt, mt``: :func:`size_witness`."""
+    for e in range(b0, b1):
+        ok, sv = _gain_pass(e, pieces, Kk, P, p, L, scratch[6], 0.0, scratch, nt, mt)
+        s[e] = sv
+        failed[e] = not ok
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
+def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, scratch, nt, mt):
+    """The gain-form pass of element ``e`` (module docstring) with ``reg`` added to
+    ``Quu``'s diagonal, into ``Kk[e]``, ``P[e]``, ``p[e]``, ``L[e]`` and, where ``s2`` is not
+    empty, twice the value function's constant per step into ``s2[e]`` (the corner of
+    the homogeneous ``Vh``). Returns ``(ok, s_0)``: whether every ``Quu + reg I`` was
+    positive definite (the pass stops at the first that is not, leaving the earlier
+    steps as they were) and the constant at ``t = 0``.
+
+    With ``reg > 0`` the gains are the regularised ones and the value function is the
+    one of those gains on the true ``Quu`` (Tassa, Erez & Todorov 2012's form, as the
+    homogeneous kernel's: ``Qxx + K'Quu K + K'Qux + Qux'K``, exact for any gains), which with ``Y = L^{-1} Qux`` and
+    ``Quu + reg I = L L'`` is ``P = Qxx - Y'Y - reg K'K``, ``p = qx - Y'y - reg K'k``,
+    ``s = ... - (y'y + reg k'k) / 2``: the homogeneous kernel's values."""
     T = Kk.shape[1]
     fixed = len(nt) > 0
     m = len(mt) if fixed else Kk.shape[2]
     n = len(nt) if fixed else Kk.shape[3] - 1
     A, Bm, c, Q, R, S, q, r = pieces
-    PA, PB, wv, Y, y, Lq = scratch
+    PA, PB, wv, Y, y, Lq, _ = scratch
     has_c, has_S, has_q, has_r = c.shape[0] > 0, S.shape[0] > 0, q.shape[0] > 0, r.shape[0] > 0
-    for e in range(b0, b1):
-        bq, tq = _idx(Q, e, T)
-        Qt = Q[bq, tq]
-        Pn = P[e, T]
-        pn = p[e, T]
+    steps = s2.shape[0] > 0
+    bq, tq = _idx(Q, e, T)
+    Qt = Q[bq, tq]
+    Pn = P[e, T]
+    pn = p[e, T]
+    for i in range(n):
+        for j in range(n):
+            Pn[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
+        pn[i] = 0.0
+    if has_q:
+        bl, tl = _idx(q, e, T)
         for i in range(n):
-            for j in range(n):
-                Pn[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
-            pn[i] = 0.0
-        if has_q:
-            bl, tl = _idx(q, e, T)
+            pn[i] = q[bl, tl, i]
+    sv = 0.0
+    if steps:
+        s2[e, T] = 0.0
+    ok = True
+    for t in range(T - 1, -1, -1):
+        ba, ta = _idx(A, e, t)
+        At = A[ba, ta]
+        bb, tb = _idx(Bm, e, t)
+        Bt = Bm[bb, tb]
+        # w = p' + P'c;  s += p''c + c'P'c / 2
+        if has_c:
+            bc, tc = _idx(c, e, t)
+            ct = c[bc, tc]
             for i in range(n):
-                pn[i] = q[bl, tl, i]
-        sv = 0.0
-        ok = True
-        for t in range(T - 1, -1, -1):
-            ba, ta = _idx(A, e, t)
-            At = A[ba, ta]
-            bb, tb = _idx(Bm, e, t)
-            Bt = Bm[bb, tb]
-            # w = p' + P'c;  s += p''c + c'P'c / 2
-            if has_c:
-                bc, tc = _idx(c, e, t)
-                ct = c[bc, tc]
-                for i in range(n):
-                    acc = 0.0
-                    for j in range(n):
-                        acc += Pn[i, j] * ct[j]
-                    sv += ct[i] * (pn[i] + 0.5 * acc)
-                    wv[i] = acc + pn[i]
-            else:
-                for i in range(n):
-                    wv[i] = pn[i]
-            # PA = P'A, PB = P'B (P' symmetric), Quu = R + B'PB (its lower triangle
-            # is read), Qux = B'PA (+ S below), qu = B'w (+ r below)
-            PA[:] = 0.0
-            PB[:] = 0.0
-            _acc_tn_sized(PA, Pn, At, 1.0, False, fixed, n, n, n)
-            _acc_tn_sized(PB, Pn, Bt, 1.0, False, fixed, n, m, n)
-            br, tr = _idx(R, e, t)
-            Rt = R[br, tr]
-            for i in range(m):
-                for j in range(m):
-                    Lq[i, j] = 0.5 * (Rt[i, j] + Rt[j, i])
                 acc = 0.0
-                for kk in range(n):
-                    acc += Bt[kk, i] * wv[kk]
-                y[i] = acc
-            _acc_tn_sized(Lq, Bt, PB, 1.0, False, fixed, m, m, n)
-            Y[:] = 0.0
-            _acc_tn_sized(Y, Bt, PA, 1.0, False, fixed, m, n, n)
-            if has_S:
-                bs, ts = _idx(S, e, t)
-                St = S[bs, ts]
-                for i in range(m):
-                    for j in range(n):
-                        Y[i, j] += St[i, j]
-            if has_r:
-                bl, tl = _idx(r, e, t)
-                for i in range(m):
-                    y[i] += r[bl, tl, i]
-            # Cholesky Quu = Lq Lq' in place; Y = Lq^{-1} Qux, y = Lq^{-1} qu
-            for j in range(m):
-                d = Lq[j, j]
-                for kk in range(j):
-                    d -= Lq[j, kk] * Lq[j, kk]
-                if not d > 0.0:  # also NaN
-                    ok = False
-                    break
-                d = math.sqrt(d)
-                Lq[j, j] = d
-                for i in range(j + 1, m):
-                    acc = Lq[i, j]
-                    for kk in range(j):
-                        acc -= Lq[i, kk] * Lq[j, kk]
-                    Lq[i, j] = acc / d
-            if not ok:
-                break
-            for i in range(m):
-                di = 1.0 / Lq[i, i]
                 for j in range(n):
-                    acc = Y[i, j]
-                    for kk in range(i):
-                        acc -= Lq[i, kk] * Y[kk, j]
-                    Y[i, j] = acc * di
-                acc = y[i]
-                for kk in range(i):
-                    acc -= Lq[i, kk] * y[kk]
-                y[i] = acc * di
-            # P = Q + A'PA - Y'Y (upper triangle, mirrored), p = q + A'w - Y'y
-            Pc = P[e, t]
-            pc = p[e, t]
-            bq, tq = _idx(Q, e, t)
-            Qt = Q[bq, tq]
+                    acc += Pn[i, j] * ct[j]
+                sv += ct[i] * (pn[i] + 0.5 * acc)
+                wv[i] = acc + pn[i]
+        else:
             for i in range(n):
-                for j in range(i, n):
-                    Pc[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
-                acc = 0.0
-                for kk in range(n):
-                    acc += At[kk, i] * wv[kk]
-                for kk in range(m):
-                    acc -= Y[kk, i] * y[kk]
-                pc[i] = acc
-            _acc_tn_sized(Pc, At, PA, 1.0, True, fixed, n, n, n)
-            _acc_tn_sized(Pc, Y, Y, -1.0, True, fixed, n, n, m)
+                wv[i] = pn[i]
+        # PA = P'A, PB = P'B (P' symmetric), Quu = R + B'PB (its lower triangle
+        # is read), Qux = B'PA (+ S below), qu = B'w (+ r below)
+        PA[:] = 0.0
+        PB[:] = 0.0
+        _acc_tn_sized(PA, Pn, At, 1.0, False, fixed, n, n, n)
+        _acc_tn_sized(PB, Pn, Bt, 1.0, False, fixed, n, m, n)
+        br, tr = _idx(R, e, t)
+        Rt = R[br, tr]
+        for i in range(m):
+            for j in range(m):
+                Lq[i, j] = 0.5 * (Rt[i, j] + Rt[j, i])
+            Lq[i, i] += reg
+            acc = 0.0
+            for kk in range(n):
+                acc += Bt[kk, i] * wv[kk]
+            y[i] = acc
+        _acc_tn_sized(Lq, Bt, PB, 1.0, False, fixed, m, m, n)
+        Y[:] = 0.0
+        _acc_tn_sized(Y, Bt, PA, 1.0, False, fixed, m, n, n)
+        if has_S:
+            bs, ts = _idx(S, e, t)
+            St = S[bs, ts]
+            for i in range(m):
+                for j in range(n):
+                    Y[i, j] += St[i, j]
+        if has_r:
+            bl, tl = _idx(r, e, t)
+            for i in range(m):
+                y[i] += r[bl, tl, i]
+        # Cholesky Quu = Lq Lq' in place; Y = Lq^{-1} Qux, y = Lq^{-1} qu
+        for j in range(m):
+            d = Lq[j, j]
+            for kk in range(j):
+                d -= Lq[j, kk] * Lq[j, kk]
+            if not d > 0.0:  # also NaN
+                ok = False
+                break
+            d = math.sqrt(d)
+            Lq[j, j] = d
+            for i in range(j + 1, m):
+                acc = Lq[i, j]
+                for kk in range(j):
+                    acc -= Lq[i, kk] * Lq[j, kk]
+                Lq[i, j] = acc / d
+        if not ok:
+            break
+        for i in range(m):
+            di = 1.0 / Lq[i, i]
+            for j in range(n):
+                acc = Y[i, j]
+                for kk in range(i):
+                    acc -= Lq[i, kk] * Y[kk, j]
+                Y[i, j] = acc * di
+            acc = y[i]
+            for kk in range(i):
+                acc -= Lq[i, kk] * y[kk]
+            y[i] = acc * di
+        # P = Q + A'PA - Y'Y (upper triangle, mirrored), p = q + A'w - Y'y
+        Pc = P[e, t]
+        pc = p[e, t]
+        bq, tq = _idx(Q, e, t)
+        Qt = Q[bq, tq]
+        for i in range(n):
+            for j in range(i, n):
+                Pc[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
+            acc = 0.0
+            for kk in range(n):
+                acc += At[kk, i] * wv[kk]
+            for kk in range(m):
+                acc -= Y[kk, i] * y[kk]
+            pc[i] = acc
+        _acc_tn_sized(Pc, At, PA, 1.0, True, fixed, n, n, n)
+        _acc_tn_sized(Pc, Y, Y, -1.0, True, fixed, n, n, m)
+        for i in range(n):
+            for j in range(i + 1, n):
+                Pc[j, i] = Pc[i, j]
+        if has_q:
+            bl, tl = _idx(q, e, t)
+            for i in range(n):
+                pc[i] += q[bl, tl, i]
+        for kk in range(m):
+            sv -= 0.5 * y[kk] * y[kk]
+        # [K k] = -Lq'^{-1} [Y y]
+        Kt = Kk[e, t]
+        Lt = L[e, t]
+        for i in range(m - 1, -1, -1):
+            di = 1.0 / Lq[i, i]
+            for j in range(n + 1):
+                acc = Y[i, j] if j < n else y[i]
+                for kk in range(i + 1, m):
+                    acc -= Lq[kk, i] * Kt[kk, j]
+                Kt[i, j] = acc * di
+            for j in range(m):
+                Lt[i, j] = Lq[i, j] if j <= i else 0.0
+        for i in range(m):
+            for j in range(n + 1):
+                Kt[i, j] = -Kt[i, j]
+        if reg != 0.0:  # the value of the regularised gains: - reg [K k]'[K k]
+            for kk in range(m):
+                kr = Kt[kk]
+                for i in range(n):
+                    a = reg * kr[i]
+                    for j in range(i, n):
+                        Pc[i, j] -= a * kr[j]
+                    pc[i] -= a * kr[n]
+                sv -= 0.5 * reg * kr[n] * kr[n]
             for i in range(n):
                 for j in range(i + 1, n):
                     Pc[j, i] = Pc[i, j]
-            if has_q:
-                bl, tl = _idx(q, e, t)
-                for i in range(n):
-                    pc[i] += q[bl, tl, i]
-            for kk in range(m):
-                sv -= 0.5 * y[kk] * y[kk]
-            # [K k] = -Lq'^{-1} [Y y]
-            Kt = Kk[e, t]
-            Lt = L[e, t]
-            for i in range(m - 1, -1, -1):
-                di = 1.0 / Lq[i, i]
-                for j in range(n + 1):
-                    acc = Y[i, j] if j < n else y[i]
-                    for kk in range(i + 1, m):
-                        acc -= Lq[kk, i] * Kt[kk, j]
-                    Kt[i, j] = acc * di
-                for j in range(m):
-                    Lt[i, j] = Lq[i, j] if j <= i else 0.0
-            for i in range(m):
-                for j in range(n + 1):
-                    Kt[i, j] = -Kt[i, j]
-            Pn = Pc
-            pn = pc
-        s[e] = sv
-        failed[e] = not ok
+        if steps:
+            s2[e, t] = 2.0 * sv
+        Pn = Pc
+        pn = pc
+    return ok, sv
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+def riccati_gain_reg_kernel(
+    b0, b1, pieces, reg, Kk, P, p, L, s2, failed, mu_io, delta_io, may_restart, restart_opts,
+    nt, mt,
+):  # fmt: skip
+    """The solvers' unconstrained Riccati pass (:func:`torchslq.lq.riccati_backward`
+    without bounds or second-order terms) in gain form, per element ``b0 <= b < b1``:
+    :func:`_gain_pass` with ``reg`` (``(1 or B,)``) on ``Quu``'s diagonal, its outputs
+    the homogeneous value function's blocks (``P``, ``p``, ``s2`` may be views of ``Vh``'s
+    ``[:n, :n]``, ``[:n, n]`` and ``[n, n]``). Same outputs and restarts as
+    :func:`._numba_kernels.riccati_kernel` (``mu_io``, ``delta_io``, ``may_restart``,
+    ``restart_opts``: see there; empty: no restarts), for a fraction of its time on small
+    problems (no ``(n+1) x (m+n+1)`` blocks assembled, sizes fixed by ``nt, mt``)."""
+    scratch = _gain_scratch(Kk.shape[3] - 1, Kk.shape[2], Kk.dtype)
+    _gain_reg_rows(
+        b0, b1, pieces, reg, Kk, P, p, L, s2, failed, mu_io, delta_io, may_restart,
+        restart_opts, scratch, nt, mt,
+    )  # fmt: skip
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
+def _gain_reg_rows(
+    b0, b1, pieces, reg, Kk, P, p, L, s2, failed, mu_io, delta_io, may_restart, restart_opts,
+    scratch, nt, mt,
+):  # fmt: skip
+    """The loop of :func:`riccati_gain_reg_kernel` (the restart schedule of
+    :func:`._numba_kernels.riccati_kernel`)."""
+    T = Kk.shape[1]
+    restarting = mu_io.shape[0] > 0
+    for b in range(b0, b1):
+        r = reg[b if reg.shape[0] > 1 else 0]
+        delta = 0.0
+        if restarting:
+            r = mu_io[b]
+            delta = delta_io[b]
+        restarts = 0
+        while True:
+            ok, _ = _gain_pass(b, pieces, Kk, P, p, L, s2, r, scratch, nt, mt)
+            # non-finite gains count as a failure, as in the homogeneous kernel (where a
+            # non-finite linear term reaches Quu through its zero entries of F)
+            if ok:
+                ok = _finite_gains(Kk[b])
+            if not restarting:
+                break
+            if ok or not may_restart[b] or r > restart_opts[2] or restarts >= restart_opts[3]:
+                break
+            delta = max(restart_opts[0], delta * restart_opts[0])
+            r = max(restart_opts[1], r * delta)
+            restarts += 1
+            # a fresh pass leaves zeros below a failing step: so does a repeated one
+            Kk[b] = 0.0
+            L[b] = 0.0
+            P[b, :T] = 0.0
+            p[b, :T] = 0.0
+            s2[b, :T] = 0.0
+        failed[b] = not ok
+        if restarting:
+            mu_io[b] = r
+            delta_io[b] = delta
+
+
+@numba.njit(cache=True, nogil=True, _nrt=False)
+def _finite_gains(Kb):
+    """Whether every entry of one element's gains ``(T, m, n+1)`` is finite."""
+    for t in range(Kb.shape[0]):
+        for i in range(Kb.shape[1]):
+            for j in range(Kb.shape[2]):
+                if not math.isfinite(Kb[t, i, j]):
+                    return False
+    return True
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")

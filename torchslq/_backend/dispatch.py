@@ -288,28 +288,26 @@ def riccati_compiled(
         reg = mu
     from ._numba_gemm import slp_vectorized
 
-    with slp_vectorized():  # for its register-blocked products, on the first call
-        _launch(
-            _kernels().riccati_kernel,
-            nb,
-            T,
-            *arrays,
-            _reg_array(reg, batch, dtype),
-            *_hessian_arrays(hessians, dtype),
-            reg is None and not boxed,
-            lower,
-            upper,
-            float(box_tol),
-            _box_opts(),
-            Kk.numpy(),
-            Vh.numpy(),
-            L.numpy(),
-            clamped.numpy(),
-            failed.numpy(),
-            dV.numpy(),
-            piece_arrays,
-            *restart_arrays,
-        )
+    witness = _kernels().size_witness(n1 - 1, m)
+    if pieces is not None and hessians is None and not boxed and witness[0]:
+        # the common unconstrained pass of a small problem: in gain form, its sizes
+        # fixed when compiled (riccati_gain_reg_kernel), into the blocks of Vh
+        n = n1 - 1
+        Vhn = Vh.numpy()
+        with slp_vectorized():
+            _launch(
+                _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
+                _reg_array(reg, batch, dtype), Kk.numpy(), Vhn[:, :, :n, :n],
+                Vhn[:, :, :n, n], L.numpy(), Vhn[:, :, n, n], failed.numpy(),
+                *restart_arrays[1:], restart_arrays[0], *witness,
+            )  # fmt: skip
+        Vhn[:, :, n, :n] = Vhn[:, :, :n, n]
+    else:
+        with slp_vectorized():  # for its register-blocked products, on the first call
+            _riccati_homogeneous_launch(
+                arrays, reg, batch, dtype, hessians, boxed, lower, upper, box_tol, Kk, Vh, L,
+                clamped, failed, dV, piece_arrays, restart_arrays,
+            )  # fmt: skip
     return (
         Kk.reshape(*batch, T, m, n1),
         Vh.reshape(*batch, T + 1, n1, n1),
@@ -320,6 +318,20 @@ def riccati_compiled(
         None if mu is None else mu.reshape(batch),
         None if delta is None else delta.reshape(batch),
     )
+
+
+def _riccati_homogeneous_launch(
+    arrays, reg, batch, dtype, hessians, boxed, lower, upper, box_tol, Kk, Vh, L, clamped,
+    failed, dV, piece_arrays, restart_arrays,
+) -> None:  # fmt: skip
+    """:func:`riccati_compiled`'s launch of the homogeneous kernel (``riccati_kernel``)."""
+    _launch(
+        _kernels().riccati_kernel, Kk.shape[0], Kk.shape[1], *arrays,
+        _reg_array(reg, batch, dtype), *_hessian_arrays(hessians, dtype),
+        reg is None and not boxed, lower, upper, float(box_tol), _box_opts(), Kk.numpy(),
+        Vh.numpy(), L.numpy(), clamped.numpy(), failed.numpy(), dV.numpy(), piece_arrays,
+        *restart_arrays,
+    )  # fmt: skip
 
 
 def rollout_compiled(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
