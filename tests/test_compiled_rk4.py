@@ -288,11 +288,19 @@ def test_lanes_kernel_equals_the_row_by_row_kernel(model, R):
     weight vectors (W = 0: Jacobians only)."""
     import numpy as np
 
+    from torchslq._backend.model_fns import function_value
     from torchslq.dynamics import _numba_rk4 as k
     from torchslq.dynamics.compiled_rk4 import rk4_hooks
 
     cont = _step(model=model).continuous
     h = rk4_hooks(cont.compiled_rhs(), cont.compiled_derivatives())
+    # the model's functions as the launchers pass them (first-class function values): a
+    # cached kernel called with the dispatchers themselves would add a signature per
+    # process to its on-disk index, which numba cannot load once they are gone
+    fns = (
+        function_value(h.rhs, "rhs", np.float64, h.params.dtype),
+        function_value(h.derivatives, "derivs", np.float64, h.params.dtype),
+    )
     n, m = cont.state_dim, cont.control_dim
     rng = np.random.default_rng(R)
     x, u = rng.normal(size=(R, n)), rng.normal(size=(R, m))
@@ -307,7 +315,7 @@ def test_lanes_kernel_equals_the_row_by_row_kernel(model, R):
             Wk = W if kernel is k.rk4_lanes_kernel else 2 * n
             arrays = [np.full((Wk, R, n + m, n + m), 7.0)]  # [u; x] blocks
             arrays += [np.full((R, n, n), 7.0), np.full((R, n, m), 7.0)]
-            args = (h.rhs, h.derivatives, h.params, 0.07, h.curved_outputs, h.curved_entries)
+            args = (*fns, h.params, 0.07, h.curved_outputs, h.curved_entries)
             kernel(r0, r1, *args, x, u, np.ascontiguousarray(S[:Wk]), *arrays)
             out.extend(arrays)
         np.testing.assert_array_equal(got[0], want[0][:W])
