@@ -275,31 +275,31 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, scratch, nt, mt):
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def riccati_gain_reg_kernel(
-    b0, b1, pieces, reg, Kk, P, p, L, s2, failed, mu_io, delta_io, may_restart, restart_opts,
-    nt, mt,
+    b0, b1, pieces, reg, Kk, Vh, L, failed, mu_io, delta_io, may_restart, restart_opts, nt, mt,
 ):  # fmt: skip
     """The solvers' unconstrained Riccati pass (:func:`torchslq.lq.riccati_backward`
     without bounds or second-order terms) in gain form, per element ``b0 <= b < b1``:
-    :func:`_gain_pass` with ``reg`` (``(1 or B,)``) on ``Quu``'s diagonal, its outputs
-    the homogeneous value function's blocks (``P``, ``p``, ``s2`` may be views of ``Vh``'s
-    ``[:n, :n]``, ``[:n, n]`` and ``[n, n]``). Same outputs and restarts as
+    :func:`_gain_pass` with ``reg`` (``(1 or B,)``) on ``Quu``'s diagonal, its value
+    functions written into the blocks of the homogeneous ``Vh (B, T+1, n+1, n+1)``
+    (``P``, ``p`` and its mirror, twice the constant). Same outputs and restarts as
     :func:`._numba_kernels.riccati_kernel` (``mu_io``, ``delta_io``, ``may_restart``,
     ``restart_opts``: see there; empty: no restarts), for a fraction of its time on small
     problems (no ``(n+1) x (m+n+1)`` blocks assembled, sizes fixed by ``nt, mt``)."""
-    scratch = _gain_scratch(Kk.shape[3] - 1, Kk.shape[2], Kk.dtype)
+    n = Kk.shape[3] - 1
+    scratch = _gain_scratch(n, Kk.shape[2], Kk.dtype)
     _gain_reg_rows(
-        b0, b1, pieces, reg, Kk, P, p, L, s2, failed, mu_io, delta_io, may_restart,
-        restart_opts, scratch, nt, mt,
+        b0, b1, pieces, reg, Kk, Vh[:, :, :n, :n], Vh[:, :, :n, n], L, Vh[:, :, n, n], Vh,
+        failed, mu_io, delta_io, may_restart, restart_opts, scratch, nt, mt,
     )  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
 def _gain_reg_rows(
-    b0, b1, pieces, reg, Kk, P, p, L, s2, failed, mu_io, delta_io, may_restart, restart_opts,
-    scratch, nt, mt,
+    b0, b1, pieces, reg, Kk, P, p, L, s2, Vh, failed, mu_io, delta_io, may_restart,
+    restart_opts, scratch, nt, mt,
 ):  # fmt: skip
     """The loop of :func:`riccati_gain_reg_kernel` (the restart schedule of
-    :func:`._numba_kernels.riccati_kernel`)."""
+    :func:`._numba_kernels.riccati_kernel`); ``P``, ``p``, ``s2`` are views of ``Vh``."""
     T = Kk.shape[1]
     restarting = mu_io.shape[0] > 0
     for b in range(b0, b1):
@@ -332,6 +332,11 @@ def _gain_reg_rows(
         if restarting:
             mu_io[b] = r
             delta_io[b] = delta
+        n = p.shape[2]
+        for t in range(T + 1):  # Vh's last row mirrors its last column
+            Vt = Vh[b, t]
+            for i in range(n):
+                Vt[n, i] = Vt[i, n]
 
 
 @numba.njit(cache=True, nogil=True, _nrt=False)

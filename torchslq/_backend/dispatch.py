@@ -261,10 +261,12 @@ def riccati_compiled(
         piece_arrays = _piece_arrays(pieces, batch, dtype)
     m = mn1 - n1
     nb = math.prod(batch)
-    Kk = torch.zeros(nb, T, m, n1, dtype=dtype)
-    Vh = torch.zeros(nb, T + 1, n1, n1, dtype=dtype)
-    L = torch.zeros(nb, T, m, m, dtype=dtype)
-    failed = torch.zeros(nb, dtype=torch.bool)
+    # outputs allocated by numpy and shared with torch (cheaper than torch.zeros, which
+    # counts at B = 1); zero: a failed element's steps below its failure stay zero
+    Kk = torch.from_numpy(np.zeros((nb, T, m, n1), npd))
+    Vh = torch.from_numpy(np.zeros((nb, T + 1, n1, n1), npd))
+    L = torch.from_numpy(np.zeros((nb, T, m, m), npd))
+    failed = torch.from_numpy(np.zeros(nb, np.bool_))
     boxed = bounds is not None
     clamped = torch.zeros(nb if boxed else 0, T, m, dtype=torch.bool)
     dV = torch.zeros(nb if boxed else 0, 2, dtype=dtype)
@@ -281,7 +283,11 @@ def riccati_compiled(
             np.zeros(0, np.bool_),
         )
     else:
-        mu, delta = (t.detach().to(dtype).expand(batch).reshape(nb).clone() for t in restarts[:2])
+        mu, delta = (
+            t.detach().clone() if t.shape == (nb,) and t.dtype == dtype and t.is_contiguous()
+            else t.detach().to(dtype).expand(batch).reshape(nb).clone()
+            for t in restarts[:2]
+        )  # fmt: skip
         allowed = restarts[2].expand(batch).reshape(nb).contiguous()
         opts = np.array(restarts[3], dtype=np.float64)
         restart_arrays = (opts, mu.numpy(), delta.numpy(), allowed.numpy())
@@ -292,16 +298,12 @@ def riccati_compiled(
     if pieces is not None and hessians is None and not boxed and witness[0]:
         # the common unconstrained pass of a small problem: in gain form, its sizes
         # fixed when compiled (riccati_gain_reg_kernel), into the blocks of Vh
-        n = n1 - 1
-        Vhn = Vh.numpy()
         with slp_vectorized():
             _launch(
                 _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
-                _reg_array(reg, batch, dtype), Kk.numpy(), Vhn[:, :, :n, :n],
-                Vhn[:, :, :n, n], L.numpy(), Vhn[:, :, n, n], failed.numpy(),
-                *restart_arrays[1:], restart_arrays[0], *witness,
+                _reg_array(reg, batch, dtype), Kk.numpy(), Vh.numpy(), L.numpy(),
+                failed.numpy(), *restart_arrays[1:], restart_arrays[0], *witness,
             )  # fmt: skip
-        Vhn[:, :, n, :n] = Vhn[:, :, :n, n]
     else:
         with slp_vectorized():  # for its register-blocked products, on the first call
             _riccati_homogeneous_launch(
