@@ -402,27 +402,44 @@ def _pieces_cases():
     }  # fmt: skip
 
 
+def _small_hessians(batch: torch.Size, T: int, n: int, m: int, joint: bool):
+    """DDP's output Hessians for a flat ``batch``, small and symmetric: the blocks as
+    separate tensors, or as views of one ``[u; x]`` tensor (the compiled models' form)."""
+    g = torch.Generator().manual_seed(11)
+    Hz = 0.05 * torch.randn(n, batch.numel(), T, m + n, m + n, generator=g, dtype=F64)
+    Hz = Hz + Hz.mT
+    if joint:
+        return _HessianHook(Hz[..., m:, m:], Hz[..., :m, :m], Hz[..., :m, m:])
+    blocks = (Hz[..., m:, m:], Hz[..., :m, :m], Hz[..., :m, m:])
+    return _HessianHook(*(b.contiguous() for b in blocks))
+
+
 @pytest.mark.parametrize("case", list(_pieces_cases()))
-@pytest.mark.parametrize("extra", ["none", "reg", "bounds"])
+@pytest.mark.parametrize("extra", ["none", "reg", "bounds", "hessians", "joint hessians"])
 def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeypatch, case, extra):
     """riccati_backward on the CPU hands the LQ data to a kernel, and the homogeneous
     tensors are never built: the same factors as the torch path. With bounds the
     homogeneous kernel assembles each step's F_t, H_t itself (bitwise the kernel fed
     with the F, H built by homogeneous_dynamics/_cost); without, this small problem's
-    pass runs in gain form (riccati_gain_reg_kernel), equal to within rounding."""
+    pass runs in gain form (riccati_gain_reg_kernel), equal to within rounding, DDP's
+    Hessian terms included (the same bits from separate blocks or one joint tensor)."""
     from torchslq._backend import _numba_gain
     from torchslq.lq import riccati
 
     kw = _pieces_cases()[case]
     batch = torch.broadcast_shapes(kw["A"].shape[:-3], kw["B"].shape[:-3])
+    T, n, m = kw["A"].shape[-3], kw["A"].shape[-1], kw["B"].shape[-1]
+    if "hessians" in extra and len(batch) != 1:
+        pytest.skip("the hook's Hessians have one flat batch dim")
     kw |= {
         "none": {},
         "reg": {"reg": torch.linspace(0.0, 0.4, batch.numel(), dtype=F64).reshape(batch)},
         "bounds": {"u_bounds": (-0.3 * torch.ones(1, dtype=F64), 0.3 * torch.ones(1, dtype=F64))},
+        "hessians": {"stage_hook": _small_hessians(batch, T, n, m, joint=False)},
+        "joint hessians": {"stage_hook": _small_hessians(batch, T, n, m, joint=True)},
     }[extra]
     with torch_path:
         ref = ts.riccati_backward(**kw)
-    T = kw["A"].shape[-3]
 
     def forbidden(*a, **k):
         raise AssertionError("homogeneous tensors built on the compiled path")
@@ -454,11 +471,17 @@ def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeyp
         riccati.with_time(kw.get("r"), 1, T),
         riccati.with_time(kw.get("S"), 2, T),
     )
-    homog = riccati_homogeneous(F, H, VhT, kw.get("reg"), u_bounds=kw.get("u_bounds"))
+    homog = riccati_homogeneous(
+        F, H, VhT, kw.get("reg"), kw.get("stage_hook"), u_bounds=kw.get("u_bounds")
+    )
     if extra == "bounds":
         assert torch.equal(fast.Kk, homog.Kk) and torch.equal(fast.Vh, homog.Vh)
     else:
         _close(fast, homog, rtol=1e-12)
+    if extra == "joint hessians":  # the same bits as from the separate blocks
+        blocks = _HessianHook(*(b.contiguous() for b in kw["stage_hook"].blocks))
+        sep = ts.riccati_backward(**{**kw, "stage_hook": blocks})
+        assert torch.equal(fast.Kk, sep.Kk) and torch.equal(fast.Vh, sep.Vh)
 
 
 def test_riccati_backward_shape_errors_come_from_the_torch_path():

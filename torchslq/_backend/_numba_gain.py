@@ -87,6 +87,7 @@ def _gain_scratch(n, m, dt):
         np.empty(m, dtype=dt),
         np.zeros((m, m), dtype=dt),
         np.zeros((0, 0), dtype=dt),  # an empty s2 (no per-step constants)
+        np.zeros((0, 0, 0, 0, 0), dtype=dt),  # empty Hessians (no second-order terms)
     )
 
 
@@ -95,14 +96,17 @@ def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch, nt, mt):
     """The loop of :func:`riccati_gain_kernel` (without reference counting, see
     :mod:`._numba_kernels`); ``scratch = (PA (n, n), PB (n, m), w (n,), Y (m, n), y (m,),
     Lq (m, m), an empty (0, 0) array)``; ``nt, mt``: :func:`size_witness`."""
+    none = scratch[7]
     for e in range(b0, b1):
-        ok, sv = _gain_pass(e, pieces, Kk, P, p, L, scratch[6], 0.0, scratch, nt, mt)
+        ok, sv = _gain_pass(
+            e, pieces, Kk, P, p, L, scratch[6], 0.0, none, (none, none, none), scratch, nt, mt
+        )
         s[e] = sv
         failed[e] = not ok
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
-def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, scratch, nt, mt):
+def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, Hz, Hb, scratch, nt, mt):
     """The gain-form pass of element ``e`` (module docstring) with ``reg`` added to
     ``Quu``'s diagonal, into ``Kk[e]``, ``P[e]``, ``p[e]``, ``L[e]`` and, where ``s2`` is not
     empty, twice the value function's constant per step into ``s2[e]`` (the corner of
@@ -114,13 +118,21 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, scratch, nt, mt):
     one of those gains on the true ``Quu`` (Tassa, Erez & Todorov 2012's form, as the
     homogeneous kernel's: ``Qxx + K'Quu K + K'Qux + Qux'K``, exact for any gains), which with ``Y = L^{-1} Qux`` and
     ``Quu + reg I = L L'`` is ``P = Qxx - Y'Y - reg K'K``, ``p = qx - Y'y - reg K'k``,
-    ``s = ... - (y'y + reg k'k) / 2``: the homogeneous kernel's values."""
+    ``s = ... - (y'y + reg k'k) / 2``: the homogeneous kernel's values.
+
+    DDP's second-order terms: where ``Hz (T, n, B, m+n, m+n)`` (``[u; x]`` order) or the
+    blocks ``Hb = (Hxx (n, B, T, n, n), Huu (n, B, T, m, m), Hux (n, B, T, m, n))`` are
+    not empty, ``sum_k p'_k f^k_zz`` (``p'`` the next step's value gradient) is added to
+    ``Quu``, ``Qux`` and ``Qxx``, as the homogeneous kernel adds it to its ``M``; the two
+    layouts give the same bits."""
     T = Kk.shape[1]
     fixed = len(nt) > 0
     m = len(mt) if fixed else Kk.shape[2]
     n = len(nt) if fixed else Kk.shape[3] - 1
     A, Bm, c, Q, R, S, q, r = pieces
-    PA, PB, wv, Y, y, Lq, _ = scratch
+    PA, PB, wv, Y, y, Lq = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
+    joint = Hz.shape[0] > 0
+    second = joint or Hb[0].shape[0] > 0
     has_c, has_S, has_q, has_r = c.shape[0] > 0, S.shape[0] > 0, q.shape[0] > 0, r.shape[0] > 0
     steps = s2.shape[0] > 0
     bq, tq = _idx(Q, e, T)
@@ -186,6 +198,14 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, scratch, nt, mt):
             bl, tl = _idx(r, e, t)
             for i in range(m):
                 y[i] += r[bl, tl, i]
+        if second:  # Quu += sum_k p'_k f^k_uu, Qux += sum_k p'_k f^k_ux
+            for k in range(n):
+                v = pn[k]
+                for i in range(m):
+                    for j in range(m):
+                        Lq[i, j] += v * (Hz[t, k, e, i, j] if joint else Hb[1][k, e, t, i, j])
+                    for j in range(n):
+                        Y[i, j] += v * (Hz[t, k, e, i, m + j] if joint else Hb[2][k, e, t, i, j])
         # Cholesky Quu = Lq Lq' in place; Y = Lq^{-1} Qux, y = Lq^{-1} qu
         for j in range(m):
             d = Lq[j, j]
@@ -222,6 +242,13 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, scratch, nt, mt):
         for i in range(n):
             for j in range(i, n):
                 Pc[i, j] = 0.5 * (Qt[i, j] + Qt[j, i])
+            if second:  # Qxx += sum_k p'_k f^k_xx
+                for k in range(n):
+                    v = pn[k]
+                    for j in range(i, n):
+                        Pc[i, j] += v * (
+                            Hz[t, k, e, m + i, m + j] if joint else Hb[0][k, e, t, i, j]
+                        )
             acc = 0.0
             for kk in range(n):
                 acc += At[kk, i] * wv[kk]
@@ -275,11 +302,13 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, scratch, nt, mt):
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def riccati_gain_reg_kernel(
-    b0, b1, pieces, reg, Kk, Vh, L, failed, mu_io, delta_io, may_restart, restart_opts, nt, mt,
+    b0, b1, pieces, reg, Hz, Hb, Kk, Vh, L, failed, mu_io, delta_io, may_restart, restart_opts,
+    nt, mt,
 ):  # fmt: skip
     """The solvers' unconstrained Riccati pass (:func:`torchslq.lq.riccati_backward`
     without bounds or second-order terms) in gain form, per element ``b0 <= b < b1``:
-    :func:`_gain_pass` with ``reg`` (``(1 or B,)``) on ``Quu``'s diagonal, its value
+    :func:`_gain_pass` with ``reg`` (``(1 or B,)``) on ``Quu``'s diagonal and DDP's
+    Hessians ``Hz`` or ``Hb`` (see there; empty: none), its value
     functions written into the blocks of the homogeneous ``Vh (B, T+1, n+1, n+1)``
     (``P``, ``p`` and its mirror, twice the constant). Same outputs and restarts as
     :func:`._numba_kernels.riccati_kernel` (``mu_io``, ``delta_io``, ``may_restart``,
@@ -288,14 +317,14 @@ def riccati_gain_reg_kernel(
     n = Kk.shape[3] - 1
     scratch = _gain_scratch(n, Kk.shape[2], Kk.dtype)
     _gain_reg_rows(
-        b0, b1, pieces, reg, Kk, Vh[:, :, :n, :n], Vh[:, :, :n, n], L, Vh[:, :, n, n], Vh,
-        failed, mu_io, delta_io, may_restart, restart_opts, scratch, nt, mt,
+        b0, b1, pieces, reg, Hz, Hb, Kk, Vh[:, :, :n, :n], Vh[:, :, :n, n], L,
+        Vh[:, :, n, n], Vh, failed, mu_io, delta_io, may_restart, restart_opts, scratch, nt, mt,
     )  # fmt: skip
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
 def _gain_reg_rows(
-    b0, b1, pieces, reg, Kk, P, p, L, s2, Vh, failed, mu_io, delta_io, may_restart,
+    b0, b1, pieces, reg, Hz, Hb, Kk, P, p, L, s2, Vh, failed, mu_io, delta_io, may_restart,
     restart_opts, scratch, nt, mt,
 ):  # fmt: skip
     """The loop of :func:`riccati_gain_reg_kernel` (the restart schedule of
@@ -310,7 +339,7 @@ def _gain_reg_rows(
             delta = delta_io[b]
         restarts = 0
         while True:
-            ok, _ = _gain_pass(b, pieces, Kk, P, p, L, s2, r, scratch, nt, mt)
+            ok, _ = _gain_pass(b, pieces, Kk, P, p, L, s2, r, Hz, Hb, scratch, nt, mt)
             # non-finite gains count as a failure, as in the homogeneous kernel (where a
             # non-finite linear term reaches Quu through its zero entries of F)
             if ok:

@@ -295,13 +295,16 @@ def riccati_compiled(
     from ._numba_gemm import slp_vectorized
 
     witness = _kernels().size_witness(n1 - 1, m)
-    if pieces is not None and hessians is None and not boxed and witness[0]:
-        # the common unconstrained pass of a small problem: in gain form, its sizes
-        # fixed when compiled (riccati_gain_reg_kernel), into the blocks of Vh
+    if pieces is not None and not boxed and witness[0] and (hessians is None or npd == np.float64):
+        # the unconstrained pass of a small problem (iLQR's, DDP's with its Hessians): in
+        # gain form, its sizes fixed when compiled (riccati_gain_reg_kernel), into the
+        # blocks of Vh. (DDP's pass in float32 keeps the homogeneous kernel: in gain form
+        # a float32 cart-pole DDP stalled at a gradient of 1.8e-3 instead of 1.7e-4.)
         with slp_vectorized():
             _launch(
                 _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
-                _reg_array(reg, batch, dtype), Kk.numpy(), Vh.numpy(), L.numpy(),
+                _reg_array(reg, batch, dtype), *_hessian_arrays(hessians, dtype), Kk.numpy(),
+                Vh.numpy(), L.numpy(),
                 failed.numpy(), *restart_arrays[1:], restart_arrays[0], *witness,
             )  # fmt: skip
     else:
