@@ -31,7 +31,13 @@ import numba
 import numpy as np
 
 from ._numba_gemm import acc_tn
-from ._numba_kernels import _idx, lq_rollout_kernel, size_witness  # noqa: F401 (re-exported)
+from ._numba_kernels import (  # noqa: F401 (size_witness re-exported)
+    _idx,
+    finite_gains,
+    lq_rollout_kernel,
+    restart_step,
+    size_witness,
+)
 
 # from this state dimension on, the adjoint pass runs its transposed products in row order
 ROW_ORDER_N = 8
@@ -343,13 +349,12 @@ def _gain_reg_rows(
             # non-finite gains count as a failure, as in the homogeneous kernel (where a
             # non-finite linear term reaches Quu through its zero entries of F)
             if ok:
-                ok = _finite_gains(Kk[b])
+                ok = finite_gains(Kk[b])
             if not restarting:
                 break
-            if ok or not may_restart[b] or r > restart_opts[2] or restarts >= restart_opts[3]:
+            stop, r, delta = restart_step(ok, may_restart[b], r, delta, restarts, restart_opts)
+            if stop:
                 break
-            delta = max(restart_opts[0], delta * restart_opts[0])
-            r = max(restart_opts[1], r * delta)
             restarts += 1
             # a fresh pass leaves zeros below a failing step: so does a repeated one
             Kk[b] = 0.0
@@ -366,17 +371,6 @@ def _gain_reg_rows(
             Vt = Vh[b, t]
             for i in range(n):
                 Vt[n, i] = Vt[i, n]
-
-
-@numba.njit(cache=True, nogil=True, _nrt=False)
-def _finite_gains(Kb):
-    """Whether every entry of one element's gains ``(T, m, n+1)`` is finite."""
-    for t in range(Kb.shape[0]):
-        for i in range(Kb.shape[1]):
-            for j in range(Kb.shape[2]):
-                if not math.isfinite(Kb[t, i, j]):
-                    return False
-    return True
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")

@@ -610,11 +610,10 @@ def riccati_kernel(
             if not restarting:
                 break
             if ok:
-                ok = _finite(Kk[b])
-            if ok or not may_restart[b] or r > restart_opts[2] or restarts >= restart_opts[3]:
+                ok = finite_gains(Kk[b])
+            stop, r, delta = restart_step(ok, may_restart[b], r, delta, restarts, restart_opts)
+            if stop:
                 break
-            delta = max(restart_opts[0], delta * restart_opts[0])
-            r = max(restart_opts[1], r * delta)
             restarts += 1
             # a fresh pass leaves zeros below a failing step: so does a repeated one
             Kk[b] = 0.0
@@ -629,13 +628,28 @@ def riccati_kernel(
             dV[b, 1] = curv
 
 
-@numba.njit(cache=True, nogil=True)
-def _finite(a):
-    """Whether every entry of ``a`` is finite."""
-    for v in a.ravel():
-        if not np.isfinite(v):
-            return False
+@numba.njit(cache=True, nogil=True, _nrt=False)
+def finite_gains(Kb):
+    """Whether every entry of one element's gains ``(T, m, n+1)`` is finite."""
+    for t in range(Kb.shape[0]):
+        for i in range(Kb.shape[1]):
+            for j in range(Kb.shape[2]):
+                if not math.isfinite(Kb[t, i, j]):
+                    return False
     return True
+
+
+@numba.njit(cache=True, nogil=True, _nrt=False)
+def restart_step(ok, may_restart, r, delta, restarts, opts):
+    """Tassa et al.'s schedule after an element's pass with regularisation ``r``:
+    ``(stop, r, delta)``. The pass is repeated (``stop`` False) with ``delta := max(f,
+    delta f)``, ``r := max(floor, r delta)`` where it failed, the element may restart,
+    ``r <= mu_max`` and fewer than ``max_restarts`` restarts were made (``opts = (f,
+    floor, mu_max, max_restarts)``)."""
+    if ok or not may_restart or r > opts[2] or restarts >= opts[3]:
+        return True, r, delta
+    delta = max(opts[0], delta * opts[0])
+    return False, max(opts[1], r * delta), delta
 
 
 @numba.njit(cache=True, nogil=True, _nrt=False)
