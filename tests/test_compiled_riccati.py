@@ -282,6 +282,45 @@ def test_threaded_launch_equals_one_thread(torch_path, monkeypatch):
         assert torch.equal(a, b)
 
 
+def test_threaded_gain_form_pass_equals_one_thread(monkeypatch):
+    """The solvers' gain-form pass (riccati_backward on a small problem's LQ data, with
+    per-element reg and restarts) split over three threads gives every element the same
+    bits as one pass."""
+    from torchslq.lq import RegularizationSchedule
+
+    g = torch.Generator().manual_seed(5)
+    B, T, n, m = 9, 12, 4, 2
+    A = torch.eye(n, dtype=F64) + 0.1 * torch.randn(B, T, n, n, generator=g, dtype=F64)
+    Bm = torch.randn(B, T, n, m, generator=g, dtype=F64)
+    Q = torch.eye(n, dtype=F64).expand(B, T + 1, n, n).contiguous()
+    R = torch.eye(m, dtype=F64).expand(B, T, m, m).contiguous()
+    R[::3, :, 1, 1] = -0.5  # Quu[1, 1] = -0.5 where the second control does not act:
+    Bm[::3, :, :, 1] = 0.0  # these elements need restarts to reg > 0.5
+    q, r = (
+        torch.randn(B, T + 1, n, generator=g, dtype=F64),
+        torch.randn(B, T, m, generator=g, dtype=F64),
+    )
+    reg = torch.linspace(0.0, 0.3, B, dtype=F64)
+    schedule = RegularizationSchedule(factor=2.0, reg_min=1e-6, reg_max=1e10, max_restarts=12)
+
+    def run():
+        return ts.riccati_backward(A, Bm, Q, R, q, r, reg=reg, restarts=schedule.restarts())
+
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = run()
+        torch.set_num_threads(3)
+        monkeypatch.setattr(compiled, "MIN_STEPS_PER_THREAD", 1)
+        many = run()
+        assert compiled._pool_size == 3
+    finally:
+        torch.set_num_threads(old)
+    assert not bool(one.failed.any()) and bool((one.reg[::3] > reg[::3]).all())  # restarted
+    for name in ("Kk", "Vh", "chol", "failed", "reg", "reg_delta"):
+        assert torch.equal(getattr(one, name), getattr(many, name)), name
+
+
 @pytest.mark.parametrize("m", [1, 2, 3])
 @pytest.mark.parametrize("hook", [False, True])
 def test_compiled_box_pass_equals_torch_path(torch_path, m, hook):
