@@ -21,6 +21,13 @@ that the rollout is :func:`._numba_kernels.lq_rollout_kernel`. The backward pass
 implicit differentiation (:func:`adjoint_gain_kernel`) reuses ``K``, ``L`` and ``P``:
 one more LQ solve with the incoming gradients as linear terms, then the gradients of
 every datum as outer products of the two trajectories.
+
+The same element pass (:func:`_gain_pass`, with a regularisation of ``Quu`` and DDP's
+second-order terms) is the solvers' unconstrained pass of small problems
+(:func:`riccati_gain_reg_kernel`, its value functions written into the blocks of the
+homogeneous ``Vh``). Up to :data:`._numba_kernels.FIXED_MAX_N` states and
+:data:`~._numba_kernels.FIXED_MAX_M` controls the kernels are compiled for the
+problem's own sizes (:func:`._numba_kernels.size_witness`).
 """
 
 from __future__ import annotations
