@@ -807,7 +807,7 @@ def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, 
     return arrays, 1 if shared else math.prod(batch)
 
 
-_SLP_CALLED: set = set()  # dtypes gain_solve_kernel was first called with (compiled) for
+_SLP_CALLED: set = set()  # (dtype, n, m) gain_solve_kernel was first called (compiled) for
 
 
 def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T: int) -> dict:
@@ -845,14 +845,16 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
             pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten,
             *gain.size_witness(n, m),
         )  # fmt: skip
-        if dtype in _SLP_CALLED:  # (entering the switch costs a few us per call)
+        # a size-specialised kernel is compiled on its size's first call: with the switch
+        key = (dtype, len(args[-2]), len(args[-1]))
+        if key in _SLP_CALLED:  # (entering the switch costs a few us per call)
             gain.gain_solve_kernel(*args)
         else:
             from ._numba_gemm import slp_vectorized
 
             with slp_vectorized():  # for its register-blocked products, on the first call
                 gain.gain_solve_kernel(*args)
-            _SLP_CALLED.add(dtype)
+            _SLP_CALLED.add(key)
     else:
         from ._numba_gemm import slp_vectorized
 
