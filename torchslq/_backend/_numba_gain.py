@@ -108,7 +108,8 @@ def _gain_scratch(n, m, dt):
 def _riccati_gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, scratch, nt, mt):
     """The loop of :func:`riccati_gain_kernel` (without reference counting, see
     :mod:`._numba_kernels`); ``scratch = (PA (n, n), PB (n, m), w (n,), Y (m, n), y (m,),
-    Lq (m, m), an empty (0, 0) array)``; ``nt, mt``: :func:`size_witness`."""
+    Lq (m, m), an empty (0, 0) s2, an empty 5-d array for the absent Hessians)``;
+    ``nt, mt``: :func:`size_witness`."""
     none = scratch[7]
     for e in range(b0, b1):
         ok, sv = _gain_pass(
@@ -319,7 +320,7 @@ def riccati_gain_reg_kernel(
     nt, mt,
 ):  # fmt: skip
     """The solvers' unconstrained Riccati pass (:func:`torchslq.lq.riccati_backward`
-    without bounds or second-order terms) in gain form, per element ``b0 <= b < b1``:
+    without bounds) in gain form, per element ``b0 <= b < b1``:
     :func:`_gain_pass` with ``reg`` (``(1 or B,)``) on ``Quu``'s diagonal and DDP's
     Hessians ``Hz`` or ``Hb`` (see there; empty: none), its value
     functions written into the blocks of the homogeneous ``Vh (B, T+1, n+1, n+1)``
@@ -438,34 +439,9 @@ def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite, nt, mt):
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def adjoint_gain_kernel(
-    b0,
-    b1,
-    A,
-    Bm,
-    Kk,
-    L,
-    P,
-    x,
-    u,
-    lam,
-    ok,
-    gx,
-    gu,
-    gJ,
-    vs,
-    ks,
-    gA,
-    gB,
-    gc,
-    gQ,
-    gR,
-    gS,
-    gq,
-    gr,
-    gx0,
-    nt,
-    mt,
-):
+    b0, b1, A, Bm, Kk, L, P, x, u, lam, ok, gx, gu, gJ, vs, ks, gA, gB, gc, gQ, gR, gS, gq, gr,
+    gx0, nt, mt,
+):  # fmt: skip
     """Backward pass of the implicit differentiation (Amos et al. 2018, Sec. 4.2) for
     elements ``b0 <= b < b1``: the LQ problem with the forward problem's matrices and
     linear terms ``q = gx``, ``r = gu``, ``c = 0``, ``x0 = 0``, solved by the forward

@@ -52,7 +52,7 @@ def _feedback_step(Ft, Kt, xt, ut, xn, affine):
     problem's rollout)."""
     m = ut.shape[0]
     n = xt.shape[0]
-    _controls(Kt, xt, ut, affine)
+    _controls(Kt, xt, ut, affine, m, n)
     for i in range(n):
         s = Ft[i, m + n] if affine else 0.0
         for j in range(m):
@@ -62,11 +62,12 @@ def _feedback_step(Ft, Kt, xt, ut, xn, affine):
         xn[i] = s
 
 
-@numba.njit(cache=True, nogil=True, _nrt=False)
-def _controls(Kt, xt, ut, affine):
-    """``ut = Kt[:, :n] xt + f``: ``f = Kt[:, n]`` with ``affine``, else ``ut`` on entry."""
-    n = xt.shape[0]
-    for i in range(ut.shape[0]):
+@numba.njit(cache=True, nogil=True, _nrt=False, inline="always")
+def _controls(Kt, xt, ut, affine, m, n):
+    """``ut = Kt[:, :n] xt + f`` for ``m`` controls and ``n`` states: ``f = Kt[:, n]``
+    with ``affine``, else ``ut`` on entry. Inlined, so that sizes known when the caller
+    is compiled (:func:`size_witness`) reach its loops."""
+    for i in range(m):
         s = Kt[i, n] if affine else ut[i]
         for j in range(n):
             s += Kt[i, j] * xt[j]
@@ -113,12 +114,7 @@ def lq_rollout_kernel(b0, b1, A, Bm, c, Kk, x0, x, u, nt, mt):
         for t in range(T):
             xt = x[b, t]
             ut = u[b, t]
-            Kt = Kk[bk, t]
-            for i in range(m):  # _controls' order, with the sizes known when fixed
-                s = Kt[i, n]
-                for j in range(n):
-                    s += Kt[i, j] * xt[j]
-                ut[i] = s
+            _controls(Kk[bk, t], xt, ut, True, m, n)
             ba, ta = _idx(A, b, t)
             bb, tb = _idx(Bm, b, t)
             bc, tc = _idx(c, b, t) if affine else (0, 0)

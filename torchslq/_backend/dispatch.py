@@ -283,11 +283,7 @@ def riccati_compiled(
             np.zeros(0, np.bool_),
         )
     else:
-        mu, delta = (
-            t.detach().clone() if t.shape == (nb,) and t.dtype == dtype and t.is_contiguous()
-            else t.detach().to(dtype).expand(batch).reshape(nb).clone()
-            for t in restarts[:2]
-        )  # fmt: skip
+        mu, delta = (t.detach().to(dtype).expand(batch).reshape(nb).clone() for t in restarts[:2])
         allowed = restarts[2].expand(batch).reshape(nb).contiguous()
         opts = np.array(restarts[3], dtype=np.float64)
         restart_arrays = (opts, mu.numpy(), delta.numpy(), allowed.numpy())
@@ -304,8 +300,8 @@ def riccati_compiled(
             _launch(
                 _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
                 _reg_array(reg, batch, dtype), *_hessian_arrays(hessians, dtype), Kk.numpy(),
-                Vh.numpy(), L.numpy(),
-                failed.numpy(), *restart_arrays[1:], restart_arrays[0], *witness,
+                Vh.numpy(), L.numpy(), failed.numpy(), *restart_arrays[1:], restart_arrays[0],
+                *witness,
             )  # fmt: skip
     else:
         with slp_vectorized():  # for its register-blocked products, on the first call
@@ -840,13 +836,13 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     lamn = np.empty((nb, T + 1, n), npd)
     costn = np.empty(nb, npd)
     finiten = np.empty(nb, np.bool_)
+    nt, mt = gain.size_witness(n, m)
     if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
         args = (
-            pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten,
-            *gain.size_witness(n, m),
+            pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten, nt, mt,
         )  # fmt: skip
         # a size-specialised kernel is compiled on its size's first call: with the switch
-        key = (dtype, len(args[-2]), len(args[-1]))
+        key = (dtype, len(nt), len(mt))
         if key in _SLP_CALLED:  # (entering the switch costs a few us per call)
             gain.gain_solve_kernel(*args)
         else:
@@ -861,16 +857,13 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
         with slp_vectorized():  # for its register-blocked products, on the first call
             _launch(
                 gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn, failedn,
-                *gain.size_witness(n, m),
+                nt, mt,
             )  # fmt: skip
         _launch(
             _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0n, xn, un,
-            *gain.size_witness(n, m),
+            nt, mt,
         )  # fmt: skip
-        _launch(
-            gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lamn, costn, finiten,
-            *gain.size_witness(n, m),
-        )  # fmt: skip
+        _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lamn, costn, finiten, nt, mt)
     t = torch.from_numpy
     return {
         "Kk": t(Kkn), "P": t(Pn), "p": t(pn), "L": t(Ln), "failed": t(failedn),
