@@ -235,6 +235,24 @@ def test_compiled_rollout_and_adjoint_equal_torch_path(torch_path, shared):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-12)
 
 
+def _one_then_three_threads(run, monkeypatch, before_many=None):
+    """``(run() on one thread, run() with every pass split over three threads)``
+    (``before_many()`` called in between); asserts that the split happened."""
+    old = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = run()
+        torch.set_num_threads(3)
+        monkeypatch.setattr(compiled, "MIN_STEPS_PER_THREAD", 1)
+        if before_many is not None:
+            before_many()
+        many = run()
+    finally:
+        torch.set_num_threads(old)
+    assert compiled._pool_size == 3
+    return one, many
+
+
 def test_threaded_launch_equals_one_thread(torch_path, monkeypatch):
     """Large passes are split over torch.get_num_threads() threads (contiguous chunks of
     the batch); every element's numbers are the same as in one pass."""
@@ -257,25 +275,17 @@ def test_threaded_launch_equals_one_thread(torch_path, monkeypatch):
             lq_adjoint_solve(F, fac.Kk, fac.Vh, fac.chol, gx, gu),
         )
 
-    old = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = run()
-        torch.set_num_threads(3)
-        monkeypatch.setattr(compiled, "MIN_STEPS_PER_THREAD", 1)
-        calls = []
-        orig = compiled._launch
+    calls = []
+    orig = compiled._launch
 
-        def spy(kernel, nb, T, *args):
-            calls.append(nb)
-            return orig(kernel, nb, T, *args)
+    def spy(kernel, nb, T, *args):
+        calls.append(nb)
+        return orig(kernel, nb, T, *args)
 
-        monkeypatch.setattr(compiled, "_launch", spy)
-        many = run()
-    finally:
-        torch.set_num_threads(old)
-    assert calls == [9, 9, 9]  # all three kernels ran
-    assert compiled._pool_size == 3  # ... split over three threads
+    one, many = _one_then_three_threads(
+        run, monkeypatch, lambda: monkeypatch.setattr(compiled, "_launch", spy)
+    )
+    assert calls == [9, 9, 9]  # all three kernels ran (split over three threads)
     for name in ("Kk", "Vh", "chol", "failed"):
         assert torch.equal(getattr(one[0], name), getattr(many[0], name)), name
     for a, b in zip((*one[1], *one[2]), (*many[1], *many[2]), strict=True):
@@ -306,16 +316,7 @@ def test_threaded_gain_form_pass_equals_one_thread(monkeypatch):
     def run():
         return ts.riccati_backward(A, Bm, Q, R, q, r, reg=reg, restarts=schedule.restarts())
 
-    old = torch.get_num_threads()
-    try:
-        torch.set_num_threads(1)
-        one = run()
-        torch.set_num_threads(3)
-        monkeypatch.setattr(compiled, "MIN_STEPS_PER_THREAD", 1)
-        many = run()
-        assert compiled._pool_size == 3
-    finally:
-        torch.set_num_threads(old)
+    one, many = _one_then_three_threads(run, monkeypatch)
     assert not bool(one.failed.any()) and bool((one.reg[::3] > reg[::3]).all())  # restarted
     for name in ("Kk", "Vh", "chol", "failed", "reg", "reg_delta"):
         assert torch.equal(getattr(one, name), getattr(many, name)), name
