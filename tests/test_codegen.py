@@ -102,6 +102,18 @@ class Constants(ts.ContinuousDynamics):
         return x @ self.K.mT + w * u + 0.1 * torch.sin(x) * x[..., :1]
 
 
+class InverseSquare(ts.ContinuousDynamics):
+    """Negative integer powers in the model and in its derivatives (an inverse-square
+    pull): printed as products of reciprocals, not calls of pow."""
+
+    state_dim, control_dim = 2, 1
+
+    def forward(self, x, u, t=None):
+        r2 = 1.0 + x[..., 0] ** 2
+        pull = -x[..., 0] / r2**1.5 + u[..., 0] / (r2 * r2)
+        return torch.stack([x[..., 1], pull - 0.1 * x[..., 1] / r2], -1)
+
+
 def _reference(model, x, u):
     """forward, [f_x | f_u] and per-output Hessians in z = (x, u) by torch.func, row by row."""
     n = x.shape[-1]
@@ -118,7 +130,7 @@ def _reference(model, x, u):
 
 
 @pytest.mark.parametrize(
-    "model_cls", [UserCartPole, DampedPendulum, LinearModel, Branches, Constants]
+    "model_cls", [UserCartPole, DampedPendulum, LinearModel, Branches, Constants, InverseSquare]
 )
 def test_generated_functions_equal_forward_and_torch_func_derivatives(model_cls):
     model = model_cls()
@@ -153,6 +165,8 @@ def test_generated_functions_equal_forward_and_torch_func_derivatives(model_cls)
     assert hooks.tensor_names == tuple(
         k for k, _ in (*model.named_parameters(), *model.named_buffers())
     )
+    source = open(hooks.source_path).read()
+    assert "**(-" not in source and "**-" not in source  # no pow for integer powers
 
 
 def test_generated_code_reads_the_current_parameter_values():
@@ -313,15 +327,16 @@ def test_parameters_that_need_grad_take_the_autograd_path():
 
 
 def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
-    """The RK4 and rollout kernels called with the model's functions as first-class
-    function values (compiled once per machine, cached) compute bit for bit what the
+    """The RK4, rollout and fused line-search kernels called with the model's functions
+    as first-class function values (compiled once per machine, cached) compute bit for bit what the
     generated module's copies with the functions bound in compute (large passes); their
     compiled signatures take function values. (Not called with the dispatchers
     themselves: a cached kernel would add a signature per process to its on-disk index,
     which numba cannot load back once those dispatchers are gone.)"""
-    from torchslq._backend import _numba_kernels, bound
+    from torchslq._backend import _numba_kernels, _numba_search, bound, dispatch
+    from torchslq.costs.quadratic import compiled_cost_evaluation
     from torchslq.dynamics import _numba_rk4
-    from torchslq.dynamics.rollout import rollout_closed_loop
+    from torchslq.dynamics.rollout import compiled_step_of, rollout, rollout_closed_loop
 
     step = ts.discretize(UserCartPole(), 0.05)
     gen = torch.Generator().manual_seed(2)
@@ -331,15 +346,36 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
     K = 0.1 * torch.randn(7, 3, 1, 4, generator=gen, dtype=torch.float64)
     alpha = torch.tensor([1.0, 0.5]).double()[:, None].expand(2, 7)
 
+    # the fused line search: trials of the rollout above, a quadratic cost
+    eye = torch.eye(4, dtype=torch.float64)
+    cost = ts.QuadraticCost(Q=0.1 * eye, R=0.05 * torch.eye(1).double(), Qf=50 * eye)
+    with torch.no_grad():
+        x_nom = rollout(step, x[:, 0], u[:, :2])
+        J0 = cost(x_nom, u[:, :2])
+    grid = 0.5 ** torch.arange(12, dtype=torch.float64)
+    slope = -torch.rand(7, generator=gen, dtype=torch.float64)
+    active = torch.ones(7, dtype=torch.bool)
+
     def outputs():
         A, B = step.compiled_jacobians(x, u)
         H = step.compiled_vhp(x, u, s)
         xs, us = rollout_closed_loop(step, x[:, 0], x, u, K, u, alpha)
-        return A, B, *H, xs, us
+        with compiled_cost_evaluation():
+            terms = cost.compiled_terms(x_nom, u[:, :2])
+        search = dispatch.armijo_rollout_compiled(
+            *compiled_step_of(step), x_nom, u[:, :2], K[:, :2], u[:, :2], None, None, grid,
+            J0, slope, None, 1e-4, 0.0, active, terms,
+        )  # fmt: skip
+        return A, B, *H, xs, us, *search
 
     assert codegen.explain(step.continuous) == "compiled"
     as_values = outputs()
-    for kernel in (_numba_rk4.rk4_lanes_kernel, _numba_kernels.closed_loop_rollout_kernel):
+    assert bool(as_values[-3].any()) and not bool(as_values[-3].all())  # some trials pass
+    for kernel in (
+        _numba_rk4.rk4_lanes_kernel,
+        _numba_kernels.closed_loop_rollout_kernel,
+        _numba_search.armijo_rollout_kernel,
+    ):
         fn_args = [
             a for sig in kernel.signatures for a in sig if isinstance(a, nb_types.FunctionType)
         ]
@@ -349,6 +385,7 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
     assert module is not None
     with_bound = outputs()
     assert module.closed_loop_rollout_kernel.signatures and module.jacobians_kernel.signatures
+    assert module.armijo_rollout_kernel.signatures
     for a, b in zip(as_values, with_bound, strict=True):
         assert torch.equal(a, b)
 

@@ -61,6 +61,16 @@ def rk4_step(rhs):
 
 
 @numba.njit(nogil=True, _nrt=False)
+def _rhs_and_derivs(rhs, derivs, x, u, p, out, fz, H):
+    """``derivs(x, u, p, fz, H)`` and ``rhs(x, u, p, out)`` at one point. A generated
+    model's module replaces it by one function with both bodies
+    (:mod:`torchslq.dynamics.codegen`), where LLVM computes their common terms (a sine,
+    a denominator) once; the results are those of the two calls, bit for bit."""
+    derivs(x, u, p, fz, H)
+    rhs(x, u, p, out)
+
+
+@numba.njit(nogil=True, _nrt=False)
 def _stages(rhs, derivs, p, dt, xr, ur, fz, H, dk, xi, k, with_hessians):
     """Forward sweep over the four stages of one row: ``fz[i] = [f_x | f_u](zeta_i)``,
     ``H[i]`` the per-output Hessians there (when ``with_hessians``), ``dk[i] =
@@ -75,7 +85,10 @@ def _stages(rhs, derivs, p, dt, xr, ur, fz, H, dk, xi, k, with_hessians):
         else:
             for j in range(n):
                 xi[j] = xr[j] + (a * dt) * k[j]
-        derivs(xi, ur, p, fz[i], H[i if with_hessians else 0])
+        if i < 3:  # the last stage's k is not needed
+            _rhs_and_derivs(rhs, derivs, xi, ur, p, k, fz[i], H[i if with_hessians else 0])
+        else:
+            derivs(xi, ur, p, fz[i], H[i if with_hessians else 0])
         f = fz[i]
         d = dk[i]
         if i == 0:
@@ -90,8 +103,6 @@ def _stages(rhs, derivs, p, dt, xr, ur, fz, H, dk, xi, k, with_hessians):
                     for q in range(n):
                         s += f[j, q] * prev[q, c]
                     d[j, c] = f[j, c] + (a * dt) * s
-        if i < 3:  # the last stage's k is not needed
-            rhs(xi, ur, p, k)
 
 
 @numba.njit(nogil=True, _nrt=False)
@@ -318,7 +329,12 @@ def _lane_stage(rhs, derivs, p, a_dt, i, x, u, rows, fz, H, xi, kr, kL, fzL, HL,
         ur = u[rows[lane]]
         for j in range(n):
             xi[j] = xr[j] if i == 0 else xr[j] + a_dt * kL[j, lane]
-        derivs(xi, ur, p, fz, H)
+        if i < 3:  # the last stage's k is not needed
+            _rhs_and_derivs(rhs, derivs, xi, ur, p, kr, fz, H)
+            for j in range(n):
+                kL[j, lane] = kr[j]
+        else:
+            derivs(xi, ur, p, fz, H)
         for j in range(n):
             for c in range(nz):
                 fzL[i, j, c, lane] = fz[j, c]
@@ -327,10 +343,6 @@ def _lane_stage(rhs, derivs, p, a_dt, i, x, u, rows, fz, H, xi, kr, kL, fzL, HL,
             for a in range(ents.shape[0]):
                 for b in range(ents.shape[0]):
                     HL[jj, a, b, lane] = Hj[ents[a], ents[b]]
-        if i < 3:  # the last stage's k is not needed
-            rhs(xi, ur, p, kr)
-            for j in range(n):
-                kL[j, lane] = kr[j]
 
 
 @numba.njit(nogil=True, _nrt=False)

@@ -34,15 +34,19 @@ def _calls(f: ast.FunctionDef) -> set[str]:
 
 
 def specialised_source(
-    module: ModuleType, function_args: set[str], roots: list[str]
+    module: ModuleType,
+    function_args: set[str],
+    roots: list[str],
+    rewritten_elsewhere: frozenset[str] = frozenset(),
 ) -> tuple[str, list[str]]:
     """The rewritten source of ``roots`` in ``module`` and of the jitted functions they
     call that take one of ``function_args``, and the names of the module's other
-    functions and constants they use (to import from it).
+    functions, constants and imports they use (to import from it).
 
     Each rewritten function loses the parameters named in ``function_args`` (calls
-    between rewritten functions lose those arguments), its docstring, and is decorated
-    as before plus ``cache=True``."""
+    between rewritten functions lose those arguments, and so do calls of the functions
+    in ``rewritten_elsewhere``: imported from another module whose rewrite is written
+    beside this one), its docstring, and is decorated as before plus ``cache=True``."""
     tree = ast.parse(Path(module.__file__).read_text())
     funcs = {n.name: n for n in tree.body if isinstance(n, ast.FunctionDef)}
     takes = {
@@ -65,6 +69,9 @@ def specialised_source(
         if isinstance(n, (ast.Assign, ast.AnnAssign)):
             targets = n.targets if isinstance(n, ast.Assign) else [n.target]
             top |= {t.id for t in targets if isinstance(t, ast.Name)}
+        elif isinstance(n, ast.ImportFrom):  # helpers from the library's other kernels
+            top |= {a.asname or a.name for a in n.names}
+    top -= rewritten_elsewhere
     helpers: set[str] = set()
     out = []
     for name in sorted(rewrite, key=lambda k: funcs[k].lineno):
@@ -75,7 +82,7 @@ def specialised_source(
             f.body = body[1:] or [ast.Pass()]
         for node in ast.walk(f):
             if isinstance(node, ast.Call) and isinstance(node.func, ast.Name):
-                if node.func.id in rewrite:
+                if node.func.id in rewrite or node.func.id in rewritten_elsewhere:
                     node.args = [
                         a
                         for a in node.args

@@ -82,7 +82,7 @@ from ._symbolic import as_array, evaluate, symbols
 __all__ = ["GeneratedHooks", "explain", "generated_hooks"]
 
 #: bumped when the generated code changes meaning (part of the cache key)
-CODEGEN_VERSION = 2
+CODEGEN_VERSION = 3
 #: models larger than this keep the torch path (a network is faster as matrix ops)
 MAX_GRAPH_NODES = 600
 MAX_PARAMETERS = 256
@@ -593,6 +593,7 @@ def _row_expressions(gm, n: int, m: int, named) -> tuple[list, list, list, list]
 
 
 def _printer():
+    import sympy
     from sympy.printing.pycode import PythonCodePrinter
 
     class Printer(PythonCodePrinter):
@@ -611,14 +612,37 @@ def _printer():
 
         def _print_Pow(self, expr, rational=False):
             base, e = expr.args
+            if e.is_Float and float(2 * e).is_integer():  # torch's x ** 1.5
+                e = sympy.Rational(int(2 * e), 2)
             if e.is_Integer and 1 < int(e) <= 4:  # x*x...: what the forward computed
                 b = self.parenthesize(base, 100)
                 return "(" + "*".join([b] * int(e)) + ")"
-            if e.is_Integer and int(e) == -1:
-                return f"(1.0/{self.parenthesize(base, 100)})"
+            if e.is_Integer and -4 <= int(e) <= -1:
+                # products, not a call of pow (10x slower in numba); a reciprocal the
+                # function already holds is reused (a division is the slow operation)
+                inv = self.reciprocals.get(base)
+                if inv is not None:
+                    return inv if int(e) == -1 else "(" + "*".join([inv] * -int(e)) + ")"
+                b = self.parenthesize(base, 100)
+                return "(1.0/" + ("(" + "*".join([b] * -int(e)) + ")" if int(e) < -1 else b) + ")"
+            if e.is_Rational and e.q == 2 and abs(e.p) <= 9:  # b^(k/2): sqrt and products
+                b = self.parenthesize(base, 100)
+                root = "*".join([f"math.sqrt({self._print(base)})"] + [b] * ((abs(e.p) - 1) // 2))
+                return f"({root})" if e.p > 0 else f"(1.0/({root}))"
             return super()._print_Pow(expr, rational=rational)
 
-    return Printer({"fully_qualified_modules": True, "standard": "python3"})
+        def assignment(self, symbol, expr) -> str:
+            """``symbol = expr`` as a line of the function, and ``symbol`` noted as the
+            reciprocal of ``b`` when ``expr`` is ``1/b`` (printed before its uses:
+            the common subexpressions are in dependency order)."""
+            line = f"    {symbol.name} = {self.doprint(expr)}"
+            if expr.is_Pow and expr.args[1] == -1:
+                self.reciprocals[expr.args[0]] = symbol.name
+            return line
+
+    printer = Printer({"fully_qualified_modules": True, "standard": "python3"})
+    printer.reciprocals = {}
+    return printer
 
 
 def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
@@ -643,7 +667,6 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
                     H[(i, a, b)] = h
     outs = tuple(sorted({i for i, _, _ in H}))
     ents = tuple(sorted({a for _, a, _ in H} | {b for _, _, b in H}))
-    printer = _printer()
 
     def reads(exprs) -> list[str]:
         used = set().union(*(sympy.sympify(e).free_symbols for e in exprs)) if exprs else set()
@@ -654,11 +677,46 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
                     lines.append(f"    {s.name} = {name}[{i}]")
         return lines
 
-    def body(exprs, tag) -> tuple[list[str], list[str]]:
-        subs, reduced = sympy.cse(exprs, symbols=sympy.numbered_symbols(tag), order="none")
-        lines = [f"    {s.name} = {printer.doprint(e)}" for s, e in subs]
-        return lines, [printer.doprint(e) for e in reduced]
-
+    rhs_printer = _printer()  # one per function: its reciprocals
+    subs, reduced = sympy.cse(f, symbols=sympy.numbered_symbols("r"), order="none")
+    rhs_body = [rhs_printer.assignment(s, e) for s, e in subs]
+    rhs_body += [f"    out[{i}] = {rhs_printer.doprint(v)}" for i, v in enumerate(reduced)]
+    jac = [J[i][c] for i in range(n) for c in range(nz)]
+    hes = list(H.values())
+    # one elimination over the Jacobian and the Hessians (they share most terms): the
+    # subexpressions the Jacobian reads before the return of a Jacobian-only call (an
+    # empty H), the rest after it; fewer ops compile faster (numba's typing and lowering
+    # take about a millisecond per op) and the Hessian pass reuses the Jacobian's terms
+    printer = _printer()
+    subs, reduced = sympy.cse(jac + hes, symbols=sympy.numbered_symbols("j"), order="none")
+    need = set().union(*(e.free_symbols for e in reduced[: len(jac)]))
+    for sym, e in reversed(subs):  # subs are in dependency order
+        if sym in need:
+            need |= e.free_symbols
+    deriv_body = [printer.assignment(sym, e) for sym, e in subs if sym in need]
+    vals = [printer.doprint(e) for e in reduced[: len(jac)]]
+    deriv_body += [f"    fz[{i}, {c}] = {vals[i * nz + c]}" for i in range(n) for c in range(nz)]
+    deriv_body += ["    if H.shape[0] == 0:", "        return"]
+    if hes:
+        deriv_body += [printer.assignment(sym, e) for sym, e in subs if sym not in need]
+        val = {}
+        for k, (key, e) in enumerate(zip(H, reduced[len(jac) :], strict=True)):
+            val[key] = printer.doprint(e)
+            if key[1] != key[2] and not (e.is_Symbol or e.is_Number):
+                deriv_body.append(f"    h{k} = {val[key]}")  # written to H[j, a, b] and H[j, b, a]
+                val[key] = f"h{k}"
+        for j in outs:
+            for a in ents:
+                for b in ents:
+                    key = (j, min(a, b), max(a, b))
+                    deriv_body.append(f"    H[{j}, {a}, {b}] = {val.get(key, '0.0')}")
+    else:  # no curvature: the whole H is zero
+        deriv_body += [
+            f"    for j in range({n}):",
+            f"        for a in range({nz}):",
+            f"            for b in range({nz}):",
+            "                H[j, a, b] = 0.0",
+        ]
     src = [
         f"# generated by torchslq.dynamics.codegen (version {CODEGEN_VERSION}) from {model_name}.forward",
         f"# state dim {n}, control dim {m}, parameters {len(ps)}; do not edit",
@@ -671,46 +729,27 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
         "",
         "@numba.njit(nogil=True, cache=True)",
         "def rhs(x, u, p, out):",
+        *reads(f),
+        *rhs_body,
+        "",
+        "",
+        "@numba.njit(nogil=True, cache=True)",
+        "def derivatives(x, u, p, fz, H):",
+        *reads(jac + hes),
+        *deriv_body,
     ]
-    src += reads(f)
-    lines, vals = body(f, "r")
-    src += lines + [f"    out[{i}] = {v}" for i, v in enumerate(vals)]
-    src += ["", "", "@numba.njit(nogil=True, cache=True)", "def derivatives(x, u, p, fz, H):"]
-    jac = [J[i][c] for i in range(n) for c in range(nz)]
-    hes = list(H.values())
-    src += reads(jac + hes)
-    # one elimination over the Jacobian and the Hessians (they share most terms): the
-    # subexpressions the Jacobian reads before the return of a Jacobian-only call (an
-    # empty H), the rest after it; fewer ops compile faster (numba's typing and lowering
-    # take about a millisecond per op) and the Hessian pass reuses the Jacobian's terms
-    subs, reduced = sympy.cse(jac + hes, symbols=sympy.numbered_symbols("j"), order="none")
-    need = set().union(*(e.free_symbols for e in reduced[: len(jac)]))
-    for sym, e in reversed(subs):  # subs are in dependency order
-        if sym in need:
-            need |= e.free_symbols
-    vals = [printer.doprint(e) for e in reduced[: len(jac)]]
-    src += [f"    {sym.name} = {printer.doprint(e)}" for sym, e in subs if sym in need]
-    src += [f"    fz[{i}, {c}] = {vals[i * nz + c]}" for i in range(n) for c in range(nz)]
-    src += ["    if H.shape[0] == 0:", "        return"]
-    if hes:
-        src += [f"    {sym.name} = {printer.doprint(e)}" for sym, e in subs if sym not in need]
-        val = {}
-        for k, (key, e) in enumerate(zip(H, reduced[len(jac) :], strict=True)):
-            val[key] = printer.doprint(e)
-            if key[1] != key[2] and not (e.is_Symbol or e.is_Number):
-                src.append(f"    h{k} = {val[key]}")  # written to H[j, a, b] and H[j, b, a]
-                val[key] = f"h{k}"
-        for j in outs:
-            for a in ents:
-                for b in ents:
-                    key = (j, min(a, b), max(a, b))
-                    src.append(f"    H[{j}, {a}, {b}] = {val.get(key, '0.0')}")
-    else:  # no curvature: the whole H is zero
+    if kind == "continuous":
+        # both bodies in one function (the RK4 stages need both at each point): the
+        # same statements, so the same bits, with the terms they share (its sines,
+        # denominators) computed once by LLVM; the names do not clash (r*, j*, h*)
         src += [
-            f"    for j in range({n}):",
-            f"        for a in range({nz}):",
-            f"            for b in range({nz}):",
-            "                H[j, a, b] = 0.0",
+            "",
+            "",
+            "@numba.njit(nogil=True, cache=True)",
+            "def rhs_derivatives(x, u, p, out, fz, H):",
+            *reads(f + jac + hes),
+            *rhs_body,
+            *deriv_body,
         ]
     src += _kernel_source(kind)
     if len(src) > MAX_GENERATED_LINES + len(_kernel_source(kind)):
@@ -718,8 +757,9 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
             f"{len(src) - len(_kernel_source(kind))} lines of generated code (more than "
             f"{MAX_GENERATED_LINES}): too long to compile quickly"
         )
-    if printer._not_supported:
-        raise _Unsupported(f"cannot print {sorted(map(str, printer._not_supported))[:3]}")
+    refused = rhs_printer._not_supported | printer._not_supported
+    if refused:
+        raise _Unsupported(f"cannot print {sorted(map(str, refused))[:3]}")
     return "\n".join(src) + "\n"
 
 
@@ -733,7 +773,7 @@ def _kernel_source(kind: str) -> list[str]:
     reads. numba compiles each on its first call (a large pass) and caches it with the
     module."""
     if kind not in _KERNELS:
-        from .._backend import _numba_kernels
+        from .._backend import _numba_kernels, _numba_search
         from . import _numba_rk4, _numba_step
         from ._specialize import specialised_source
 
@@ -771,11 +811,27 @@ def _kernel_source(kind: str) -> list[str]:
             "    step(x, u, p, out, work)\n"
         )
         roll_helpers = sorted(set(roll_helpers) | {"STEP_RK4", "STEP_DISCRETE"})
+        # the fused line search's trials run the rollout's row loop rewritten above
+        search, search_helpers = specialised_source(
+            _numba_search,
+            {"step", "rhs"},
+            ["armijo_rollout_kernel"],
+            frozenset({"_closed_loop_rows"}),
+        )
+        roll += "\n\n\n" + search
         lines = ["", "", "# the library's kernels with this module's functions bound in", ""]
         lines += ["import numpy as np", ""]
-        for mod, used in ((source, helpers), ("torchslq._backend._numba_kernels", roll_helpers)):
+        for mod, used in (
+            (source, helpers),
+            ("torchslq._backend._numba_kernels", roll_helpers),
+            ("torchslq._backend._numba_search", search_helpers),
+        ):
             lines += [f"from {mod} import {name}" for name in used]
-        lines += ["", "derivs = derivatives", "", "", derivs, "", "", roll, "", "", *names]
+        lines += ["", "derivs = derivatives"]
+        if kind == "continuous":  # the stages call one function for both (same bits)
+            derivs = _without_function(derivs, "_rhs_and_derivs")
+            lines += ["_rhs_and_derivs = rhs_derivatives"]
+        lines += ["", "", derivs, "", "", roll, "", "", *names]
         _KERNELS[kind] = lines
     return _KERNELS[kind]
 
@@ -806,6 +862,8 @@ def _kernel_sources_digest() -> bytes:
         here = Path(__file__).resolve().parent
         files = (
             here.parent / "_backend" / "_numba_kernels.py",
+            here.parent / "_backend" / "_numba_search.py",
+            here.parent / "_backend" / "_numba_cost.py",
             *(here / f"{name}.py" for name in ("_numba_rk4", "_numba_step", "_specialize")),
             here / "_symbolic.py",
             Path(__file__),
