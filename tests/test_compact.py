@@ -268,3 +268,33 @@ def test_compact_with_every_element_failing_from_the_start(make):
     full = make(progress=False).solve(problem, x0)
     assert comp.status_names() == ["non_finite"] * 3 == full.status_names()
     assert comp.history["cost"].shape == (3, 1) and torch.equal(comp.iterations, full.iterations)
+
+
+def test_the_working_set_is_taken_once_per_set(monkeypatch):
+    """The loop narrows the state and the problem when the running set shrinks, not at
+    every iteration (each take is an index op per state field): one take per set, the
+    same solve as the full batch."""
+    from torchslq.solvers.core import ElementState
+
+    problem, x0 = pendulum_swingup(batch=6, horizon=30, seed=4)
+    full = ts.ILQR(max_iter=60, progress=False).solve(problem, x0)
+    sizes, problem_takes = [], []
+    take, problem_take = ElementState.take, type(problem).take
+
+    def counted(self, idx):
+        if idx is not None:
+            sizes.append(idx.numel())
+        return take(self, idx)
+
+    def counted_problem(self, idx, batch_size):
+        problem_takes.append(idx.numel())
+        return problem_take(self, idx, batch_size)
+
+    monkeypatch.setattr(ElementState, "take", counted)
+    monkeypatch.setattr(type(problem), "take", counted_problem)
+    comp = ts.ILQR(max_iter=60, progress=False, compact=True).solve(problem, x0)
+    _same(full, comp)
+    ends = len(set(full.iterations.tolist()))  # the iterations at which elements end
+    assert 1 < len(sizes) <= ends and len(set(sizes)) == len(sizes)
+    assert problem_takes == sizes
+    assert int(full.iterations.max()) > 2 * len(sizes)  # many iterations per set

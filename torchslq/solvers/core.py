@@ -260,21 +260,30 @@ def iterate(
         logger.log_options(s.name, options or {})
     t_start = time.perf_counter()
     bar = progress_bar(s.max_iter, enabled=s.progress, desc=s.name)
+    # the working set's state and problem, kept from one iteration to the next while
+    # the set is the same (most iterations: an element leaves it once, when it ends);
+    # the whole batch's state is written back only when the set shrinks and at the end
+    sub, prob, work_idx, work_size = state, problem, None, Bsz
     for it in range(s.max_iter + 1):
         running = status == Status.RUNNING
         # working set: every element, or (compact) only the running ones
         idx = running.nonzero().squeeze(1) if s.compact else None  # one host sync
         if idx is not None and idx.numel() == Bsz:
             idx = None
-        if idx is not None and idx.numel() == 0:
+        size = Bsz if idx is None else idx.numel()
+        if size != work_size:  # an element that ends never runs again: a smaller set
+            state = state.put(work_idx, sub)
+            sub, work_size = state.take(idx), size
+            # per-element problem data (a goal per element, (B, 1) masses) follow it
+            prob = problem if idx is None else problem.take(idx, Bsz)
+        work_idx = idx
+        if size == 0:
             # no element runs from the start (all non-finite): record the start and stop
             for key, value in (("cost", cost), ("grad_norm", grad_norm), ("step", step)):
                 _history_row(hist, key, value)
             times.append(time.perf_counter() - t_start)
             break
-        sub, run = state.take(idx), _take(running, idx)
-        # per-element problem data (a goal per element, (B, 1) masses) follow the subset
-        prob = problem if idx is None else problem.take(idx, Bsz)
+        run = _take(running, idx)
         sub, m = rule.measure(prob, sub, run, it)
         grad_norm = _put(grad_norm, idx, torch.where(run, m.grad_norm, _take(grad_norm, idx)))
         # the rule reports its cost and extra quantities for its whole working set
@@ -318,7 +327,7 @@ def iterate(
         status = _put(status, idx, st)
         step = _put(torch.zeros_like(step), idx, torch.where(accept, adv.step, 0.0))
         iterations = _put(iterations, idx, _take(iterations, idx) + accept.to(torch.int64))
-        state = state.put(idx, adv.state)
+        sub = adv.state
         if s.progress:  # (a hidden bar still formats its postfix: ~20 us an iteration)
             bar.update(1)
             bar.set_postfix(running=n_running, refresh=False)
