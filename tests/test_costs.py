@@ -98,6 +98,19 @@ CASES = {
         x_ref=torch.randn(B, 1, N, dtype=DT, generator=_gen(17)),
         u_ref=torch.randn(B, 1, M, dtype=DT, generator=_gen(18)),
     ),
+    # diagonal weights take the elementwise paths (a diagonal Q with a full Qf does not)
+    "diagonal": lambda: dict(
+        Q=torch.diag_embed(torch.rand(T, N, dtype=DT, generator=_gen(23))),
+        R=torch.diag_embed(1 + torch.rand(M, dtype=DT, generator=_gen(24))),
+        Qf=torch.diag_embed(torch.rand(B, N, dtype=DT, generator=_gen(25))),
+        x_ref=torch.randn(N, dtype=DT, generator=_gen(26)),
+        u_ref=torch.randn(B, T, M, dtype=DT, generator=_gen(27)),
+    ),
+    "diagonal_Q_full_Qf": lambda: dict(
+        Q=torch.diag_embed(torch.rand(N, dtype=DT, generator=_gen(28))),
+        R=spd(k=M, seed=29),
+        Qf=spd(k=N, seed=30),
+    ),
     "mixed": lambda: dict(
         Q=spd(T, k=N, seed=19),
         R=spd(k=M, seed=20),
@@ -114,6 +127,23 @@ def test_value_matches_explicit_loop(case):
     J = QuadraticCost(**kw)(x, u)
     assert J.shape == (B,)
     torch.testing.assert_close(J, loop_cost(x, u, **kw), atol=1e-12, rtol=1e-12)
+
+
+@pytest.mark.parametrize("case", ["diagonal", "diagonal_Q_full_Qf", "per_element"])
+def test_quadratize_gradients_are_the_weights_times_the_deviations(case):
+    """lx = Q (x - x°), lu = R (u - u°) as the batched matrix products give them, bit for
+    bit (diagonal weights are applied elementwise: the products' other terms are exact
+    zeros)."""
+    kw = CASES[case]()
+    cost = QuadraticCost(**kw)
+    x, u = traj(seed=3)
+    e = cost.quadratize(x, u)
+    Q, R = cost.weights(T)
+    xr = kw.get("x_ref", torch.zeros(N, dtype=DT))
+    ur = kw.get("u_ref", torch.zeros(M, dtype=DT))
+    xr = xr if xr.ndim > 1 else xr.expand(T + 1, N)
+    assert torch.equal(e.lx, (Q @ (x - xr).unsqueeze(-1)).squeeze(-1))
+    assert torch.equal(e.lu, (R @ (u - ur).unsqueeze(-1)).squeeze(-1))
 
 
 def test_paper_convention_q0_zero_ignores_initial_state():

@@ -277,8 +277,16 @@ class QuadraticCost(nn.Module):
         T = self._check_traj(x, u)
         Q, R = self.weights(T)
         xr, ur = self.references(T, x)
-        lx = (Q @ (x - xr).unsqueeze(-1)).squeeze(-1)
-        lu = (R @ (u - ur).unsqueeze(-1)).squeeze(-1)
+        # diagonal weights elementwise: the matrix product's bits (its other terms are
+        # exact zeros) without a batched product of tiny matrices per row
+        if self._diagonal("Q") and (self.Qf is None or self._diagonal("Qf")):
+            lx = Q.diagonal(dim1=-2, dim2=-1) * (x - xr)
+        else:
+            lx = (Q @ (x - xr).unsqueeze(-1)).squeeze(-1)
+        if self._diagonal("R"):
+            lu = R.diagonal(dim1=-2, dim2=-1) * (u - ur)
+        else:
+            lu = (R @ (u - ur).unsqueeze(-1)).squeeze(-1)
         return CostExpansion(lxx=Q, luu=R, lux=None, lx=lx, lu=lu)
 
     def compiled_terms(self, x: Tensor, u: Tensor) -> tuple | None:
