@@ -191,16 +191,25 @@ def _launch(kernel, nb: int, T: int, *args) -> None:
         f.result()
 
 
+def _np(t: Tensor) -> np.ndarray:
+    """``t``'s data as a numpy array (a view where ``t`` is contiguous) without
+    autograd's ``detach`` op where ``t`` needs no gradient: each is a dispatch of about
+    a microsecond, and the launchers pass a dozen tensors per call."""
+    if t.requires_grad:
+        t = t.detach()
+    return (t if t.is_contiguous() else t.contiguous()).numpy()
+
+
 def _flat(t: Tensor, batch: torch.Size, tail: int) -> np.ndarray:
     """``t (..., *tail dims)`` as a contiguous ``(1 or prod(batch), *tail)`` array."""
     if t.ndim == tail + 1 and (t.shape[0] in (1, math.prod(batch))) and t.is_contiguous():
-        return t.detach().numpy()  # already one flat batch dim
+        return _np(t)  # already one flat batch dim
     lead = t.shape[: t.ndim - tail]
     if math.prod(lead) == 1:
         t = t.reshape(1, *t.shape[t.ndim - tail :])
     else:
         t = t.expand(*batch, *t.shape[t.ndim - tail :]).reshape(-1, *t.shape[t.ndim - tail :])
-    return t.detach().contiguous().numpy()
+    return _np(t)
 
 
 # array ndims of the kernel's ``pieces`` (A, B, c, Q, R, S, q, r), batch and time dims included
@@ -283,7 +292,10 @@ def riccati_compiled(
             np.zeros(0, np.bool_),
         )
     else:
-        mu, delta = (t.detach().to(dtype).expand(batch).reshape(nb).clone() for t in restarts[:2])
+        mu, delta = (
+            (t if t.shape == batch else t.expand(batch)).reshape(nb).to(dtype, copy=True)
+            for t in (r.detach() if r.requires_grad else r for r in restarts[:2])
+        )
         allowed = restarts[2].expand(batch).reshape(nb).contiguous()
         opts = np.array(restarts[3], dtype=np.float64)
         restart_arrays = (opts, mu.numpy(), delta.numpy(), allowed.numpy())
@@ -453,8 +465,8 @@ def closed_loop_feedback_compiled(
     where :func:`can_use_compiled` holds for all of them.
     """
     Bsz, T, m, n = K.shape[-4:]
-    xn = x_nom.detach().contiguous().numpy()
-    Kn = K.detach().contiguous().numpy()
+    xn = _np(x_nom)
+    Kn = _np(K)
     un = u.view(-1, T, m).numpy()
     lo, hi = _bound_arrays(u_min, u_max, (Bsz, T, m), u.dtype)
     kernel = _kernels().feedback_kernel
@@ -502,8 +514,8 @@ def closed_loop_rollout_compiled(
         *fns,
         params,
         x0.detach().expand(*lead, n).reshape(R, n).contiguous().numpy(),
-        x_nom.detach().contiguous().numpy(),
-        K.detach().contiguous().numpy(),
+        _np(x_nom),
+        _np(K),
         lo,
         hi,
         skip_rows,
@@ -563,10 +575,10 @@ def armijo_rollout_compiled(
         T,
         *fns,
         params,
-        *(t.detach().contiguous().numpy() for t in arrays[:4]),
+        *(_np(t) for t in arrays[:4]),
         lo,
         hi,
-        *(t.detach().contiguous().numpy() for t in arrays[4:]),
+        *(_np(t) for t in arrays[4:]),
         curvature is not None,
         float(c1),
         float(roundoff),
@@ -591,7 +603,7 @@ def step_rows_compiled(step, params: np.ndarray, x: Tensor, u: Tensor) -> Tensor
     one kernel call with a model's compiled step (:meth:`torchslq.Dynamics.compiled_step`);
     returns ``(R, n)``. Call only where :func:`can_use_compiled` holds."""
     out = torch.empty_like(x)
-    xa = x.detach().numpy()
+    xa = _np(x)
     kernel, fns = rollout_kernel("step_rows_kernel", step, xa.dtype, params.dtype, x.shape[0])
     _launch(
         kernel,
@@ -600,7 +612,7 @@ def step_rows_compiled(step, params: np.ndarray, x: Tensor, u: Tensor) -> Tensor
         *fns,
         params,
         xa,
-        u.detach().numpy(),
+        _np(u),
         out.numpy(),
     )
     return out
@@ -681,7 +693,7 @@ def _reg_array(reg: Tensor | float | None, batch: torch.Size, dtype: torch.dtype
         return np.zeros(1, dtype=_np_dtype(dtype))
     r = torch.as_tensor(reg, dtype=dtype)
     r = r.reshape(1) if r.numel() == 1 else r.expand(batch).reshape(-1)
-    return r.detach().contiguous().numpy()
+    return _np(r)
 
 
 def _hessian_arrays(hessians, dtype: torch.dtype) -> tuple:
@@ -692,11 +704,11 @@ def _hessian_arrays(hessians, dtype: torch.dtype) -> tuple:
     if hessians is None:
         return empty, (empty, empty, empty)
     if isinstance(hessians, Tensor):
-        return hessians.detach().contiguous().numpy(), (empty, empty, empty)
+        return _np(hessians), (empty, empty, empty)
     joint = joint_hessians(*hessians)
     if joint is not None:  # the kernel reads each step's [u; x] block whole (as Hz)
         return joint.detach().permute(2, 0, 1, 3, 4).numpy(), (empty, empty, empty)
-    return empty, tuple(h.detach().contiguous().numpy() for h in hessians)
+    return empty, tuple(_np(h) for h in hessians)
 
 
 def joint_hessians(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor | None:
@@ -780,7 +792,7 @@ def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray,
             out.append(np.zeros((0,) * d, dtype=npd))
         elif p.ndim == d and p.shape[0] in (1, nb) and p.is_contiguous():
             # as the kernels take it (the common case)
-            out.append(p.detach().numpy() if p.requires_grad else p.numpy())
+            out.append(_np(p))
         else:
             out.append(_flat(_one_time_step(p, d - 2), batch, d - 1))
     return tuple(out)

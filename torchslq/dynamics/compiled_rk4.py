@@ -92,9 +92,19 @@ def _rows(x: Tensor, u: Tensor, lead=None) -> tuple[torch.Size, int, Tensor, Ten
     if lead is None:
         lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
     R = math.prod(lead)
-    xr = x.detach().expand(*lead, x.shape[-1]).reshape(R, x.shape[-1]).contiguous()
-    ur = u.detach().expand(*lead, u.shape[-1]).reshape(R, u.shape[-1]).contiguous()
-    return lead, R, xr, ur
+    return lead, R, _as_rows(x, lead, R), _as_rows(u, lead, R)
+
+
+def _as_rows(t: Tensor, lead, R: int) -> Tensor:
+    """``t (..., k)`` expanded to ``lead`` as contiguous ``(R, k)`` rows (no op where it
+    is one already: the solvers' trajectories are)."""
+    if t.requires_grad:
+        t = t.detach()
+    if t.shape[:-1] != lead:
+        t = t.expand(*lead, t.shape[-1])
+    if t.ndim != 2:
+        t = t.reshape(R, t.shape[-1])
+    return t if t.is_contiguous() else t.contiguous()
 
 
 def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
