@@ -277,8 +277,8 @@ def riccati_compiled(
     L = torch.from_numpy(np.zeros((nb, T, m, m), npd))
     failed = torch.from_numpy(np.zeros(nb, np.bool_))
     boxed = bounds is not None
-    clamped = torch.zeros(nb if boxed else 0, T, m, dtype=torch.bool)
-    dV = torch.zeros(nb if boxed else 0, 2, dtype=dtype)
+    clamped = torch.from_numpy(np.zeros((nb if boxed else 0, T, m), np.bool_))
+    dV = torch.from_numpy(np.zeros((nb if boxed else 0, 2), npd))
     if boxed:
         lower, upper = (_flat(t, batch, 2) for t in bounds)
     else:
@@ -292,11 +292,8 @@ def riccati_compiled(
             np.zeros(0, np.bool_),
         )
     else:
-        mu, delta = (
-            (t if t.shape == batch else t.expand(batch)).reshape(nb).to(dtype, copy=True)
-            for t in (r.detach() if r.requires_grad else r for r in restarts[:2])
-        )
-        allowed = restarts[2].expand(batch).reshape(nb).contiguous()
+        mu, delta = (_batch_vector(t, batch, nb).to(dtype, copy=True) for t in restarts[:2])
+        allowed = _batch_vector(restarts[2], batch, nb).contiguous()
         opts = np.array(restarts[3], dtype=np.float64)
         restart_arrays = (opts, mu.numpy(), delta.numpy(), allowed.numpy())
         reg = mu
@@ -321,6 +318,8 @@ def riccati_compiled(
                 arrays, reg, batch, dtype, hessians, boxed, lower, upper, box_tol, Kk, Vh, L,
                 clamped, failed, dV, piece_arrays, restart_arrays,
             )  # fmt: skip
+    if len(batch) == 1:  # (the outputs have that shape: no views to make)
+        return (Kk, Vh, L, failed, clamped if boxed else None, dV if boxed else None, mu, delta)
     return (
         Kk.reshape(*batch, T, m, n1),
         Vh.reshape(*batch, T + 1, n1, n1),
@@ -331,6 +330,16 @@ def riccati_compiled(
         None if mu is None else mu.reshape(batch),
         None if delta is None else delta.reshape(batch),
     )
+
+
+def _batch_vector(t: Tensor, batch: torch.Size, nb: int) -> Tensor:
+    """``t`` (broadcastable to ``batch``) as a ``(nb,)`` tensor, detached; itself where
+    it is one already (each view is a dispatch: this runs at every solver iteration)."""
+    if t.requires_grad:
+        t = t.detach()
+    if t.shape != (nb,):
+        t = (t if t.shape == batch else t.expand(batch)).reshape(nb)
+    return t
 
 
 def _riccati_homogeneous_launch(
