@@ -25,6 +25,19 @@ import numba
 import numba.core.config
 
 
+def with_slp(fn, *args):
+    """``fn(*args)`` with LLVM's SLP vectoriser switched on, as :func:`slp_vectorized`,
+    for a launch made at every solver iteration (a generator-based context manager
+    costs microseconds there)."""
+    config = numba.core.config
+    old = config.SLP_VECTORIZE
+    config.SLP_VECTORIZE = 1
+    try:
+        return fn(*args)
+    finally:
+        config.SLP_VECTORIZE = old
+
+
 @contextlib.contextmanager
 def slp_vectorized() -> Iterator[None]:
     """Compile with LLVM's SLP vectoriser inside this block (numba's global switch; the

@@ -292,12 +292,14 @@ def riccati_compiled(
             np.zeros(0, np.bool_),
         )
     else:
-        mu, delta = (_batch_vector(t, batch, nb).to(dtype, copy=True) for t in restarts[:2])
-        allowed = _batch_vector(restarts[2], batch, nb).contiguous()
+        # the kernel updates them in place: copies (by numpy, a fraction of torch's cost)
+        mu_a, delta_a = (_np(_batch_vector(t, batch, nb)).astype(npd) for t in restarts[:2])
+        mu, delta = torch.from_numpy(mu_a), torch.from_numpy(delta_a)
+        allowed = _np(_batch_vector(restarts[2], batch, nb))
         opts = np.array(restarts[3], dtype=np.float64)
-        restart_arrays = (opts, mu.numpy(), delta.numpy(), allowed.numpy())
+        restart_arrays = (opts, mu_a, delta_a, allowed)
         reg = mu
-    from ._numba_gemm import slp_vectorized
+    from ._numba_gemm import slp_vectorized, with_slp
 
     witness = _kernels().size_witness(n1 - 1, m)
     if pieces is not None and not boxed and witness[0] and (hessians is None or npd == np.float64):
@@ -305,13 +307,13 @@ def riccati_compiled(
         # gain form, its sizes fixed when compiled (riccati_gain_reg_kernel), into the
         # blocks of Vh. (DDP's pass in float32 keeps the homogeneous kernel: in gain form
         # a float32 cart-pole DDP stalled at a gradient of 1.8e-3 instead of 1.7e-4.)
-        with slp_vectorized():
-            _launch(
-                _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
-                _reg_array(reg, batch, dtype), *_hessian_arrays(hessians, dtype), Kk.numpy(),
-                Vh.numpy(), L.numpy(), failed.numpy(), *restart_arrays[1:], restart_arrays[0],
-                *witness,
-            )  # fmt: skip
+        # (LLVM's SLP switch for its register-blocked products, on the first call)
+        with_slp(
+            _launch, _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
+            restart_arrays[1] if restarts is not None else _reg_array(reg, batch, dtype),
+            *_hessian_arrays(hessians, dtype), Kk.numpy(), Vh.numpy(), L.numpy(),
+            failed.numpy(), *restart_arrays[1:], restart_arrays[0], *witness,
+        )  # fmt: skip
     else:
         with slp_vectorized():  # for its register-blocked products, on the first call
             _riccati_homogeneous_launch(
@@ -705,11 +707,16 @@ def _reg_array(reg: Tensor | float | None, batch: torch.Size, dtype: torch.dtype
     return _np(r)
 
 
+_EMPTY_HESSIANS: dict = {}
+
+
 def _hessian_arrays(hessians, dtype: torch.dtype) -> tuple:
     """DDP's Hessians for the kernel's ``Hz`` and ``Hb`` arguments: a ``(T, n, B, m+n,
     m+n)`` tensor, or the blocks ``(Hxx, Huu, Hux)`` each ``(n, B, T, ., .)``, or None
     (empty arrays of ``dtype`` for what is not given)."""
-    empty = np.zeros((0, 1, 1, 1, 1), dtype=_np_dtype(dtype))
+    empty = _EMPTY_HESSIANS.get(dtype)
+    if empty is None:  # (read-only: the kernels never write an empty array)
+        empty = _EMPTY_HESSIANS.setdefault(dtype, np.zeros((0, 1, 1, 1, 1), _np_dtype(dtype)))
     if hessians is None:
         return empty, (empty, empty, empty)
     if isinstance(hessians, Tensor):

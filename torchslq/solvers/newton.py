@@ -367,6 +367,8 @@ def _pass(A, B, e, hook, u_bounds, reg, restarts=None, c=None):
         A, B, e.lxx, e.luu, e.lx, e.lu, e.lux, c,
         reg=reg, stage_hook=hook, u_bounds=u_bounds, restarts=restarts,
     )  # fmt: skip
+    if restarts is not None:  # its failures count non-finite gains already (every backend)
+        return fac, fac.failed
     return fac, fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
 
 
