@@ -1007,3 +1007,18 @@ def test_a_solve_looks_up_a_models_generated_code_once(monkeypatch):
     out = np.zeros(1)
     rhs(x1[0].numpy(), u1[0].numpy(), p, out)
     np.testing.assert_allclose(out, model(x1, u1)[0].numpy(), rtol=1e-13)
+
+
+def test_the_line_limit_counts_what_a_first_solve_compiles(tmp_path, monkeypatch):
+    """MAX_GENERATED_LINES bounds the model's own two functions (a first solve compiles
+    them); the fused ``rhs_derivatives`` that large passes compile is not counted, so it
+    does not halve the size of the models the generator takes."""
+    monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path / "full"))
+    text = open(codegen.generated_hooks(CachedElsewhere()).source_path).read().splitlines()
+    fused = text.index("def rhs_derivatives(x, u, p, out, fz, H):")
+    own = fused - 3  # the lines before the blank lines and decorator of the fused one
+    assert "def derivatives(x, u, p, fz, H):" in text[:own]
+    for limit, verdict in ((own, "compiled"), (own - 1, "lines of generated code")):
+        monkeypatch.setattr(codegen, "MAX_GENERATED_LINES", limit)
+        monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path / str(limit)))
+        assert verdict in codegen.explain(CachedElsewhere())

@@ -738,6 +738,11 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
         *reads(jac + hes),
         *deriv_body,
     ]
+    if len(src) > MAX_GENERATED_LINES:  # (what a first solve compiles: rhs, derivatives)
+        raise _Unsupported(
+            f"{len(src)} lines of generated code (more than {MAX_GENERATED_LINES}): too "
+            "long to compile quickly"
+        )
     if kind == "continuous":
         # both bodies in one function (the RK4 stages need both at each point): the
         # same statements, so the same bits, with the terms they share (its sines,
@@ -752,11 +757,6 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
             *deriv_body,
         ]
     src += _kernel_source(kind)
-    if len(src) > MAX_GENERATED_LINES + len(_kernel_source(kind)):
-        raise _Unsupported(
-            f"{len(src) - len(_kernel_source(kind))} lines of generated code (more than "
-            f"{MAX_GENERATED_LINES}): too long to compile quickly"
-        )
     refused = rhs_printer._not_supported | printer._not_supported
     if refused:
         raise _Unsupported(f"cannot print {sorted(map(str, refused))[:3]}")
