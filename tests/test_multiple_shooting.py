@@ -271,3 +271,38 @@ def test_mpc_layer_with_multiple_shooting_has_the_single_shooting_gradients():
     assert rel_err(u2, u1) < 1e-8
     torch.testing.assert_close(gm2, gm1, rtol=1e-7, atol=1e-9)
     torch.testing.assert_close(gx2, gx1, rtol=1e-7, atol=1e-9)
+
+
+def test_a_quadratic_costs_hessians_are_projected_once_per_solve(monkeypatch):
+    """Multiple shooting floors the cost Hessians' eigenvalues at every iteration; a
+    QuadraticCost's Hessians are the same tensors at every iteration, so they are
+    projected once per solve, with the same solve as projecting them every time (a cost
+    whose expansion returns new tensors)."""
+    from torchslq.solvers import newton
+
+    problem, x0, _ = swing_up(3)
+    calls = []
+    project = newton.project_psd
+
+    def counted(H, floor):
+        calls.append(H.shape)
+        return project(H, floor)
+
+    monkeypatch.setattr(newton, "project_psd", counted)
+    once = ILQR(max_iter=60, tol=1e-6, **MS).solve(problem, x0)
+    assert len(calls) == 2  # the stage and the terminal Hessians, for the whole solve
+    assert int(once.iterations.max()) > 5
+
+    class Fresh(QuadraticCost):  # the same cost, its Hessians new tensors at each call
+        def quadratize(self, x, u):
+            e = super().quadratize(x, u)
+            e.lxx, e.luu = e.lxx.clone(), e.luu.clone()
+            return e
+
+    c = problem.cost
+    fresh = Problem(problem.dynamics, Fresh(Q=c.Q, R=c.R, Qf=c.Qf, x_ref=c.x_ref), problem.horizon)
+    calls.clear()
+    every = ILQR(max_iter=60, tol=1e-6, **MS).solve(fresh, x0)
+    assert len(calls) == 2 * (int(every.iterations.max()) + 1)
+    for name in ("u", "x", "cost", "iterations", "status"):
+        assert torch.equal(getattr(once, name), getattr(every, name)), name

@@ -30,6 +30,7 @@ from typing import TYPE_CHECKING
 import torch
 from torch import Tensor
 
+from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from ..costs.general import project_psd
 from ..dynamics.linearize import (
@@ -345,7 +346,24 @@ class RegularizedNewton:
 def _floored(problem: Problem, e, floor: float):
     """The cost expansion ``e`` with the eigenvalues of every joint stage Hessian
     ``[[l_xx, l_ux'], [l_ux, l_uu]]`` and of the terminal ``l_xx`` clipped to at least
-    ``floor`` (a Hessian shared by the batch is projected once)."""
+    ``floor`` (a Hessian shared by the batch is projected once; Hessians that are the
+    same tensors as at an earlier iteration of the solve, as a quadratic cost's weights
+    are, once per solve)."""
+    # per solve: the last Hessians projected and their projection (the tensors are held,
+    # so an identity test cannot match a later tensor at their address)
+    held = pinned(problem.cost, ("psd_floor", floor, problem.horizon), dict)
+    inputs = (e.lxx, e.luu, e.lux)
+    hit = held.get("last")
+    if hit is not None and all(a is b for a, b in zip(hit[0], inputs, strict=True)):
+        e.lxx, e.luu, e.lux = hit[1]
+        return e
+    _project_hessians(problem, e, floor)
+    held["last"] = (inputs, (e.lxx, e.luu, e.lux))
+    return e
+
+
+def _project_hessians(problem: Problem, e, floor: float) -> None:
+    """:func:`_floored`'s projection, into ``e``."""
     n, m, T = problem.state_dim, problem.control_dim, problem.horizon
     lux = e.lux if e.lux is not None else e.luu.new_zeros(*e.luu.shape[:-1], n)
     nb = broadcast_shapes(e.lxx.shape[:-3], e.luu.shape[:-3], lux.shape[:-3]).numel()
@@ -357,7 +375,6 @@ def _floored(problem: Problem, e, floor: float):
     lxxT = project_psd(lxx[:, T], floor)
     e.lxx = torch.cat([H[..., :n, :n], lxxT.unsqueeze(1)], 1)
     e.luu, e.lux = H[..., n:, n:], H[..., n:, :n]
-    return e
 
 
 def _pass(A, B, e, hook, u_bounds, reg, restarts=None, c=None):
