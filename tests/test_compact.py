@@ -298,3 +298,26 @@ def test_the_working_set_is_taken_once_per_set(monkeypatch):
     assert 1 < len(sizes) <= ends and len(set(sizes)) == len(sizes)
     assert problem_takes == sizes
     assert int(full.iterations.max()) > 2 * len(sizes)  # many iterations per set
+
+
+def test_put_keeps_the_working_sets_shared_fields():
+    """A field that is not per element (e.g. an accumulated time) takes the working
+    set's latest value when the set is written back, and the batched fields are
+    written at their rows only."""
+    from dataclasses import dataclass, replace
+
+    from torchslq.solvers.core import ElementState, shared
+
+    @dataclass(frozen=True)
+    class Timed(ElementState):
+        seconds: torch.Tensor = shared(None)
+
+    x, u, J = torch.zeros(4, 3, 2), torch.zeros(4, 2, 1), torch.arange(4.0)
+    full = Timed(x=x, u=u, J=J, seconds=torch.tensor(1.0))
+    idx = torch.tensor([1, 3])
+    part = full.take(idx)
+    assert torch.equal(part.J, torch.tensor([1.0, 3.0])) and part.seconds is full.seconds
+    part = replace(part, J=part.J + 10, seconds=torch.tensor(2.5))
+    back = full.put(idx, part)
+    assert torch.equal(back.J, torch.tensor([0.0, 11.0, 2.0, 13.0]))
+    assert float(back.seconds) == 2.5

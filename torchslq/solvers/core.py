@@ -99,11 +99,13 @@ class ElementState:
         return replace(self, **{k: v.index_select(0, idx) for k, v in self._batched()})
 
     def put(self: S, idx: Tensor | None, part: S) -> S:
-        """This state with the elements ``idx`` replaced by ``part`` (``part`` for None)."""
+        """This state with the elements ``idx`` replaced by ``part`` (``part`` for None);
+        the fields that are not per element (:func:`shared`) are ``part``'s, the latest
+        (a rule may update them, e.g. an accumulated time)."""
         if idx is None:
             return part
         return replace(
-            self, **{k: v.index_copy(0, idx, getattr(part, k)) for k, v in self._batched()}
+            part, **{k: v.index_copy(0, idx, getattr(part, k)) for k, v in self._batched()}
         )
 
 
