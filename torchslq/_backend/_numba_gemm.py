@@ -26,9 +26,11 @@ import numba.core.config
 
 
 def with_slp(fn, *args):
-    """``fn(*args)`` with LLVM's SLP vectoriser switched on, as :func:`slp_vectorized`,
-    for a launch made at every solver iteration (a generator-based context manager
-    costs microseconds there)."""
+    """``fn(*args)`` with LLVM's SLP vectoriser switched on, as :func:`slp_vectorized`:
+    the launchers call every kernel that uses these products through it, at every call
+    (a generator-based context manager costs microseconds per solver iteration, and
+    switching it on only for a kernel's first call missed specialisations compiled
+    later)."""
     config = numba.core.config
     old = config.SLP_VECTORIZE
     config.SLP_VECTORIZE = 1

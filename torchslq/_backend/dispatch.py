@@ -299,7 +299,7 @@ def riccati_compiled(
         opts = np.array(restarts[3], dtype=np.float64)
         restart_arrays = (opts, mu_a, delta_a, allowed)
         reg = mu
-    from ._numba_gemm import slp_vectorized, with_slp
+    from ._numba_gemm import with_slp
 
     witness = _kernels().size_witness(n1 - 1, m)
     if pieces is not None and not boxed and witness[0] and (hessians is None or npd == np.float64):
@@ -307,7 +307,7 @@ def riccati_compiled(
         # gain form, its sizes fixed when compiled (riccati_gain_reg_kernel), into the
         # blocks of Vh. (DDP's pass in float32 keeps the homogeneous kernel: in gain form
         # a float32 cart-pole DDP stalled at a gradient of 1.8e-3 instead of 1.7e-4.)
-        # (LLVM's SLP switch for its register-blocked products, on the first call)
+        # (LLVM's SLP switch for its register-blocked products, when first compiled)
         with_slp(
             _launch, _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
             restart_arrays[1] if restarts is not None else _reg_array(reg, batch, dtype),
@@ -315,11 +315,10 @@ def riccati_compiled(
             failed.numpy(), *restart_arrays[1:], restart_arrays[0], *witness,
         )  # fmt: skip
     else:
-        with slp_vectorized():  # for its register-blocked products, on the first call
-            _riccati_homogeneous_launch(
-                arrays, reg, batch, dtype, hessians, boxed, lower, upper, box_tol, Kk, Vh, L,
-                clamped, failed, dV, piece_arrays, restart_arrays,
-            )  # fmt: skip
+        with_slp(
+            _riccati_homogeneous_launch, arrays, reg, batch, dtype, hessians, boxed, lower,
+            upper, box_tol, Kk, Vh, L, clamped, failed, dV, piece_arrays, restart_arrays,
+        )  # fmt: skip
     if len(batch) == 1:  # (the outputs have that shape: no views to make)
         return (Kk, Vh, L, failed, clamped if boxed else None, dV if boxed else None, mu, delta)
     return (
@@ -831,9 +830,6 @@ def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, 
     return arrays, 1 if shared else math.prod(batch)
 
 
-_SLP_CALLED: set = set()  # (dtype, n, m) gain_solve_kernel was first called (compiled) for
-
-
 def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T: int) -> dict:
     """:func:`torchslq.lqr_solve` on the gain-form kernels (:mod:`._numba_gain`), without
     autograd: the Riccati pass over the data's batch (``data_batch``, 1 or ``B``), then
@@ -845,11 +841,12 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
     ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T, m)``, ``lam (B, T+1, n)``,
     ``cost (B,)`` (NaN where not finite), ``finite (B,)``. Call only where
     :func:`can_use_compiled` holds."""
+    from ._numba_gemm import with_slp
+
     gain = _gain_kernels()
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     nb = x0.shape[0]
-    dtype = x0.dtype
-    x0n = (x0.detach() if x0.requires_grad else x0).contiguous().numpy()
+    x0n = _np(x0)
     # outputs allocated by numpy and shared with torch (a torch allocation and its numpy
     # view cost several times numpy's, which counts at B = 1)
     npd = x0n.dtype
@@ -869,24 +866,13 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
         args = (
             pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten, nt, mt,
         )  # fmt: skip
-        # a size-specialised kernel is compiled on its size's first call: with the switch
-        key = (dtype, len(nt), len(mt))
-        if key in _SLP_CALLED:  # (entering the switch costs a few us per call)
-            gain.gain_solve_kernel(*args)
-        else:
-            from ._numba_gemm import slp_vectorized
-
-            with slp_vectorized():  # for its register-blocked products, on the first call
-                gain.gain_solve_kernel(*args)
-            _SLP_CALLED.add(key)
+        # (LLVM's SLP switch for its register-blocked products, when first compiled)
+        with_slp(gain.gain_solve_kernel, *args)
     else:
-        from ._numba_gemm import slp_vectorized
-
-        with slp_vectorized():  # for its register-blocked products, on the first call
-            _launch(
-                gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn, failedn,
-                nt, mt,
-            )  # fmt: skip
+        with_slp(
+            _launch, gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn,
+            failedn, nt, mt,
+        )  # fmt: skip
         _launch(
             _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0n, xn, un,
             nt, mt,
