@@ -481,7 +481,7 @@ def _ones(t: Tensor | None, batch, dtype: torch.dtype) -> Tensor:
     return t.to(dtype).expand(batch)
 
 
-def _failed(fac: RiccatiFactors) -> Tensor:
+def failed_or_nonfinite(fac: RiccatiFactors) -> Tensor:
     """``(B,)``: the pass failed, or its gains are not finite (a factorisation can succeed
     and still give non-finite gains, e.g. DDP's second-order terms overflowing)."""
     return fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
@@ -516,7 +516,7 @@ def _restarted(data: tuple, reg: Tensor, hook, u_bounds, restarts: Restarts) -> 
     mu = reg.expand(batch).clone()
     delta = _ones(restarts.delta, batch, mu.dtype).to(dev)
     allowed = _ones(restarts.allowed, batch, torch.bool).to(dev)
-    bad = _failed(fac)
+    bad = failed_or_nonfinite(fac)
     if hook is not None and not hasattr(hook, "subset"):
         for _ in range(sched.max_restarts):
             retry = bad & allowed & (mu <= sched.reg_max)
@@ -524,7 +524,7 @@ def _restarted(data: tuple, reg: Tensor, hook, u_bounds, restarts: Restarts) -> 
                 break
             mu, delta = sched.increase(mu, delta, retry)
             fac = run(mu)
-            bad = _failed(fac)
+            bad = failed_or_nonfinite(fac)
         return replace(fac, failed=bad, reg=mu, reg_delta=delta)
     tries = 0
     while tries < sched.max_restarts:
@@ -544,7 +544,7 @@ def _restarted(data: tuple, reg: Tensor, hook, u_bounds, restarts: Restarts) -> 
             deltas.append(delta_r)
         M, D = torch.stack(mus), torch.stack(deltas)  # (n_cand, nr)
         fac_r = run(M.reshape(-1), idx.repeat(n_cand))
-        bad_r = _failed(fac_r).view(n_cand, nr)
+        bad_r = failed_or_nonfinite(fac_r).view(n_cand, nr)
         # where one-at-a-time restarts stop: the first success, or the first mu > reg_max
         stop = ~bad_r | (M > sched.reg_max)
         first = torch.argmax(stop.to(torch.int8), dim=0)

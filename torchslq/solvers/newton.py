@@ -41,7 +41,7 @@ from ..dynamics.linearize import (
 )
 from ..dynamics.rollout import costate_gradient
 from ..lq.regularization import RegularizationSchedule
-from ..lq.riccati import RiccatiFactors, StageHook, riccati_backward
+from ..lq.riccati import RiccatiFactors, StageHook, failed_or_nonfinite, riccati_backward
 from ..status import Status
 from .descent import DescentState, nonfinite_rows
 
@@ -347,7 +347,7 @@ def _floored(problem: Problem, e, floor: float):
     """The cost expansion ``e`` with the eigenvalues of every joint stage Hessian
     ``[[l_xx, l_ux'], [l_ux, l_uu]]`` and of the terminal ``l_xx`` clipped to at least
     ``floor`` (a Hessian shared by the batch is projected once; Hessians that are the
-    same tensors as at an earlier iteration of the solve, as a quadratic cost's weights
+    same tensors as at the previous call in the solve, as a quadratic cost's weights
     are, once per solve)."""
     # per solve: the last Hessians projected and their projection (the tensors are held,
     # so an identity test cannot match a later tensor at their address)
@@ -386,7 +386,7 @@ def _pass(A, B, e, hook, u_bounds, reg, restarts=None, c=None):
     )  # fmt: skip
     if restarts is not None:  # its failures count non-finite gains already (every backend)
         return fac, fac.failed
-    return fac, fac.failed | ~torch.isfinite(fac.Kk).flatten(1).all(1)
+    return fac, failed_or_nonfinite(fac)
 
 
 def _no_step(x: Tensor, u: Tensor, grad: Tensor) -> dict[str, Tensor]:
