@@ -265,7 +265,7 @@ def iterate(
     # the working set's state and problem, kept from one iteration to the next while
     # the set is the same (most iterations: an element leaves it once, when it ends);
     # the whole batch's state is written back only when the set shrinks and at the end
-    sub, prob, work_idx, work_size = state, problem, None, Bsz
+    sub, prob, work_idx = state, problem, None
     for it in range(s.max_iter + 1):
         running = status == Status.RUNNING
         # working set: every element, or (compact) only the running ones
@@ -273,12 +273,12 @@ def iterate(
         if idx is not None and idx.numel() == Bsz:
             idx = None
         size = Bsz if idx is None else idx.numel()
-        if size != work_size:  # an element that ends never runs again: a smaller set
+        # an element that ends never runs again: a set of another size is a smaller one
+        if size != (Bsz if work_idx is None else work_idx.numel()):
             state = state.put(work_idx, sub)
-            sub, work_size = state.take(idx), size
+            sub, work_idx = state.take(idx), idx
             # per-element problem data (a goal per element, (B, 1) masses) follow it
             prob = problem if idx is None else problem.take(idx, Bsz)
-        work_idx = idx
         if size == 0:
             # no element runs from the start (all non-finite): record the start and stop
             for key, value in (("cost", cost), ("grad_norm", grad_norm), ("step", step)):
