@@ -19,7 +19,10 @@ LQ problem with every term (``n = 4``, ``m = 2`` by default), for
   also uses);
 * the methods: ``sequential`` (the default path: on the CPU the compiled numba kernel),
   ``sequential_torch`` (the same recursion as batched torch ops per step, which is what
-  a GPU runs; CPU only, where it differs from ``sequential``) and ``scan``;
+  a GPU runs; CPU only, where it differs from ``sequential``), ``scan`` (on a GPU with
+  Triton: the fused per-step kernels of :mod:`torchslq.lq.scan_kernels`) and
+  ``scan_torch`` (the scan as batched torch ops, the fused kernels switched off; GPU
+  only, where it differs from ``scan``);
 * ``--backward`` adds forward + backward (``autograd.grad`` of ``sum(cost) + sum(x)``
   w.r.t. ``Q, q, A, x0``), each method's own backward pass.
 
@@ -34,6 +37,7 @@ command line that produced them.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import platform
@@ -46,29 +50,32 @@ from pathlib import Path
 import torch
 
 import torchslq as ts
-from torchslq.lq import compiled_available, set_compiled
+from torchslq.lq import compiled_available, scan_kernels, set_compiled
 
 ROOT = Path(__file__).resolve().parent.parent
 
 
 def problem(B: int, T: int, n: int, m: int, dtype: torch.dtype, device: str, seed: int = 0):
-    """A fully batched, time-varying, well-conditioned LQ problem (all terms)."""
-    g = torch.Generator().manual_seed(seed)
+    """A fully batched, time-varying, well-conditioned LQ problem (all terms), drawn on
+    ``device`` (drawing ``B * T = 1.7e7`` steps on the CPU takes longer than solving)."""
+    g = torch.Generator(device=device).manual_seed(seed)
+    kw = {"dtype": torch.float64, "device": device}
 
     def rn(*s):
-        return torch.randn(*s, generator=g, dtype=torch.float64)
+        return torch.randn(*s, generator=g, **kw)
 
-    A = 0.95 * torch.eye(n, dtype=torch.float64) + 0.2 * rn(B, T, n, n) / n**0.5
+    eye = torch.eye(n, **kw)
+    A = 0.95 * eye + 0.2 * rn(B, T, n, n) / n**0.5
     Bm = rn(B, T, n, m) / n**0.5
     Lq = rn(B, T + 1, n, n) / n**0.5
-    Q = Lq @ Lq.mT + 0.5 * torch.eye(n, dtype=torch.float64)
+    Q = Lq @ Lq.mT + 0.5 * eye
     Lr = rn(B, T, m, m) / m**0.5
-    R = Lr @ Lr.mT + 0.5 * torch.eye(m, dtype=torch.float64)
+    R = Lr @ Lr.mT + 0.5 * torch.eye(m, **kw)
     S = 0.1 * rn(B, T, m, n)
     args = dict(
         A=A, B=Bm, Q=Q, R=R, x0=rn(B, n), q=rn(B, T + 1, n), r=rn(B, T, m), S=S, c=0.1 * rn(B, T, n)
     )
-    return {k: v.to(dtype=dtype, device=device) for k, v in args.items()}
+    return {k: v.to(dtype=dtype) for k, v in args.items()}
 
 
 def _sync(device: str) -> None:
@@ -100,25 +107,30 @@ def timed(fn, device: str, budget: float) -> tuple[float, object]:
 
 def run_method(args: dict, method: str, backward: bool):
     torch_path = method == "sequential_torch"
-    lq_method = "sequential" if torch_path else method
+    lq_method = {"sequential_torch": "sequential", "scan_torch": "scan"}.get(method, method)
 
     def call():
         old = set_compiled(False) if torch_path else None
+        fused = scan_kernels.disabled() if method == "scan_torch" else contextlib.nullcontext()
         try:
-            if not backward:
-                with torch.no_grad():
-                    return ts.lqr_solve(**args, validate=False, method=lq_method).x
-            ins = {
-                k: (v.requires_grad_(True) if k in ("Q", "q", "A", "x0") else v)
-                for k, v in args.items()
-            }
-            sol = ts.lqr_solve(**ins, validate=False, method=lq_method)
-            loss = sol.cost.sum() + sol.x.sum()
-            torch.autograd.grad(loss, [ins[k] for k in ("Q", "q", "A", "x0")])
-            return sol.x.detach()
+            with fused:
+                return _call()
         finally:
             if old is not None:
                 set_compiled(old)
+
+    def _call():
+        if not backward:
+            with torch.no_grad():
+                return ts.lqr_solve(**args, validate=False, method=lq_method).x
+        ins = {
+            k: (v.requires_grad_(True) if k in ("Q", "q", "A", "x0") else v)
+            for k, v in args.items()
+        }
+        sol = ts.lqr_solve(**ins, validate=False, method=lq_method)
+        loss = sol.cost.sum() + sol.x.sum()
+        torch.autograd.grad(loss, [ins[k] for k in ("Q", "q", "A", "x0")])
+        return sol.x.detach()
 
     return call
 
@@ -161,6 +173,8 @@ def main(argv: list[str] | None = None) -> None:
     if device.startswith("cuda") and not torch.cuda.is_available():
         raise SystemExit("--device cuda: no CUDA device is available")
     methods = [m for m in a.methods if not (m == "sequential_torch" and device != "cpu")]
+    if device == "cpu" or not scan_kernels.HAVE_TRITON:
+        methods = [m for m in methods if m != "scan_torch"]  # same as "scan"
     if device == "cpu" and not compiled_available():
         methods = [m for m in methods if m != "sequential_torch"]  # same as "sequential"
     out = Path(a.out)
@@ -201,11 +215,12 @@ def main(argv: list[str] | None = None) -> None:
             "`sequential`: the default path (CPU: the compiled kernel); `sequential_torch`: "
             "the same recursion as torch ops per step (what a GPU runs); `scan`: "
             '`method="scan"`. speed-up = best sequential / scan (> 1: scan faster); '
-            "torch / scan = sequential_torch / scan. `x rel diff`: scan vs sequential.",
+            "torch / scan = sequential_torch / scan; scan_torch / scan: the fused kernels' "
+            "gain. `x rel diff`: scan vs sequential.",
             "",
             "| dtype | threads | T | B | sequential [ms] | sequential_torch [ms] | scan [ms] "
-            "| speed-up | torch / scan | x rel diff |",
-            "|---|---|---|---|---|---|---|---|---|---|",
+            "| scan_torch [ms] | speed-up | torch / scan | scan_torch / scan | x rel diff |",
+            "|---|---|---|---|---|---|---|---|---|---|---|---|",
         ]
         for r in rows:
             ms = {
@@ -221,9 +236,12 @@ def main(argv: list[str] | None = None) -> None:
             diff = f"{r['x_rel_diff']:.1e}" if r.get("x_rel_diff") is not None else "-"
             st = r.get("sequential_torch")
             tsp = f"{st / r['scan']:.2f}" if st and r.get("scan") else "-"
+            sc = r.get("scan_torch")
+            fsp = f"{sc / r['scan']:.2f}" if sc and r.get("scan") else "-"
             lines.append(
                 f"| {r['dtype']} | {r['threads']} | {r['T']} | {r['B']} | {ms.get('sequential', '-')} "
-                f"| {ms.get('sequential_torch', '-')} | {ms.get('scan', '-')} | {sp} | {tsp} | {diff} |"
+                f"| {ms.get('sequential_torch', '-')} | {ms.get('scan', '-')} "
+                f"| {ms.get('scan_torch', '-')} | {sp} | {tsp} | {fsp} | {diff} |"
             )
         if meta.get("command_2"):  # rows measured by a second run on the same machine
             lines += [
@@ -245,7 +263,7 @@ def main(argv: list[str] | None = None) -> None:
         meta, rows[:] = saved["meta"], saved["rows"]
         a.n, a.m, a.backward = meta["n"], meta["m"], meta["backward"]
         a.methods = sorted(
-            {k for r in rows for k in r} & {"sequential", "sequential_torch", "scan"}
+            {k for r in rows for k in r} & {"sequential", "sequential_torch", "scan", "scan_torch"}
         )
         write(measured=False)
         return
@@ -274,6 +292,10 @@ def main(argv: list[str] | None = None) -> None:
                             del args
                             _free(device)
                             args = problem(B, T, a.n, a.m, dtype, device)
+                            continue
+                        except Exception as err:  # recorded, the other rows still run
+                            row[method + "_error"] = type(err).__name__
+                            print(f"{method} T={T} B={B}: {err!r}", flush=True)
                             continue
                         row[method] = t
                         xs[method] = x

@@ -69,6 +69,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
+from . import scan_kernels
 from .riccati import (
     RiccatiFactors,
     chol_solve,
@@ -175,6 +176,8 @@ def _combine_value(e1: Elems, e2: Elems) -> Elems:
     A1, b1, C1, eta1, J1, bad1 = e1
     A2, b2, C2, eta2, J2, bad2 = e2
     n = A1.shape[-1]
+    if scan_kernels.enabled(A1, n):
+        return scan_kernels.combine_value(e1, e2)
     eye = torch.eye(n, dtype=A1.dtype, device=A1.device)
     CX = C1 @ torch.cat([J2, eta2.unsqueeze(-1), A2.mT], -1)  # C1 [J2, eta2, A2']
     LU, piv, info = torch.linalg.lu_factor_ex(eye + CX[..., :n])
@@ -197,6 +200,8 @@ def _combine_affine(e1: Elems, e2: Elems) -> Elems:
     ``M (B, T', p, p)``, ``a (B, T', p)``."""
     M1, a1 = e1
     M2, a2 = e2
+    if scan_kernels.enabled(M1, M1.shape[-1]):
+        return scan_kernels.combine_affine(e1, e2)
     return M2 @ M1, (M2 @ a1.unsqueeze(-1))[..., 0] + a2
 
 
@@ -244,8 +249,12 @@ def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[T
     the paper's elements (S1)-(S3), and ``(B,)`` bool: some ``R`` not
     positive definite or some ``I + C J`` singular in the element."""
     A, Bm, c, Q, R, S, q, r, QT, qT = _split(F, H, VhT)
-    n = A.shape[-1]
+    n, m = A.shape[-1], Bm.shape[-1]
     nb = batch[0]
+    if scan_kernels.enabled(F, n, m):
+        elems = _value_elements_fused(F, H, QT, qT, nb)
+        _, _, _, eta_s, J_s, bad_s = associative_scan(_combine_value, elems, reverse=True)
+        return J_s, -eta_s, bad_s.any(1)
 
     A, Bm, c, Q, R, S, q, r = (t.expand(nb, *t.shape[1:]) for t in (A, Bm, c, Q, R, S, q, r))
     Lr, info_r = cholesky(R)
@@ -272,6 +281,29 @@ def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[T
     )
     _, _, _, eta_s, J_s, bad_s = associative_scan(_combine_value, elems, reverse=True)
     return J_s, -eta_s, bad_s.any(1)
+
+
+def _value_elements_fused(F: Tensor, H: Tensor, QT: Tensor, qT: Tensor, nb: int) -> Elems:
+    """The elements of :func:`_value_scan` by one fused kernel (:mod:`.scan_kernels`)."""
+    T, n = F.shape[1], F.shape[-2] - 1
+    kw = {"dtype": F.dtype, "device": F.device}
+    elems = (
+        torch.empty(nb, T + 1, n, n, **kw),
+        torch.empty(nb, T + 1, n, **kw),
+        torch.empty(nb, T + 1, n, n, **kw),
+        torch.empty(nb, T + 1, n, **kw),
+        torch.empty(nb, T + 1, n, n, **kw),
+        torch.empty(nb, T + 1, dtype=torch.bool, device=F.device),
+    )
+    scan_kernels.value_elements(
+        F.expand(nb, *F.shape[1:]), H.expand(nb, *H.shape[1:]), [e[:, :T] for e in elems]
+    )
+    # the terminal element (0, 0, 0, -q_T, Q_T)
+    for e in (elems[0], elems[1], elems[2], elems[5]):
+        e[:, T] = 0
+    elems[3][:, T] = -qT
+    elems[4][:, T] = QT
+    return elems
 
 
 def riccati_scan_homogeneous(F: Tensor, H: Tensor, VhT: Tensor) -> RiccatiFactors:
@@ -301,7 +333,33 @@ def riccati_scan_homogeneous(F: Tensor, H: Tensor, VhT: Tensor) -> RiccatiFactor
         return riccati_homogeneous(F, H, VhT)
     V, v, bad = _value_scan(F, H, VhT, batch)
     Vh_top = torch.cat([V, v.unsqueeze(-1)], -1)  # (B, T+1, n, n+1): rows :n of Vh
-    # gains at every step at once (S4): [Quu, Qu_xh] = H[:m] + B' Vh_{t+1}[:n] F
+    if scan_kernels.enabled(F, n, m):
+        Kk, L, fail, inc = scan_kernels.gains(
+            V[:, 1:], v[:, 1:], F.expand(nb, *F.shape[1:]), H.expand(nb, *H.shape[1:])
+        )
+        failed = fail.any(1)
+    else:
+        Kk, L, failed, inc = _gains(F, H, V, v, Vh_top, nb)
+    cornerT = VhT[..., n, n].expand(nb)
+    corner = cornerT.unsqueeze(1) + inc.flip(1).cumsum(1).flip(1)  # (B, T)
+    corner = torch.cat([corner, cornerT.unsqueeze(1)], 1)
+    bottom = torch.cat([v, corner.unsqueeze(-1)], -1).unsqueeze(-2)  # (B, T+1, 1, n+1)
+    Vh = torch.cat([Vh_top, bottom], -2)
+    redo = (
+        bad | failed | ~torch.isfinite(Kk).flatten(1).all(1) | ~torch.isfinite(Vh).flatten(1).all(1)
+    )
+    fac = RiccatiFactors(Kk=Kk, Vh=Vh, chol=L.expand(nb, T, m, m), failed=failed)
+    if bool(redo.any()):  # one host sync; rare: failed elements only
+        fac = _sequential_rows(F, H, VhT, fac, redo.nonzero().squeeze(1))
+    return fac
+
+
+def _gains(F: Tensor, H: Tensor, V: Tensor, v: Tensor, Vh_top: Tensor, nb: int):
+    """Gains at every step at once (S4), the Cholesky factors of ``Quu``, ``(B,)`` failed
+    flags and the value constant's increments ``(B, T)``."""
+    T, n = F.shape[-3], F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    # [Quu, Qu_xh] = H[:m] + B' Vh_{t+1}[:n] F
     P = Vh_top[:, 1:] @ F  # (B, T, n, m+n+1)
     Qu = H[..., :m, :] + F[..., :n, :m].mT @ P
     Quu, Qu_xh = Qu[..., :m], Qu[..., m:]
@@ -315,19 +373,7 @@ def riccati_scan_homogeneous(F: Tensor, H: Tensor, VhT: Tensor) -> RiccatiFactor
         + 2 * (vn * cvec).sum(-1)
         + (Qu_xh[..., -1] * Kk[..., -1]).sum(-1)
     )
-    cornerT = VhT[..., n, n].expand(nb)
-    corner = cornerT.unsqueeze(1) + inc.flip(1).cumsum(1).flip(1)  # (B, T)
-    corner = torch.cat([corner, cornerT.unsqueeze(1)], 1)
-    bottom = torch.cat([v, corner.unsqueeze(-1)], -1).unsqueeze(-2)  # (B, T+1, 1, n+1)
-    Vh = torch.cat([Vh_top, bottom], -2)
-    failed = (info != 0).any(1)
-    redo = (
-        bad | failed | ~torch.isfinite(Kk).flatten(1).all(1) | ~torch.isfinite(Vh).flatten(1).all(1)
-    )
-    fac = RiccatiFactors(Kk=Kk, Vh=Vh, chol=L.expand(nb, T, m, m), failed=failed)
-    if bool(redo.any()):  # one host sync; rare: failed elements only
-        fac = _sequential_rows(F, H, VhT, fac, redo.nonzero().squeeze(1))
-    return fac
+    return Kk, L, (info != 0).any(1), inc
 
 
 def _sequential_rows(F, H, VhT, fac: RiccatiFactors, idx: Tensor) -> RiccatiFactors:
@@ -350,6 +396,17 @@ def _sequential_rows(F, H, VhT, fac: RiccatiFactors, idx: Tensor) -> RiccatiFact
     )
 
 
+def _closed_loop(F: Tensor, Kk: Tensor) -> tuple[Tensor, Tensor]:
+    """``(A + B K, B k + c)`` of every step: ``(B, T, n, n)``, ``(B, T, n)``."""
+    n = F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    if scan_kernels.enabled(Kk, n, m):
+        nb = max(F.shape[0], Kk.shape[0])
+        return scan_kernels.closed_loop(F.expand(nb, *F.shape[1:]), Kk.expand(nb, *Kk.shape[1:]))
+    G = F[..., :n, :m] @ Kk + F[..., :n, m:]
+    return G[..., :n], G[..., n]
+
+
 def rollout_scan_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`torchslq.lq.rollout_homogeneous` by one prefix scan (S5).
 
@@ -362,11 +419,10 @@ def rollout_scan_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor,
     """
     T = Kk.shape[-3]
     n = F.shape[-2] - 1
-    m = F.shape[-1] - n - 1
     if T == 0:
         return x0.unsqueeze(-2), x0.new_zeros(*x0.shape[:-1], 0, Kk.shape[-2])
-    G = F[..., :n, :m] @ Kk + F[..., :n, m:]  # x_{t+1} = G_t [x_t; 1]: (A + BK, Bk + c)
-    x = _affine_recursion(G[..., :n], G[..., n], x0)
+    M, a = _closed_loop(F, Kk)  # x_{t+1} = M_t x_t + a_t: (A + BK, Bk + c)
+    x = _affine_recursion(M, a, x0)
     u = (Kk[..., :n] @ x[:, :T].unsqueeze(-1))[..., 0] + Kk[..., n]
     return x, u
 
@@ -387,7 +443,7 @@ def lq_adjoint_scan(
     m = gu.shape[-1]
     K = Kk[..., :n]
     Bm = F[..., :n, :m]
-    Acl = Bm @ K + F[..., :n, m : m + n]  # (B, T, n, n)
+    Acl, _ = _closed_loop(F, Kk)  # (B, T, n, n)
     a = gx[:, :T] + (K.mT @ gu.unsqueeze(-1))[..., 0]
     v = _affine_recursion(Acl.mT, a, gx[:, T], reverse=True)  # (B, T+1, n)
     qu = gu + (Bm.mT @ v[:, 1:].unsqueeze(-1))[..., 0]

@@ -1,0 +1,580 @@
+"""Fused per-element kernels of the parallel-in-time LQ scan (Triton).
+
+Why: the torch-op scan (:mod:`.scan`) builds every combination of two value-function
+elements out of batched BLAS/LAPACK calls on tiny matrices (``lu_factor``, two
+``lu_solve``, five ``matmul``, ``cat``): a dozen kernels per level, each re-reading the
+elements from memory, and LAPACK's batched small-matrix routines are slow on a GPU. At
+large ``B * T`` the scan is then throughput-bound far below the device's bandwidth
+(0.13 us per element at ``B * T = 16.7M`` on an H100, ``parallel_lq_cuda.md``). Here
+each step is one kernel: a lane holds one element, reads its numbers once, computes in
+registers and writes once.
+
+The kernels are generated per state and control size ``(n, m)`` as straight-line code
+(every matrix entry a variable; zeros known at generation time are skipped) and compiled
+by Triton for the tensor's dtype. They compute the same quantities as the torch ops of
+:mod:`.scan`, equation by equation:
+
+* :func:`value_elements` - the elements (S1) of every step, ``R`` by Cholesky;
+* :func:`combine_value` - the paper's operator (S2), ``(I + C_ij J_jk)^{-1}`` applied by
+  Gauss-Jordan elimination with partial pivoting (``I + C J`` is not symmetric, and
+  without pivoting a non-singular one can meet a zero pivot); the symmetric results
+  ``C`` and ``J`` are computed on and above the diagonal and mirrored;
+* :func:`gains` - the gains (S4) and the value's constant increments;
+* :func:`combine_affine` - the composition of affine maps (S5);
+* :func:`closed_loop` - ``(A + B K, B k + c)`` of every step.
+
+A singular pivot (exactly zero, as LAPACK's ``info``) or a non-positive Cholesky pivot
+is reported per element, as the torch ops report it, so the scan's redo of failed
+elements by the recursion is unchanged.
+
+The kernels run where :func:`enabled` says: on CUDA tensors when Triton is installed and
+``n, m <= MAX_DIM`` (larger sizes would compile for minutes; the torch ops serve them).
+:func:`interpreted` runs them on CPU tensors through Triton's interpreter, which the
+tests use to check them without a GPU; :func:`disabled` switches them off (benchmarks
+compare the two).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import linecache
+from collections.abc import Iterator, Sequence
+
+import torch
+from torch import Tensor
+
+try:  # optional: the torch ops of .scan serve where Triton is missing
+    import triton
+    import triton.language as tl
+
+    HAVE_TRITON = True
+except ImportError:  # pragma: no cover - depends on the installation
+    triton = tl = None
+    HAVE_TRITON = False
+
+__all__ = [
+    "MAX_DIM",
+    "closed_loop",
+    "combine_affine",
+    "combine_value",
+    "disabled",
+    "enabled",
+    "gains",
+    "interpreted",
+    "value_elements",
+]
+
+MAX_DIM = 8
+_BLOCK = 128
+_NUM_WARPS = 4
+_MODE = {"interpret": False, "off": False}
+
+
+@contextlib.contextmanager
+def interpreted() -> Iterator[None]:
+    """Within: the kernels run on CPU tensors too, through Triton's interpreter (slow;
+    for tests)."""
+    old = dict(_MODE)
+    _MODE.update(interpret=True, off=False)
+    try:
+        yield
+    finally:
+        _MODE.update(old)
+
+
+@contextlib.contextmanager
+def disabled() -> Iterator[None]:
+    """Within: the scan uses its torch ops everywhere (to compare the two)."""
+    old = dict(_MODE)
+    _MODE["off"] = True
+    try:
+        yield
+    finally:
+        _MODE.update(old)
+
+
+def enabled(t: Tensor, n: int, m: int = 1) -> bool:
+    """Whether the fused kernels serve data like ``t`` with state size ``n`` and control
+    size ``m``."""
+    if not HAVE_TRITON or _MODE["off"] or not (1 <= n <= MAX_DIM and 1 <= m <= MAX_DIM):
+        return False
+    if t.dtype not in (torch.float32, torch.float64):
+        return False
+    return t.is_cuda or (_MODE["interpret"] and t.device.type == "cpu")
+
+
+# ----------------------------------------------------------------------------- code emitter
+
+
+class _Emitter:
+    """Straight-line kernel source: each value a fresh variable (a ``(BLOCK,)`` vector of
+    lanes, one element per lane); matrices are lists of rows of variable names, ``None``
+    for an entry known to be zero."""
+
+    def __init__(self) -> None:
+        self.lines: list[str] = []
+        self.args: list[str] = []
+        self._k = 0
+
+    def let(self, expr: str) -> str:
+        name = f"v{self._k}"
+        self._k += 1
+        self.lines.append(f"{name} = {expr}")
+        return name
+
+    def tensor(self, name: str) -> str:
+        self.args.append(name)
+        return name
+
+    def _addr(self, t: str, i: int, j: int) -> str:
+        return f"{t} + o_{t} + {i} * {t}_si + {j} * {t}_sj"
+
+    def load(self, t: str, i: int = 0, j: int = 0) -> str:
+        return self.let(f"tl.load({self._addr(t, i, j)}, mask=mask, other=0.0)")
+
+    def load_mat(self, t: str, rows: int, cols: int, i0: int = 0, j0: int = 0) -> list[list[str]]:
+        return [[self.load(t, i0 + i, j0 + j) for j in range(cols)] for i in range(rows)]
+
+    def load_vec(self, t: str, size: int, i0: int = 0) -> list[str]:
+        return [self.load(t, i0 + i) for i in range(size)]
+
+    def store(self, t: str, value: str | None, i: int = 0, j: int = 0) -> None:
+        value = "zero" if value is None else value
+        self.lines.append(f"tl.store({self._addr(t, i, j)}, {value}, mask=mask)")
+
+    def store_mat(self, t: str, X: list[list[str | None]]) -> None:
+        for i, row in enumerate(X):
+            for j, x in enumerate(row):
+                self.store(t, x, i, j)
+
+    def store_vec(self, t: str, x: list[str | None]) -> None:
+        for i, xi in enumerate(x):
+            self.store(t, xi, i)
+
+    # arithmetic on names; None is zero
+    def lin(
+        self,
+        terms: Sequence[tuple[str | None, str | None]],
+        add: str | None = None,
+        sign: str = "+",
+    ) -> str | None:
+        """``add + sign * sum(a * b)`` over the terms with neither factor zero."""
+        prods = [f"{a} * {b}" for a, b in terms if a is not None and b is not None]
+        if not prods:
+            return add
+        body = " + ".join(prods)
+        if add is None:
+            return self.let(body if sign == "+" else f"-({body})")
+        return self.let(f"{add} {sign} ({body})")
+
+    def add(self, a: str | None, b: str | None, sign: str = "+") -> str | None:
+        if b is None:
+            return a
+        if a is None:
+            return b if sign == "+" else self.let(f"-{b}")
+        return self.let(f"{a} {sign} {b}")
+
+    def scale(self, a: str | None, s: str) -> str | None:
+        return None if a is None else self.let(f"{a} * {s}")
+
+    def matmul(self, X, Y, add=None, sign="+", transpose_x=False):
+        """``add + sign * op(X) @ Y`` with ``op`` the transpose if ``transpose_x``."""
+        rows = len(X[0]) if transpose_x else len(X)
+        inner = len(Y)
+        cols = len(Y[0])
+
+        def x(i, k):
+            return X[k][i] if transpose_x else X[i][k]
+
+        return [
+            [
+                self.lin(
+                    [(x(i, k), Y[k][j]) for k in range(inner)],
+                    None if add is None else add[i][j],
+                    sign,
+                )
+                for j in range(cols)
+            ]
+            for i in range(rows)
+        ]
+
+    def matvec(self, X, y, add=None, sign="+", transpose_x=False):
+        col = [[v] for v in y]
+        out = self.matmul(X, col, None if add is None else [[a] for a in add], sign, transpose_x)
+        return [r[0] for r in out]
+
+    def sym_product(self, X, Y, add=None):
+        """``add + X @ Y'`` for a product known to be symmetric: entries on and above the
+        diagonal, mirrored below."""
+        size = len(X)
+        out = [[None] * size for _ in range(size)]
+        for i in range(size):
+            for j in range(i, size):
+                out[i][j] = self.lin(
+                    [(X[i][k], Y[j][k]) for k in range(len(Y[0]))],
+                    None if add is None else add[i][j],
+                )
+                out[j][i] = out[i][j]
+        return out
+
+    def materialise(self, x: str | None) -> str:
+        return "zero" if x is None else x
+
+    def cholesky(self, A):
+        """Lower Cholesky factor of the symmetric ``A`` (its lower triangle read), the
+        reciprocals of its diagonal and a flag ``ok`` (every pivot positive)."""
+        size = len(A)
+        L = [[None] * size for _ in range(size)]
+        inv = [None] * size
+        ok = None
+        for j in range(size):
+            d = self.lin([(L[j][k], L[j][k]) for k in range(j)], A[j][j], "-")
+            d = self.materialise(d)
+            okj = f"({d} > 0)"
+            ok = self.let(okj if ok is None else f"{ok} & {okj}")
+            L[j][j] = self.let(f"tl.sqrt({d})")
+            inv[j] = self.let(f"1.0 / {L[j][j]}")
+            for i in range(j + 1, size):
+                s = self.lin([(L[i][k], L[j][k]) for k in range(j)], A[i][j], "-")
+                L[i][j] = self.scale(s, inv[j])
+        return L, inv, ok
+
+    def chol_solve(self, L, inv, Y):
+        """``(L L')^{-1} Y``."""
+        size, cols = len(L), len(Y[0])
+        Z = [[None] * cols for _ in range(size)]
+        for i in range(size):  # L Z = Y
+            for c in range(cols):
+                s = self.lin([(L[i][k], Z[k][c]) for k in range(i)], Y[i][c], "-")
+                Z[i][c] = self.scale(s, inv[i])
+        X = [[None] * cols for _ in range(size)]
+        for i in reversed(range(size)):  # L' X = Z
+            for c in range(cols):
+                s = self.lin([(L[k][i], X[k][c]) for k in range(i + 1, size)], Z[i][c], "-")
+                X[i][c] = self.scale(s, inv[i])
+        return X
+
+    def solve_pivoted(self, M, Y):
+        """``M^{-1} Y`` by Gauss-Jordan elimination with partial pivoting, and a flag
+        ``singular`` (a zero pivot). Row exchanges are selects per lane: for each column,
+        each lower row is swapped up where its entry is larger in magnitude."""
+        size = len(M)
+        rows = [[self.materialise(v) for v in M[i] + Y[i]] for i in range(size)]
+        width = len(rows[0])
+        singular = None
+        for k in range(size):
+            for r in range(k + 1, size):
+                cond = self.let(f"tl.abs({rows[r][k]}) > tl.abs({rows[k][k]})")
+                for j in range(k, width):
+                    a, b = rows[k][j], rows[r][j]
+                    rows[k][j] = self.let(f"tl.where({cond}, {b}, {a})")
+                    rows[r][j] = self.let(f"tl.where({cond}, {a}, {b})")
+            p = rows[k][k]
+            zk = f"({p} == 0)"
+            singular = self.let(zk if singular is None else f"{singular} | {zk}")
+            ip = self.let(f"1.0 / {p}")
+            for j in range(k + 1, width):
+                rows[k][j] = self.let(f"{rows[k][j]} * {ip}")
+            for r in range(size):
+                if r == k:
+                    continue
+                f = rows[r][k]
+                for j in range(k + 1, width):
+                    rows[r][j] = self.let(f"{rows[r][j]} - {f} * {rows[k][j]}")
+        return [row[size:] for row in rows], singular
+
+    def source(self, name: str, zero_like: str) -> str:
+        params = []
+        for t in self.args:
+            params += [t, f"{t}_sb", f"{t}_st", f"{t}_si", f"{t}_sj"]
+        head = [
+            f"def {name}({', '.join(params)}, N, Tp, BLOCK: tl.constexpr):",
+            "    i = tl.program_id(0).to(tl.int64) * BLOCK + tl.arange(0, BLOCK)",
+            "    mask = i < N",
+            "    bb = i // Tp",
+            "    tt = i - bb * Tp",
+        ]
+        head += [f"    o_{t} = bb * {t}_sb + tt * {t}_st" for t in self.args]
+        body = []
+        for line in self.lines:
+            body.append("    " + line)
+            if line.startswith(f"{zero_like} = "):
+                body.append(f"    zero = tl.full([BLOCK], 0, {zero_like}.dtype)")
+        return "\n".join(head + body) + "\n"
+
+
+# ----------------------------------------------------------------------------- kernels
+
+
+def _src_value_elements(n: int, m: int) -> str:
+    """Elements (S1) of the steps: ``F (n+1, m+n+1)``, ``H (m+n+1, m+n+1)`` -> ``A~, b, C,
+    eta, J`` and ``bad`` (``R`` not positive definite)."""
+    e = _Emitter()
+    F, H = e.tensor("F"), e.tensor("H")
+    oA, ob, oC, oeta, oJ, obad = (e.tensor(t) for t in ("oA", "ob", "oC", "oeta", "oJ", "obad"))
+    Bm = e.load_mat(F, n, m)
+    A = e.load_mat(F, n, n, 0, m)
+    c = [e.load(F, i, m + n) for i in range(n)]
+    R = [[e.load(H, i, j) if j <= i else None for j in range(m)] for i in range(m)]
+    S = e.load_mat(H, m, n, 0, m)
+    r = [e.load(H, i, m + n) for i in range(m)]
+    Q = e.load_mat(H, n, n, m, m)
+    q = [e.load(H, m + i, m + n) for i in range(n)]
+    L, inv, ok = e.cholesky(R)
+    rhs = [[Bm[j][i] for j in range(n)] + S[i] + [r[i]] for i in range(m)]  # [B', S, r]
+    W = e.chol_solve(L, inv, rhs)
+    WB = [row[:n] for row in W]
+    WS = [row[n : 2 * n] for row in W]
+    Wr = [row[2 * n] for row in W]
+    At = e.matmul(Bm, WS, add=A, sign="-")
+    b = e.matvec(Bm, Wr, add=c, sign="-")
+    C = e.sym_product(Bm, [[WB[k][j] for k in range(m)] for j in range(n)])  # B (R^-1 B')
+    eta = e.matvec(S, Wr, transpose_x=True)
+    eta = [e.add(eta[i], q[i], "-") for i in range(n)]
+    Qs = [
+        [e.let(f"0.5 * ({Q[i][j]} + {Q[j][i]})") if j >= i else None for j in range(n)]
+        for i in range(n)
+    ]
+    StWS = e.sym_product(
+        [[S[k][i] for k in range(m)] for i in range(n)],
+        [[WS[k][j] for k in range(m)] for j in range(n)],
+    )
+    J = [[None] * n for _ in range(n)]
+    for i in range(n):
+        for j in range(i, n):
+            J[i][j] = J[j][i] = e.add(Qs[i][j], StWS[i][j], "-")
+    e.store_mat(oA, At)
+    e.store_vec(ob, b)
+    e.store_mat(oC, C)
+    e.store_vec(oeta, eta)
+    e.store_mat(oJ, J)
+    e.lines.append(f"tl.store(obad + o_obad, tl.where({ok}, 0, 1).to(tl.uint8), mask=mask)")
+    return e.source("value_elements_kernel", Bm[0][0])
+
+
+def _src_combine_value(n: int) -> str:
+    """The operator (S2) on ``e1 = (A1, b1, C1, eta1, J1, bad1)`` (earlier) and ``e2``."""
+    e = _Emitter()
+    names = ("A", "b", "C", "eta", "J", "bad")
+    t1 = [e.tensor(f"{x}1") for x in names]
+    t2 = [e.tensor(f"{x}2") for x in names]
+    to = [e.tensor(f"o{x}") for x in names]
+    A1, C1, J1 = (e.load_mat(t1[k], n, n) for k in (0, 2, 4))
+    b1, eta1 = (e.load_vec(t1[k], n) for k in (1, 3))
+    A2, C2, J2 = (e.load_mat(t2[k], n, n) for k in (0, 2, 4))
+    b2, eta2 = (e.load_vec(t2[k], n) for k in (1, 3))
+    bad1 = e.let("tl.load(bad1 + o_bad1, mask=mask, other=0) != 0")
+    bad2 = e.let("tl.load(bad2 + o_bad2, mask=mask, other=0) != 0")
+    M = e.matmul(C1, J2)
+    M = [[e.add(M[i][j], "1.0") if i == j else M[i][j] for j in range(n)] for i in range(n)]
+    bc = e.matvec(C1, eta2, add=b1)  # b1 + C1 eta2
+    rhs = [A1[i] + [bc[i]] + C1[i] for i in range(n)]
+    X, singular = e.solve_pivoted(M, rhs)  # W [A1, b1 + C1 eta2, C1]
+    WA = [row[:n] for row in X]
+    Wb = [row[n] for row in X]
+    WC = [row[n + 1 :] for row in X]
+    A = e.matmul(A2, WA)
+    b = e.matvec(A2, Wb, add=b2)
+    T2 = e.matmul(A2, WC)
+    C = e.sym_product(T2, A2, add=C2)  # A2 W C1 A2' + C2
+    JA = e.matmul(J2, A1)
+    Jb = e.matvec(J2, b1)
+    d = [e.add(eta2[i], Jb[i], "-") for i in range(n)]
+    WAt = [[WA[k][i] for k in range(n)] for i in range(n)]
+    JAt = [[JA[k][j] for k in range(n)] for j in range(n)]
+    J = e.sym_product(WAt, JAt, add=J1)  # A1' W' J2 A1 + J1
+    eta = e.matvec(WA, d, add=eta1, transpose_x=True)  # A1' W' (eta2 - J2 b1) + eta1
+    e.store_mat(to[0], A)
+    e.store_vec(to[1], b)
+    e.store_mat(to[2], C)
+    e.store_vec(to[3], eta)
+    e.store_mat(to[4], J)
+    e.lines.append(
+        f"tl.store(obad + o_obad, ({bad1} | {bad2} | {singular}).to(tl.uint8), mask=mask)"
+    )
+    return e.source("combine_value_kernel", A1[0][0])
+
+
+def _src_gains(n: int, m: int) -> str:
+    """Gains (S4) from ``V_{t+1} (n, n)``, ``v_{t+1} (n)``, ``F_t``, ``H_t``: ``Kk (m, n+1)``,
+    the Cholesky factor of ``Quu``, ``fail`` (``Quu`` not positive definite) and the
+    value constant's increment ``c'V c + 2 v'c + qu'k``."""
+    e = _Emitter()
+    V, v, F, H = (e.tensor(t) for t in ("V", "v", "F", "H"))
+    oK, oL, ofail, oinc = (e.tensor(t) for t in ("oK", "oL", "ofail", "oinc"))
+    Vm = e.load_mat(V, n, n)
+    vv = e.load_vec(v, n)
+    Ft = e.load_mat(F, n + 1, m + n + 1)
+    Hu = e.load_mat(H, m, m + n + 1)
+    # P = [V, v] F  (rows :n of Vh_{t+1} times the homogeneous dynamics)
+    P = e.matmul(Vm, Ft[:n])
+    P = [[e.lin([(vv[i], Ft[n][j])], P[i][j]) for j in range(m + n + 1)] for i in range(n)]
+    Bm = [row[:m] for row in Ft[:n]]
+    Qu = e.matmul(Bm, P, add=Hu, transpose_x=True)  # H[:m] + B' P
+    Quu = [
+        [e.let(f"0.5 * ({Qu[i][j]} + {Qu[j][i]})") if j <= i else None for j in range(m)]
+        for i in range(m)
+    ]
+    L, inv, ok = e.cholesky(Quu)
+    Kk = e.chol_solve(L, inv, [row[m:] for row in Qu])
+    Kk = [[e.let(f"-{x}") for x in row] for row in Kk]
+    c = [Ft[i][m + n] for i in range(n)]
+    Vc = e.matvec(Vm, c)
+    inc = e.lin(
+        [(c[i], Vc[i]) for i in range(n)]
+        + [(vv[i], f"(2.0 * {c[i]})") for i in range(n)]
+        + [(Qu[i][m + n], Kk[i][n]) for i in range(m)]
+    )
+    e.store_mat(oK, Kk)
+    e.store_mat(oL, L)
+    e.lines.append(f"tl.store(ofail + o_ofail, tl.where({ok}, 0, 1).to(tl.uint8), mask=mask)")
+    e.store(oinc, inc)
+    return e.source("gains_kernel", Vm[0][0])
+
+
+def _src_combine_affine(n: int) -> str:
+    """``(M2, a2) o (M1, a1) = (M2 M1, M2 a1 + a2)``."""
+    e = _Emitter()
+    M1, a1, M2, a2, oM, oa = (e.tensor(t) for t in ("M1", "a1", "M2", "a2", "oM", "oa"))
+    X1, X2 = e.load_mat(M1, n, n), e.load_mat(M2, n, n)
+    y1, y2 = e.load_vec(a1, n), e.load_vec(a2, n)
+    e.store_mat(oM, e.matmul(X2, X1))
+    e.store_vec(oa, e.matvec(X2, y1, add=y2))
+    return e.source("combine_affine_kernel", X1[0][0])
+
+
+def _src_closed_loop(n: int, m: int) -> str:
+    """``F (n+1, m+n+1)``, ``Kk (m, n+1)`` -> ``M = A + B K``, ``a = B k + c``."""
+    e = _Emitter()
+    F, Kk, oM, oa = (e.tensor(t) for t in ("F", "Kk", "oM", "oa"))
+    Ft = e.load_mat(F, n, m + n + 1)
+    K = e.load_mat(Kk, m, n + 1)
+    G = e.matmul([row[:m] for row in Ft], K, add=[row[m:] for row in Ft])
+    e.store_mat(oM, [row[:n] for row in G])
+    e.store_vec(oa, [row[n] for row in G])
+    return e.source("closed_loop_kernel", Ft[0][0])
+
+
+_SOURCES = {
+    "value_elements": _src_value_elements,
+    "combine_value": lambda n, m: _src_combine_value(n),
+    "gains": _src_gains,
+    "combine_affine": lambda n, m: _src_combine_affine(n),
+    "closed_loop": _src_closed_loop,
+}
+_KERNELS: dict[tuple, object] = {}
+
+
+def kernel_source(kind: str, n: int, m: int = 1) -> str:
+    """The generated source of one kernel (for inspection)."""
+    return _SOURCES[kind](n, m)
+
+
+def _kernel(kind: str, n: int, m: int, interpret: bool):
+    key = (kind, n, m, interpret)
+    fn = _KERNELS.get(key)
+    if fn is None:
+        src = kernel_source(kind, n, m)
+        filename = f"<torchslq.lq.scan_kernels {kind} n={n} m={m}>"
+        # Triton reads a kernel's source through inspect, which finds it in linecache
+        linecache.cache[filename] = (len(src), None, src.splitlines(True), filename)
+        namespace = {"tl": tl, "triton": triton}
+        exec(compile(src, filename, "exec"), namespace)
+        raw = namespace[f"{kind}_kernel"]
+        if interpret:
+            from triton.runtime.interpreter import InterpretedFunction
+
+            fn = InterpretedFunction(raw)
+        else:
+            fn = triton.jit(raw)
+        _KERNELS[key] = fn
+    return fn
+
+
+def _strides(t: Tensor) -> list:
+    """``t`` shaped ``(B, T', ...)`` (up to two trailing dims): the pointer and its four
+    strides (a missing trailing dim has stride 0)."""
+    s = list(t.stride()) + [0] * (4 - t.dim())
+    return [t, *s[:4]]
+
+
+def _launch(kind: str, n: int, m: int, tensors: Sequence[Tensor], batch: int, steps: int) -> None:
+    total = batch * steps
+    if total == 0:
+        return
+    interpret = not tensors[0].is_cuda
+    fn = _kernel(kind, n, m, interpret)
+    args = [a for t in tensors for a in _strides(t)]
+    grid = ((total + _BLOCK - 1) // _BLOCK,)
+    if interpret:
+        fn[grid](*args, total, steps, BLOCK=_BLOCK)
+    else:
+        fn[grid](*args, total, steps, BLOCK=_BLOCK, num_warps=_NUM_WARPS)
+
+
+def _flags(t: Tensor) -> Tensor:
+    return t.view(torch.uint8) if t.dtype == torch.bool else t
+
+
+# ----------------------------------------------------------------------------- entry points
+
+
+def value_elements(F: Tensor, H: Tensor, out: Sequence[Tensor]) -> None:
+    """Writes the elements (S1) of steps ``0..T-1`` into ``out = (A~, b, C, eta, J,
+    bad)``, views ``(B, T, ...)`` (``bad`` bool). ``F (B, T, n+1, m+n+1)`` and ``H (B, T,
+    m+n+1, m+n+1)`` (batch strides may be 0)."""
+    n = F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    B, T = out[0].shape[:2]
+    tensors = [F, H, *out[:5], _flags(out[5])]
+    _launch("value_elements", n, m, tensors, B, T)
+
+
+def combine_value(e1: Sequence[Tensor], e2: Sequence[Tensor]) -> tuple[Tensor, ...]:
+    """The operator (S2), as :func:`torchslq.lq.scan._combine_value`."""
+    A1 = e1[0]
+    B, Tp, n = A1.shape[0], A1.shape[1], A1.shape[-1]
+    out = tuple(torch.empty((B, Tp, *t.shape[2:]), dtype=t.dtype, device=t.device) for t in e1)
+    tensors = [*e1[:5], _flags(e1[5]), *e2[:5], _flags(e2[5]), *out[:5], _flags(out[5])]
+    _launch("combine_value", n, 1, tensors, B, Tp)
+    return out
+
+
+def gains(V: Tensor, v: Tensor, F: Tensor, H: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """Gains (S4): ``V (B, T, n, n)``, ``v (B, T, n)`` (the values of steps ``1..T``), ``F
+    (B, T, n+1, m+n+1)``, ``H (B, T, m+n+1, m+n+1)`` -> ``Kk (B, T, m, n+1)``, ``L (B, T, m,
+    m)`` (Cholesky factor of ``Quu``), ``failed (B, T)`` bool and the value constant's
+    increments ``(B, T)``."""
+    n = F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    B, T = V.shape[:2]
+    kw = {"dtype": V.dtype, "device": V.device}
+    Kk = torch.empty(B, T, m, n + 1, **kw)
+    L = torch.empty(B, T, m, m, **kw)
+    failed = torch.empty(B, T, dtype=torch.bool, device=V.device)
+    inc = torch.empty(B, T, **kw)
+    _launch("gains", n, m, [V, v, F, H, Kk, L, _flags(failed), inc], B, T)
+    return Kk, L, failed, inc
+
+
+def combine_affine(e1: Sequence[Tensor], e2: Sequence[Tensor]) -> tuple[Tensor, Tensor]:
+    """``e2 o e1`` of affine maps ``(M (B, T', p, p), a (B, T', p))``."""
+    M1, a1 = e1
+    M2, a2 = e2
+    B, Tp, p = M1.shape[0], M1.shape[1], M1.shape[-1]
+    oM = torch.empty(B, Tp, p, p, dtype=M1.dtype, device=M1.device)
+    oa = torch.empty(B, Tp, p, dtype=M1.dtype, device=M1.device)
+    _launch("combine_affine", p, 1, [M1, a1, M2, a2, oM, oa], B, Tp)
+    return oM, oa
+
+
+def closed_loop(F: Tensor, Kk: Tensor) -> tuple[Tensor, Tensor]:
+    """``(A + B K, B k + c)`` of every step: ``F (B, T, n+1, m+n+1)``, ``Kk (B, T, m,
+    n+1)`` (batch strides may be 0) -> ``(B, T, n, n)``, ``(B, T, n)``."""
+    n = F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    B, T = Kk.shape[:2]
+    M = torch.empty(B, T, n, n, dtype=Kk.dtype, device=Kk.device)
+    a = torch.empty(B, T, n, dtype=Kk.dtype, device=Kk.device)
+    _launch("closed_loop", n, m, [F, Kk, M, a], B, T)
+    return M, a
