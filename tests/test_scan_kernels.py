@@ -248,3 +248,20 @@ def test_gpu_kernels_compile_once_per_dtype():
     assert params[-1] == "BLOCK"
     exempt = {fn.arg_names[i] if isinstance(i, int) else i for i in fn.do_not_specialize}
     assert exempt == set(params[:-1])
+
+
+def test_a_kernel_that_fails_to_build_falls_back_to_torch_ops(fused, monkeypatch):
+    """A Triton that cannot compile a kernel: the call warns, its results are the
+    torch ops' (equal to the sequential kernel's), and the kernels stay off."""
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no toolchain")
+
+    monkeypatch.setattr(scan_kernels, "_kernel", broken)
+    args = random_problem(47, 2, 9, 3, 2)
+    with pytest.warns(RuntimeWarning, match="fused scan kernel"):
+        par = lqr_solve(**args, method="scan")
+    seq = lqr_solve(**args)
+    for name in FIELDS:
+        assert_rel(getattr(par, name), getattr(seq, name), 1e-10, name)
+    assert not scan_kernels.enabled(args["A"], 3, 2)

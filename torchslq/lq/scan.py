@@ -63,6 +63,7 @@ the sequential path for them, and the other elements are untouched.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Callable, Sequence
 
 import torch
@@ -94,6 +95,20 @@ Combine = Callable[[Elems, Elems], Elems]
 
 
 # ----------------------------------------------------------------------------- the scan
+
+
+def _fused_or_torch_ops(fn):
+    """Runs ``fn`` again (as torch ops) if one of its fused kernels fails to build: the
+    failure switches them off for the process (:mod:`.scan_kernels`)."""
+
+    @functools.wraps(fn)
+    def wrapper(*args, **kwargs):
+        try:
+            return fn(*args, **kwargs)
+        except scan_kernels.FusedKernelError:
+            return fn(*args, **kwargs)
+
+    return wrapper
 
 
 def associative_scan(combine: Combine, elems: Sequence[Tensor], reverse: bool = False) -> Elems:
@@ -306,6 +321,7 @@ def _value_elements_fused(F: Tensor, H: Tensor, QT: Tensor, qT: Tensor, nb: int)
     return elems
 
 
+@_fused_or_torch_ops
 def riccati_scan_homogeneous(F: Tensor, H: Tensor, VhT: Tensor) -> RiccatiFactors:
     """The factors of :func:`torchslq.lq.riccati_homogeneous` (no regularisation, hook or
     bounds) by the parallel-in-time backward pass.
@@ -407,6 +423,7 @@ def _closed_loop(F: Tensor, Kk: Tensor) -> tuple[Tensor, Tensor]:
     return G[..., :n], G[..., n]
 
 
+@_fused_or_torch_ops
 def rollout_scan_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor, Tensor]:
     """:func:`torchslq.lq.rollout_homogeneous` by one prefix scan (S5).
 
@@ -427,6 +444,7 @@ def rollout_scan_homogeneous(F: Tensor, Kk: Tensor, x0: Tensor) -> tuple[Tensor,
     return x, u
 
 
+@_fused_or_torch_ops
 def lq_adjoint_scan(
     F: Tensor, Kk: Tensor, Vh: Tensor, chol: Tensor, gx: Tensor, gu: Tensor
 ) -> tuple[Tensor, Tensor, Tensor]:

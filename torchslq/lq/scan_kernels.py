@@ -23,6 +23,9 @@ by Triton for the tensor's dtype. They compute the same quantities as the torch 
 * :func:`combine_affine` - the composition of affine maps (S5);
 * :func:`closed_loop` - ``(A + B K, B k + c)`` of every step.
 
+If a kernel fails to compile or launch (a Triton or toolchain that cannot build it), the
+scan warns once and runs as torch ops from then on (:class:`FusedKernelError`).
+
 A singular pivot (exactly zero, as LAPACK's ``info``) or a non-positive Cholesky pivot
 is reported per element, as the torch ops report it, so the scan's redo of failed
 elements by the recursion is unchanged.
@@ -41,6 +44,7 @@ from __future__ import annotations
 import contextlib
 import inspect
 import linecache
+import warnings
 from collections.abc import Iterator, Sequence
 
 import torch
@@ -57,6 +61,7 @@ except ImportError:  # pragma: no cover - depends on the installation
 
 __all__ = [
     "MAX_DIM",
+    "FusedKernelError",
     "closed_loop",
     "combine_affine",
     "combine_value",
@@ -70,7 +75,12 @@ __all__ = [
 MAX_DIM = 4
 _BLOCK = 128
 _NUM_WARPS = 4
-_MODE = {"interpret": False, "off": False}
+_MODE: dict = {"interpret": False, "off": False, "broken": None}
+
+
+class FusedKernelError(RuntimeError):
+    """A fused kernel failed to compile or launch. The scan's entry points catch it and
+    run as torch ops; :func:`enabled` is False for the rest of the process."""
 
 
 @contextlib.contextmanager
@@ -99,7 +109,9 @@ def disabled() -> Iterator[None]:
 def enabled(t: Tensor, n: int, m: int = 1) -> bool:
     """Whether the fused kernels serve data like ``t`` with state size ``n`` and control
     size ``m``."""
-    if not HAVE_TRITON or _MODE["off"] or not (1 <= n <= MAX_DIM and 1 <= m <= MAX_DIM):
+    if not HAVE_TRITON or _MODE["off"] or _MODE["broken"]:
+        return False
+    if not (1 <= n <= MAX_DIM and 1 <= m <= MAX_DIM):
         return False
     if t.dtype not in (torch.float32, torch.float64):
         return False
@@ -510,13 +522,23 @@ def _launch(kind: str, n: int, m: int, tensors: Sequence[Tensor], batch: int, st
     if total == 0:
         return
     interpret = not tensors[0].is_cuda
-    fn = _kernel(kind, n, m, interpret)
     args = [a for t in tensors for a in _strides(t)]
     grid = ((total + _BLOCK - 1) // _BLOCK,)
-    if interpret:
-        fn[grid](*args, total, steps, BLOCK=_BLOCK)
-    else:
-        fn[grid](*args, total, steps, BLOCK=_BLOCK, num_warps=_NUM_WARPS)
+    try:
+        fn = _kernel(kind, n, m, interpret)
+        if interpret:
+            fn[grid](*args, total, steps, BLOCK=_BLOCK)
+        else:
+            fn[grid](*args, total, steps, BLOCK=_BLOCK, num_warps=_NUM_WARPS)
+    except Exception as err:  # a Triton or toolchain that cannot build it here
+        _MODE["broken"] = repr(err)
+        warnings.warn(
+            f"torchslq: the fused scan kernel {kind!r} (n={n}, m={m}) failed ({err!r}); the "
+            "scan runs as torch ops from here on",
+            RuntimeWarning,
+            stacklevel=2,
+        )
+        raise FusedKernelError(repr(err)) from err
 
 
 def _flags(t: Tensor) -> Tensor:
