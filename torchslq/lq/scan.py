@@ -317,7 +317,7 @@ def _value_elements_fused(F: Tensor, H: Tensor, QT: Tensor, qT: Tensor, nb: int)
     for e in (elems[0], elems[1], elems[2], elems[5]):
         e[:, T] = 0
     elems[3][:, T] = -qT
-    elems[4][:, T] = QT
+    elems[4][:, T] = 0.5 * (QT + QT.mT)  # the kernels read the upper triangles of C and J
     return elems
 
 

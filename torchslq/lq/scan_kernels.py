@@ -150,6 +150,14 @@ class _Emitter:
     def load_mat(self, t: str, rows: int, cols: int, i0: int = 0, j0: int = 0) -> list[list[str]]:
         return [[self.load(t, i0 + i, j0 + j) for j in range(cols)] for i in range(rows)]
 
+    def load_sym(self, t: str, size: int) -> list[list[str]]:
+        """A symmetric matrix from its upper triangle."""
+        X = [[None] * size for _ in range(size)]
+        for i in range(size):
+            for j in range(i, size):
+                X[i][j] = X[j][i] = self.load(t, i, j)
+        return X
+
     def load_vec(self, t: str, size: int, i0: int = 0) -> list[str]:
         return [self.load(t, i0 + i) for i in range(size)]
 
@@ -368,46 +376,46 @@ def _src_value_elements(n: int, m: int) -> str:
 
 
 def _src_combine_value(n: int) -> str:
-    """The operator (S2) on ``e1 = (A1, b1, C1, eta1, J1, bad1)`` (earlier) and ``e2``."""
+    """The operator (S2) on ``e1 = (A1, b1, C1, eta1, J1, bad1)`` (earlier) and ``e2``.
+
+    ``C`` and ``J`` are symmetric (the elements are built so, the results mirrored), so
+    only their upper triangles are read. The order of the code keeps few values live at
+    once (a float64 lane has 255 registers): each input is read where it is first
+    needed and each result written as soon as it is known."""
     e = _Emitter()
     names = ("A", "b", "C", "eta", "J", "bad")
     t1 = [e.tensor(f"{x}1") for x in names]
     t2 = [e.tensor(f"{x}2") for x in names]
     to = [e.tensor(f"o{x}") for x in names]
-    A1, C1, J1 = (e.load_mat(t1[k], n, n) for k in (0, 2, 4))
-    b1, eta1 = (e.load_vec(t1[k], n) for k in (1, 3))
-    A2, C2, J2 = (e.load_mat(t2[k], n, n) for k in (0, 2, 4))
-    b2, eta2 = (e.load_vec(t2[k], n) for k in (1, 3))
-    bad1 = e.let("tl.load(bad1 + o_bad1, mask=mask, other=0) != 0")
-    bad2 = e.let("tl.load(bad2 + o_bad2, mask=mask, other=0) != 0")
+    C1, J2 = e.load_sym(t1[2], n), e.load_sym(t2[4], n)
+    A1, b1, eta2 = e.load_mat(t1[0], n, n), e.load_vec(t1[1], n), e.load_vec(t2[3], n)
     M = e.matmul(C1, J2)
     M = [[e.add(M[i][j], "1.0") if i == j else M[i][j] for j in range(n)] for i in range(n)]
+    JA = e.matmul(J2, A1)
+    Jb = e.matvec(J2, b1)
+    d = [e.add(eta2[i], Jb[i], "-") for i in range(n)]  # eta2 - J2 b1
     bc = e.matvec(C1, eta2, add=b1)  # b1 + C1 eta2
     rhs = [A1[i] + [bc[i]] + C1[i] for i in range(n)]
     X, singular = e.solve_pivoted(M, rhs)  # W [A1, b1 + C1 eta2, C1]
     WA = [row[:n] for row in X]
     Wb = [row[n] for row in X]
     WC = [row[n + 1 :] for row in X]
-    A = e.matmul(A2, WA)
-    b = e.matvec(A2, Wb, add=b2)
-    T2 = e.matmul(A2, WC)
-    C = e.sym_product(T2, A2, add=C2)  # A2 W C1 A2' + C2
-    JA = e.matmul(J2, A1)
-    Jb = e.matvec(J2, b1)
-    d = [e.add(eta2[i], Jb[i], "-") for i in range(n)]
     WAt = [[WA[k][i] for k in range(n)] for i in range(n)]
     JAt = [[JA[k][j] for k in range(n)] for j in range(n)]
-    J = e.sym_product(WAt, JAt, add=J1)  # A1' W' J2 A1 + J1
-    eta = e.matvec(WA, d, add=eta1, transpose_x=True)  # A1' W' (eta2 - J2 b1) + eta1
-    e.store_mat(to[0], A)
-    e.store_vec(to[1], b)
-    e.store_mat(to[2], C)
-    e.store_vec(to[3], eta)
-    e.store_mat(to[4], J)
+    e.store_mat(to[4], e.sym_product(WAt, JAt, add=e.load_sym(t1[4], n)))  # A1'W'J2 A1 + J1
+    eta1 = e.load_vec(t1[3], n)
+    e.store_vec(to[3], e.matvec(WA, d, add=eta1, transpose_x=True))  # A1'W'(eta2 - J2 b1) + eta1
+    A2 = e.load_mat(t2[0], n, n)
+    e.store_mat(to[0], e.matmul(A2, WA))
+    e.store_vec(to[1], e.matvec(A2, Wb, add=e.load_vec(t2[1], n)))
+    T2 = e.matmul(A2, WC)
+    e.store_mat(to[2], e.sym_product(T2, A2, add=e.load_sym(t2[2], n)))  # A2 W C1 A2' + C2
+    bad1 = e.let("tl.load(bad1 + o_bad1, mask=mask, other=0) != 0")
+    bad2 = e.let("tl.load(bad2 + o_bad2, mask=mask, other=0) != 0")
     e.lines.append(
         f"tl.store(obad + o_obad, ({bad1} | {bad2} | {singular}).to(tl.uint8), mask=mask)"
     )
-    return e.source("combine_value_kernel", A1[0][0])
+    return e.source("combine_value_kernel", C1[0][0])
 
 
 def _src_gains(n: int, m: int) -> str:
