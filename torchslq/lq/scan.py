@@ -54,6 +54,10 @@ The scan (:func:`associative_scan`) is the odd-even recursion of Blelloch (1990)
 handful of batched ops over ``(B, T / 2^level)``; the Python loop runs over the levels,
 never over the batch or the time steps.
 
+On a GPU with Triton (and ``n, m <= 4``) the per-element work of each level, the
+elements, the gains and the closed loop run in fused kernels generated from the same
+equations (:mod:`.scan_kernels`); elsewhere, and for larger sizes, as the torch ops below.
+
 Per-element failures: a ``Quu`` (or ``R``) that is not positive definite, a singular
 ``I + C J`` or non-finite numbers make the element's scan result meaningless; such
 elements (and only they: a host synchronisation to find them) are recomputed by the

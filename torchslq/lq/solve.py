@@ -595,7 +595,10 @@ def lqr_solve(
             one compiled loop); ``"scan"`` the parallel-in-time associative scan
             (:mod:`torchslq.lq.scan`; Särkkä & García-Fernández 2023), ``O(log T)``
             levels of batched ops, its backward pass by scans too (an element whose
-            scan fails is redone by the recursion, so the statuses are the same);
+            scan fails is redone by the recursion, so the statuses are the same); on a
+            GPU with Triton and ``n, m <= 4`` its per-element work runs in fused kernels
+            (:mod:`torchslq.lq.scan_kernels`), compiled on first use (seconds, then
+            cached on disk by Triton);
             ``"auto"`` (default) picks ``"scan"`` only where it measured faster
             (:func:`choose_method`: on a CUDA GPU for ``T >= 100`` and batches up to
             2048 where it fits in half the free memory; on the CPU, with the compiled
