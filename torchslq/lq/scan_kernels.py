@@ -42,6 +42,7 @@ compare the two).
 from __future__ import annotations
 
 import contextlib
+import importlib.util
 import inspect
 import linecache
 import warnings
@@ -50,14 +51,9 @@ from collections.abc import Iterator, Sequence
 import torch
 from torch import Tensor
 
-try:  # optional: the torch ops of .scan serve where Triton is missing
-    import triton
-    import triton.language as tl
-
-    HAVE_TRITON = True
-except ImportError:  # pragma: no cover - depends on the installation
-    triton = tl = None
-    HAVE_TRITON = False
+# optional: the torch ops of .scan serve where Triton is missing. Imported on first use
+# (importing it costs about 0.1 s, which a CPU-only process need not pay)
+HAVE_TRITON = importlib.util.find_spec("triton") is not None
 
 __all__ = [
     "MAX_DIM",
@@ -497,6 +493,9 @@ def _kernel(kind: str, n: int, m: int, interpret: bool):
     key = (kind, n, m, interpret)
     fn = _KERNELS.get(key)
     if fn is None:
+        import triton
+        import triton.language as tl
+
         src = kernel_source(kind, n, m)
         filename = f"<torchslq.lq.scan_kernels {kind} n={n} m={m}>"
         # Triton reads a kernel's source through inspect, which finds it in linecache
