@@ -295,7 +295,7 @@ def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[T
         torch.cat([b, torch.zeros_like(qT)], 1),
         torch.cat([0.5 * (C + C.mT), zero], 1),
         torch.cat([eta, -qT], 1),
-        torch.cat([0.5 * (J + J.mT), QT], 1),
+        torch.cat([0.5 * (J + J.mT), 0.5 * (QT + QT.mT)], 1),
         torch.cat([bad, bad.new_zeros(nb, 1)], 1),
     )
     _, _, _, eta_s, J_s, bad_s = associative_scan(_combine_value, elems, reverse=True)
