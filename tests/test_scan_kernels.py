@@ -9,6 +9,8 @@ Whether they compile and how fast they run on a GPU is ``tests/test_device.py``'
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import pytest
 import torch
@@ -241,8 +243,6 @@ def test_gpu_kernels_compile_once_per_dtype():
     Triton would compile a kernel again for each value it specialises on (a 1, a
     multiple of 16, a 16-byte aligned pointer): every parameter but the block size is
     exempt. (Compiling needs no GPU; launching does.)"""
-    import inspect
-
     fn = scan_kernels._kernel("combine_value", 4, 1, interpret=False)
     params = list(inspect.signature(fn.fn).parameters)
     assert params[-1] == "BLOCK"
@@ -265,3 +265,39 @@ def test_a_kernel_that_fails_to_build_falls_back_to_torch_ops(fused, monkeypatch
     for name in FIELDS:
         assert_rel(getattr(par, name), getattr(seq, name), 1e-10, name)
     assert not scan_kernels.enabled(args["A"], 3, 2)
+
+
+def test_skipping_the_coalescing_pass_leaves_the_code_unchanged(monkeypatch):
+    """The first launch of a kernel compiles it without Triton's coalescing pass (its
+    compile time); the PTX for an H100 is the same with and without the pass (compiled
+    here, no GPU needed), and the pass is back afterwards."""
+    import triton
+    from triton._C.libtriton import passes
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    monkeypatch.setattr(triton.knobs.compilation, "always_compile", True)  # no cache hits
+    fn = scan_kernels._kernel("combine_affine", 2, 1, interpret=False)
+    names = list(inspect.signature(fn.fn).parameters)[:-1]
+    sig = {a: "i64" if a in ("N", "Tp") else "i32" if "_s" in a else "*fp64" for a in names}
+    sig["BLOCK"] = "constexpr"
+
+    def ptx():
+        src = ASTSource(fn, sig, constexprs={"BLOCK": 128})
+        opts = {"num_warps": 4}
+        return triton.compile(src, target=GPUTarget("cuda", 90, 32), options=opts).asm["ptx"]
+
+    original = passes.ttgpuir.add_coalesce
+    with_pass = ptx()
+    asked = []
+    with scan_kernels._without_coalescing():
+        skip = passes.ttgpuir.add_coalesce
+        assert skip is not original
+        passes.ttgpuir.add_coalesce = lambda pm: asked.append(skip(pm))
+        try:
+            without = ptx()
+        finally:
+            passes.ttgpuir.add_coalesce = skip
+    assert asked  # the pipeline was built (compiled, not a cache hit), without the pass
+    assert passes.ttgpuir.add_coalesce is original
+    assert without == with_pass

@@ -31,12 +31,14 @@ is reported per element, as the torch ops report it, so the scan's redo of faile
 elements by the recursion is unchanged.
 
 The kernels run where :func:`enabled` says: on CUDA tensors when Triton is installed and
-``n, m <= MAX_DIM`` (4: straight-line code grows as ``n^3`` and its compile time faster:
-compiling the value combination for an H100 on a 2-core CPU took 8 s at ``n = 4`` and
-128 s at ``n = 6``, 98% of it in Triton's coalescing pass, whose work grows with the
-number of loads and stores times the size of the code; the torch ops serve larger
-sizes). Each kernel compiles once per dtype (no specialisation on the levels' strides)
-and Triton keeps it in its on-disk cache.
+``n, m <= MAX_DIM`` (4). The straight-line code grows as ``n^3``. Above ``n = 4`` the
+float64 combination spills registers (ptxas for sm_90: 344 bytes at ``n = 5``, 1.8 kB at
+``n = 6``, 65 kB at ``n = 8``) and no GPU has measured those sizes: the torch ops serve
+them. Compile time: Triton's coalescing pass, which walks the whole kernel for every load
+and store, took 98% of it (the value combination for an H100 on a 2-core CPU: 6.7 s at
+``n = 4``, 128 s at ``n = 6``) and changes nothing in these kernels' code, so
+:func:`_without_coalescing` skips it (0.9 s and 2 s). Each kernel compiles once per dtype
+(no specialisation on the levels' strides) and Triton keeps it in its on-disk cache.
 :func:`interpreted` runs them on CPU tensors through Triton's interpreter, which the
 tests use to check them without a GPU; :func:`disabled` switches them off (benchmarks
 compare the two).
@@ -48,6 +50,7 @@ import contextlib
 import importlib.util
 import inspect
 import linecache
+import threading
 import warnings
 from collections.abc import Iterator, Sequence
 
@@ -540,7 +543,11 @@ def _launch(kind: str, n: int, m: int, tensors: Sequence[Tensor], batch: int, st
         if interpret:
             fn[grid](*args, total, steps, BLOCK=_BLOCK)
         else:
-            fn[grid](*args, total, steps, BLOCK=_BLOCK, num_warps=_NUM_WARPS)
+            key = (kind, n, m, tensors[0].dtype, tensors[0].device)
+            first = key not in _COMPILED  # the launch that compiles it
+            with _without_coalescing() if first else contextlib.nullcontext():
+                fn[grid](*args, total, steps, BLOCK=_BLOCK, num_warps=_NUM_WARPS)
+            _COMPILED.add(key)
     except Exception as err:  # a Triton or toolchain that cannot build it here
         _MODE["broken"] = repr(err)
         warnings.warn(
@@ -550,6 +557,37 @@ def _launch(kind: str, n: int, m: int, tensors: Sequence[Tensor], batch: int, st
             stacklevel=2,
         )
         raise FusedKernelError(repr(err)) from err
+
+
+_COMPILED: set = set()
+_PATCH_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _without_coalescing() -> Iterator[None]:
+    """Within: Triton's coalescing pass is skipped. It chooses the memory layouts of
+    block loads and stores; these kernels load one scalar per lane at runtime strides,
+    whose layout it leaves as it was (the PTX is the same with and without it:
+    ``tests/test_scan_kernels.py``), while its analysis, which walks the whole
+    straight-line kernel for every load and store, took 98% of the compile time (the
+    value combination at ``n = 4``: 6.7 s -> 0.9 s; ``n = 6``: 128 s -> 2 s). The pass
+    is switched off by replacing the function that adds it to the pipeline, only around
+    a first launch (where the compilation happens), under a lock; a Triton without that
+    function compiles as it is."""
+    try:
+        from triton._C.libtriton import passes
+
+        adds = passes.ttgpuir
+        original = adds.add_coalesce
+    except (ImportError, AttributeError):  # another Triton layout: nothing to skip
+        yield
+        return
+    with _PATCH_LOCK:
+        adds.add_coalesce = lambda pm: None
+        try:
+            yield
+        finally:
+            adds.add_coalesce = original
 
 
 def _flags(t: Tensor) -> Tensor:
