@@ -404,7 +404,10 @@ def choose_method(
       ``batch = 1024`` (1.8-2.3x at T = 100, 2.4-154x from T = 1000; 40-61x at
       T = 4096, B <= 64) and about as fast at ``batch = 4096`` (0.66-1.32x). Rule:
       ``T >= 100`` and ``batch <= 2048`` (the crossover of the two trends lies between
-      1024 and 4096), and the memory test above.
+      1024 and 4096), and the memory test above. These rows measured the scan as torch
+      ops; with the fused kernels (:mod:`.scan_kernels`) it took 23 ms instead of 42 at
+      T = 4096, batch 1 (``parallel_lq_cuda_fused.md``), and larger batches are not
+      measured yet, so the rule stays.
     """
     dev = torch.device(device)
     if dev.type == "cpu" and dtype in (torch.float32, torch.float64) and not compiled_available():
