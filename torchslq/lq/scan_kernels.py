@@ -334,33 +334,26 @@ class _Emitter:
 
 def _src_value_elements(n: int, m: int) -> str:
     """Elements (S1) of the steps: ``F (n+1, m+n+1)``, ``H (m+n+1, m+n+1)`` -> ``A~, b, C,
-    eta, J`` and ``bad`` (``R`` not positive definite)."""
+    eta, J`` and ``bad`` (``R`` not positive definite). Each input is read where it is
+    first needed and each result written as soon as it is known (fewer live registers)."""
     e = _Emitter()
     F, H = e.tensor("F"), e.tensor("H")
     oA, ob, oC, oeta, oJ, obad = (e.tensor(t) for t in ("oA", "ob", "oC", "oeta", "oJ", "obad"))
-    Bm = e.load_mat(F, n, m)
-    A = e.load_mat(F, n, n, 0, m)
-    c = [e.load(F, i, m + n) for i in range(n)]
     R = [[e.load(H, i, j) if j <= i else None for j in range(m)] for i in range(m)]
+    L, inv, ok = e.cholesky(R)
+    Bm = e.load_mat(F, n, m)
     S = e.load_mat(H, m, n, 0, m)
     r = [e.load(H, i, m + n) for i in range(m)]
-    Q = e.load_mat(H, n, n, m, m)
-    q = [e.load(H, m + i, m + n) for i in range(n)]
-    L, inv, ok = e.cholesky(R)
     rhs = [[Bm[j][i] for j in range(n)] + S[i] + [r[i]] for i in range(m)]  # [B', S, r]
     W = e.chol_solve(L, inv, rhs)
     WB = [row[:n] for row in W]
     WS = [row[n : 2 * n] for row in W]
     Wr = [row[2 * n] for row in W]
-    At = e.matmul(Bm, WS, add=A, sign="-")
-    b = e.matvec(Bm, Wr, add=c, sign="-")
-    C = e.sym_product(Bm, [[WB[k][j] for k in range(m)] for j in range(n)])  # B (R^-1 B')
-    eta = e.matvec(S, Wr, transpose_x=True)
-    eta = [e.add(eta[i], q[i], "-") for i in range(n)]
-    Qs = [
-        [e.let(f"0.5 * ({Q[i][j]} + {Q[j][i]})") if j >= i else None for j in range(n)]
-        for i in range(n)
-    ]
+    e.store_mat(oA, e.matmul(Bm, WS, add=e.load_mat(F, n, n, 0, m), sign="-"))
+    e.store_vec(ob, e.matvec(Bm, Wr, add=[e.load(F, i, m + n) for i in range(n)], sign="-"))
+    e.store_mat(oC, e.sym_product(Bm, [[WB[k][j] for k in range(m)] for j in range(n)]))
+    eta = e.matvec(S, Wr, transpose_x=True)  # S' R^-1 r - q
+    e.store_vec(oeta, [e.add(eta[i], e.load(H, m + i, m + n), "-") for i in range(n)])
     StWS = e.sym_product(
         [[S[k][i] for k in range(m)] for i in range(n)],
         [[WS[k][j] for k in range(m)] for j in range(n)],
@@ -368,14 +361,11 @@ def _src_value_elements(n: int, m: int) -> str:
     J = [[None] * n for _ in range(n)]
     for i in range(n):
         for j in range(i, n):
-            J[i][j] = J[j][i] = e.add(Qs[i][j], StWS[i][j], "-")
-    e.store_mat(oA, At)
-    e.store_vec(ob, b)
-    e.store_mat(oC, C)
-    e.store_vec(oeta, eta)
+            qs = e.let(f"0.5 * ({e.load(H, m + i, m + j)} + {e.load(H, m + j, m + i)})")
+            J[i][j] = J[j][i] = e.add(qs, StWS[i][j], "-")  # sym(Q) - S' R^-1 S
     e.store_mat(oJ, J)
     e.lines.append(f"tl.store(obad + o_obad, tl.where({ok}, 0, 1).to(tl.uint8), mask=mask)")
-    return e.source("value_elements_kernel", Bm[0][0])
+    return e.source("value_elements_kernel", R[0][0])
 
 
 def _src_combine_value(n: int) -> str:
