@@ -284,7 +284,7 @@ def test_skipping_the_coalescing_pass_leaves_the_code_unchanged(monkeypatch):
 
     def ptx():
         src = ASTSource(fn, sig, constexprs={"BLOCK": 128})
-        opts = {"num_warps": 4}
+        opts = scan_kernels._GPU_OPTIONS
         return triton.compile(src, target=GPUTarget("cuda", 90, 32), options=opts).asm["ptx"]
 
     original = passes.ttgpuir.add_coalesce

@@ -77,7 +77,9 @@ __all__ = [
 
 MAX_DIM = 4
 _BLOCK = 128
-_NUM_WARPS = 4
+# one lane per thread; multiply-adds contracted to FMAs (Triton's default until 3.10,
+# asked for by name so that later versions keep it)
+_GPU_OPTIONS = {"num_warps": 4, "enable_fp_fusion": True}
 _MODE: dict = {"interpret": False, "off": False, "broken": None}
 
 
@@ -536,7 +538,7 @@ def _launch(kind: str, n: int, m: int, tensors: Sequence[Tensor], batch: int, st
             key = (kind, n, m, tensors[0].dtype, tensors[0].device)
             first = key not in _COMPILED  # the launch that compiles it
             with _without_coalescing() if first else contextlib.nullcontext():
-                fn[grid](*args, total, steps, BLOCK=_BLOCK, num_warps=_NUM_WARPS)
+                fn[grid](*args, total, steps, BLOCK=_BLOCK, **_GPU_OPTIONS)
             _COMPILED.add(key)
     except Exception as err:  # a Triton or toolchain that cannot build it here
         _MODE["broken"] = repr(err)
