@@ -89,26 +89,24 @@ class FusedKernelError(RuntimeError):
 
 
 @contextlib.contextmanager
-def interpreted() -> Iterator[None]:
+def _mode(**changes) -> Iterator[None]:
+    old = dict(_MODE)
+    _MODE.update(changes)
+    try:
+        yield
+    finally:
+        _MODE.update(old)
+
+
+def interpreted() -> contextlib.AbstractContextManager[None]:
     """Within: the kernels run on CPU tensors too, through Triton's interpreter (slow;
     for tests)."""
-    old = dict(_MODE)
-    _MODE.update(interpret=True, off=False)
-    try:
-        yield
-    finally:
-        _MODE.update(old)
+    return _mode(interpret=True, off=False)
 
 
-@contextlib.contextmanager
-def disabled() -> Iterator[None]:
+def disabled() -> contextlib.AbstractContextManager[None]:
     """Within: the scan uses its torch ops everywhere (to compare the two)."""
-    old = dict(_MODE)
-    _MODE["off"] = True
-    try:
-        yield
-    finally:
-        _MODE.update(old)
+    return _mode(off=True)
 
 
 def enabled(t: Tensor, n: int, m: int = 1) -> bool:
@@ -165,6 +163,13 @@ class _Emitter:
 
     def load_vec(self, t: str, size: int, i0: int = 0) -> list[str]:
         return [self.load(t, i0 + i) for i in range(size)]
+
+    def load_flag(self, t: str) -> str:
+        """A per-element bool (stored as uint8)."""
+        return self.let(f"tl.load({t} + o_{t}, mask=mask, other=0) != 0")
+
+    def store_flag(self, t: str, value: str) -> None:
+        self.lines.append(f"tl.store({t} + o_{t}, ({value}).to(tl.uint8), mask=mask)")
 
     def store(self, t: str, value: str | None, i: int = 0, j: int = 0) -> None:
         value = "zero" if value is None else value
@@ -311,7 +316,11 @@ class _Emitter:
                     rows[r][j] = self.let(f"{rows[r][j]} - {f} * {rows[k][j]}")
         return [row[size:] for row in rows], singular
 
-    def source(self, name: str, zero_like: str) -> str:
+    def source(self, name: str) -> str:
+        """The kernel ``name``: one lane per element of the flat ``(B, T')`` domain of
+        ``N = B T'`` elements; every tensor argument ``X`` comes with its four strides
+        (batch, time, row, column). The first argument is a float tensor: ``zero`` has
+        its dtype."""
         params = []
         for t in self.args:
             params += [t, f"{t}_sb", f"{t}_st", f"{t}_si", f"{t}_sj"]
@@ -321,14 +330,10 @@ class _Emitter:
             "    mask = i < N",
             "    bb = i // Tp",
             "    tt = i - bb * Tp",
+            f"    zero = tl.full([BLOCK], 0, {self.args[0]}.dtype.element_ty)",
         ]
         head += [f"    o_{t} = bb * {t}_sb + tt * {t}_st" for t in self.args]
-        body = []
-        for line in self.lines:
-            body.append("    " + line)
-            if line.startswith(f"{zero_like} = "):
-                body.append(f"    zero = tl.full([BLOCK], 0, {zero_like}.dtype)")
-        return "\n".join(head + body) + "\n"
+        return "\n".join(head + ["    " + line for line in self.lines]) + "\n"
 
 
 # ----------------------------------------------------------------------------- kernels
@@ -366,8 +371,8 @@ def _src_value_elements(n: int, m: int) -> str:
             qs = e.let(f"0.5 * ({e.load(H, m + i, m + j)} + {e.load(H, m + j, m + i)})")
             J[i][j] = J[j][i] = e.add(qs, StWS[i][j], "-")  # sym(Q) - S' R^-1 S
     e.store_mat(oJ, J)
-    e.lines.append(f"tl.store(obad + o_obad, tl.where({ok}, 0, 1).to(tl.uint8), mask=mask)")
-    return e.source("value_elements_kernel", R[0][0])
+    e.store_flag(obad, f"tl.where({ok}, 0, 1)")
+    return e.source("value_elements_kernel")
 
 
 def _src_combine_value(n: int) -> str:
@@ -405,12 +410,8 @@ def _src_combine_value(n: int) -> str:
     e.store_vec(to[1], e.matvec(A2, Wb, add=e.load_vec(t2[1], n)))
     T2 = e.matmul(A2, WC)
     e.store_mat(to[2], e.sym_product(T2, A2, add=e.load_sym(t2[2], n)))  # A2 W C1 A2' + C2
-    bad1 = e.let("tl.load(bad1 + o_bad1, mask=mask, other=0) != 0")
-    bad2 = e.let("tl.load(bad2 + o_bad2, mask=mask, other=0) != 0")
-    e.lines.append(
-        f"tl.store(obad + o_obad, ({bad1} | {bad2} | {singular}).to(tl.uint8), mask=mask)"
-    )
-    return e.source("combine_value_kernel", C1[0][0])
+    e.store_flag(to[5], f"{e.load_flag(t1[5])} | {e.load_flag(t2[5])} | {singular}")
+    return e.source("combine_value_kernel")
 
 
 def _src_gains(n: int, m: int) -> str:
@@ -445,9 +446,9 @@ def _src_gains(n: int, m: int) -> str:
     )
     e.store_mat(oK, Kk)
     e.store_mat(oL, L)
-    e.lines.append(f"tl.store(ofail + o_ofail, tl.where({ok}, 0, 1).to(tl.uint8), mask=mask)")
+    e.store_flag(ofail, f"tl.where({ok}, 0, 1)")
     e.store(oinc, inc)
-    return e.source("gains_kernel", Vm[0][0])
+    return e.source("gains_kernel")
 
 
 def _src_combine_affine(n: int) -> str:
@@ -458,7 +459,7 @@ def _src_combine_affine(n: int) -> str:
     y1, y2 = e.load_vec(a1, n), e.load_vec(a2, n)
     e.store_mat(oM, e.matmul(X2, X1))
     e.store_vec(oa, e.matvec(X2, y1, add=y2))
-    return e.source("combine_affine_kernel", X1[0][0])
+    return e.source("combine_affine_kernel")
 
 
 def _src_closed_loop(n: int, m: int) -> str:
@@ -470,7 +471,7 @@ def _src_closed_loop(n: int, m: int) -> str:
     G = e.matmul([row[:m] for row in Ft], K, add=[row[m:] for row in Ft])
     e.store_mat(oM, [row[:n] for row in G])
     e.store_vec(oa, [row[n] for row in G])
-    return e.source("closed_loop_kernel", Ft[0][0])
+    return e.source("closed_loop_kernel")
 
 
 _SOURCES = {
