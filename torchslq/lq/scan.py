@@ -267,14 +267,18 @@ def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[T
     """Value functions ``V (B, T+1, n, n)``, ``v (B, T+1, n)`` by the reverse scan of
     the paper's elements (S1)-(S3), and ``(B,)`` bool: some ``R`` not
     positive definite or some ``I + C J`` singular in the element."""
-    A, Bm, c, Q, R, S, q, r, QT, qT = _split(F, H, VhT)
-    n, m = A.shape[-1], Bm.shape[-1]
-    nb = batch[0]
-    if scan_kernels.enabled(F, n, m):
-        elems = _value_elements_fused(F, H, QT, qT, nb)
-        _, _, _, eta_s, J_s, bad_s = associative_scan(_combine_value, elems, reverse=True)
-        return J_s, -eta_s, bad_s.any(1)
+    n = F.shape[-2] - 1
+    m = F.shape[-1] - n - 1
+    fused = scan_kernels.enabled(F, n, m)
+    elems = (_value_elements_fused if fused else _value_elements)(F, H, VhT, batch[0])
+    _, _, _, eta_s, J_s, bad_s = associative_scan(_combine_value, elems, reverse=True)
+    return J_s, -eta_s, bad_s.any(1)
 
+
+def _value_elements(F: Tensor, H: Tensor, VhT: Tensor, nb: int) -> Elems:
+    """The elements (S1) of every step and the terminal one, ``(B, T+1, ...)``."""
+    A, Bm, c, Q, R, S, q, r, QT, qT = _split(F, H, VhT)
+    n = A.shape[-1]
     A, Bm, c, Q, R, S, q, r = (t.expand(nb, *t.shape[1:]) for t in (A, Bm, c, Q, R, S, q, r))
     Lr, info_r = cholesky(R)
     # R^{-1} [B', S, r]: the control eliminated from each step (S1)
@@ -290,7 +294,7 @@ def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[T
     QT = QT.expand(nb, n, n).unsqueeze(1)
     qT = qT.expand(nb, n).unsqueeze(1)
     zero = torch.zeros_like(QT)
-    elems = (
+    return (
         torch.cat([At, zero], 1),
         torch.cat([b, torch.zeros_like(qT)], 1),
         torch.cat([0.5 * (C + C.mT), zero], 1),
@@ -298,13 +302,12 @@ def _value_scan(F: Tensor, H: Tensor, VhT: Tensor, batch: torch.Size) -> tuple[T
         torch.cat([0.5 * (J + J.mT), 0.5 * (QT + QT.mT)], 1),
         torch.cat([bad, bad.new_zeros(nb, 1)], 1),
     )
-    _, _, _, eta_s, J_s, bad_s = associative_scan(_combine_value, elems, reverse=True)
-    return J_s, -eta_s, bad_s.any(1)
 
 
-def _value_elements_fused(F: Tensor, H: Tensor, QT: Tensor, qT: Tensor, nb: int) -> Elems:
-    """The elements of :func:`_value_scan` by one fused kernel (:mod:`.scan_kernels`)."""
+def _value_elements_fused(F: Tensor, H: Tensor, VhT: Tensor, nb: int) -> Elems:
+    """:func:`_value_elements` by one fused kernel (:mod:`.scan_kernels`)."""
     T, n = F.shape[1], F.shape[-2] - 1
+    QT, qT = VhT[..., :n, :n], VhT[..., :n, n]
     kw = {"dtype": F.dtype, "device": F.device}
     elems = (
         torch.empty(nb, T + 1, n, n, **kw),
@@ -353,13 +356,7 @@ def riccati_scan_homogeneous(F: Tensor, H: Tensor, VhT: Tensor) -> RiccatiFactor
         return riccati_homogeneous(F, H, VhT)
     V, v, bad = _value_scan(F, H, VhT, batch)
     Vh_top = torch.cat([V, v.unsqueeze(-1)], -1)  # (B, T+1, n, n+1): rows :n of Vh
-    if scan_kernels.enabled(F, n, m):
-        Kk, L, fail, inc = scan_kernels.gains(
-            V[:, 1:], v[:, 1:], F.expand(nb, *F.shape[1:]), H.expand(nb, *H.shape[1:])
-        )
-        failed = fail.any(1)
-    else:
-        Kk, L, failed, inc = _gains(F, H, V, v, Vh_top, nb)
+    Kk, L, failed, inc = _gains(F, H, V, v, Vh_top, nb)
     cornerT = VhT[..., n, n].expand(nb)
     corner = cornerT.unsqueeze(1) + inc.flip(1).cumsum(1).flip(1)  # (B, T)
     corner = torch.cat([corner, cornerT.unsqueeze(1)], 1)
@@ -379,6 +376,10 @@ def _gains(F: Tensor, H: Tensor, V: Tensor, v: Tensor, Vh_top: Tensor, nb: int):
     flags and the value constant's increments ``(B, T)``."""
     T, n = F.shape[-3], F.shape[-2] - 1
     m = F.shape[-1] - n - 1
+    if scan_kernels.enabled(F, n, m):
+        Fb, Hb = F.expand(nb, *F.shape[1:]), H.expand(nb, *H.shape[1:])
+        Kk, L, fail, inc = scan_kernels.gains(V[:, 1:], v[:, 1:], Fb, Hb)
+        return Kk, L, fail.any(1), inc
     # [Quu, Qu_xh] = H[:m] + B' Vh_{t+1}[:n] F
     P = Vh_top[:, 1:] @ F  # (B, T, n, m+n+1)
     Qu = H[..., :m, :] + F[..., :n, :m].mT @ P
