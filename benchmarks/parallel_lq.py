@@ -114,23 +114,20 @@ def run_method(args: dict, method: str, backward: bool):
         fused = scan_kernels.disabled() if method == "scan_torch" else contextlib.nullcontext()
         try:
             with fused:
-                return _call()
+                if not backward:
+                    with torch.no_grad():
+                        return ts.lqr_solve(**args, validate=False, method=lq_method).x
+                ins = {
+                    k: (v.requires_grad_(True) if k in ("Q", "q", "A", "x0") else v)
+                    for k, v in args.items()
+                }
+                sol = ts.lqr_solve(**ins, validate=False, method=lq_method)
+                loss = sol.cost.sum() + sol.x.sum()
+                torch.autograd.grad(loss, [ins[k] for k in ("Q", "q", "A", "x0")])
+                return sol.x.detach()
         finally:
             if old is not None:
                 set_compiled(old)
-
-    def _call():
-        if not backward:
-            with torch.no_grad():
-                return ts.lqr_solve(**args, validate=False, method=lq_method).x
-        ins = {
-            k: (v.requires_grad_(True) if k in ("Q", "q", "A", "x0") else v)
-            for k, v in args.items()
-        }
-        sol = ts.lqr_solve(**ins, validate=False, method=lq_method)
-        loss = sol.cost.sum() + sol.x.sum()
-        torch.autograd.grad(loss, [ins[k] for k in ("Q", "q", "A", "x0")])
-        return sol.x.detach()
 
     return call
 

@@ -15,7 +15,6 @@ ops with the largest device time, with the command line, device and torch versio
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import shlex
 import sys
@@ -26,9 +25,8 @@ import torch
 from torch.profiler import ProfilerActivity, profile
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from parallel_lq import problem  # noqa: E402
+from parallel_lq import problem, run_method  # noqa: E402
 
-import torchslq as ts  # noqa: E402
 from torchslq.lq import scan_kernels  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -52,26 +50,15 @@ def main(argv: list[str] | None = None) -> None:
     if cuda and not torch.cuda.is_available():
         raise SystemExit("--device cuda: no CUDA device is available")
     args = problem(a.B, a.T, a.n, a.m, getattr(torch, a.dtype), a.device)
-    fused = scan_kernels.disabled() if a.torch_ops else contextlib.nullcontext()
-
-    def call():
-        if not a.backward:
-            with torch.no_grad():
-                return ts.lqr_solve(**args, validate=False, method="scan").x
-        ins = {k: v.requires_grad_(k in ("Q", "q", "A", "x0")) for k, v in args.items()}
-        sol = ts.lqr_solve(**ins, validate=False, method="scan")
-        torch.autograd.grad(sol.cost.sum() + sol.x.sum(), [ins[k] for k in ("Q", "q", "A", "x0")])
-        return sol.x
-
+    call = run_method(args, "scan_torch" if a.torch_ops else "scan", a.backward)
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
-    with fused:
-        call()  # warm-up: compiles the fused kernels
+    call()  # warm-up: compiles the fused kernels
+    if cuda:
+        torch.cuda.synchronize()
+    with profile(activities=activities) as prof:
+        call()
         if cuda:
             torch.cuda.synchronize()
-        with profile(activities=activities) as prof:
-            call()
-            if cuda:
-                torch.cuda.synchronize()
 
     def device_us(e) -> float:
         return float(getattr(e, "device_time_total", 0.0) or 0.0) if cuda else 0.0
