@@ -18,7 +18,13 @@ from test_lq_kernel import assert_rel, random_problem, sym
 from test_parallel_lq import FIELDS, _dense_check
 
 from torchslq import Status, lqr_solve
-from torchslq.lq import lq_adjoint_scan, riccati_backward, scan_kernels
+from torchslq.lq import (
+    homogeneous_cost,
+    homogeneous_dynamics,
+    lq_adjoint_scan,
+    riccati_backward,
+    scan_kernels,
+)
 from torchslq.lq import scan as scan_module
 
 pytest.importorskip("triton")  # a dev dependency; without it the torch ops serve
@@ -125,14 +131,6 @@ def test_affine_composition_matches_torch_ops(fused):
 # ----------------------------------------------------------------------------- passes
 
 
-def _homogeneous(args):
-    A, B, c = args["A"], args["B"], args["c"]
-    bsz, T, n, m = B.shape
-    F = torch.zeros(bsz, T, n + 1, m + n + 1, dtype=F64)
-    F[..., :n, :m], F[..., :n, m:-1], F[..., :n, -1], F[..., n, -1] = B, A, c, 1.0
-    return F
-
-
 def test_riccati_and_adjoint_passes_match_torch_ops(fused):
     """The elements (S1), the value scan, the gains (S4) with an element whose R is not
     positive definite and one whose Quu is indefinite, the closed loop and the adjoint
@@ -143,9 +141,7 @@ def test_riccati_and_adjoint_passes_match_torch_ops(fused):
     args["R"][1, 3] = -torch.eye(m, dtype=F64)  # an element of the scan is bad
     args["Q"] = args["Q"].clone()
     args["Q"][2, T] = -50.0 * torch.eye(n, dtype=F64)  # Quu indefinite at the end
-    F = _homogeneous(args)
-    from torchslq.lq import homogeneous_cost
-
+    F = homogeneous_dynamics(args["A"], args["B"], args["c"])
     H, VhT = homogeneous_cost(args["Q"], args["R"], args["q"], args["r"], args["S"])
     got = scan_module.riccati_scan_homogeneous(F, H, VhT)
     ref = _torch_ops(scan_module.riccati_scan_homogeneous, F, H, VhT)
