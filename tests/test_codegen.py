@@ -338,6 +338,7 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
     from torchslq.dynamics import _numba_rk4
     from torchslq.dynamics.rollout import compiled_step_of, rollout, rollout_closed_loop
 
+    monkeypatch.setattr(bound, "_TAKEN", set())  # no large pass has taken them yet
     step = ts.discretize(UserCartPole(), 0.05)
     gen = torch.Generator().manual_seed(2)
     x = torch.randn(7, 3, 4, generator=gen, dtype=torch.float64)
@@ -381,13 +382,53 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
         ]
         assert fn_args, f"{kernel.__name__} ran without function values"
     monkeypatch.setattr(bound, "MIN_ROWS", 0)  # the generated module's own kernels
-    module = bound.bound_kernels(step.continuous.compiled_rhs()[0], 1)
+    module = bound.bound_kernels(step.continuous.compiled_rhs()[0], 1, "jacobians_kernel", "f8")
     assert module is not None
     with_bound = outputs()
     assert module.closed_loop_rollout_kernel.signatures and module.jacobians_kernel.signatures
     assert module.armijo_rollout_kernel.signatures
     for a, b in zip(as_values, with_bound, strict=True):
         assert torch.equal(a, b)
+
+
+def test_small_passes_take_the_bound_kernels_once_a_large_pass_has(monkeypatch):
+    """A pass under MIN_ROWS rows runs the generic kernels until a large pass has taken
+    the generated module's kernel for that dtype (then compiled); per kernel and dtype.
+    A B = 1 solve after a B = 64 one takes them and gives the same controls."""
+    from torchslq._backend import bound, model_fns
+
+    monkeypatch.setattr(bound, "_TAKEN", set())
+    step = ts.discretize(UserCartPole(), 0.05)
+    rhs = step.continuous.compiled_rhs()[0]
+    small, large = bound.MIN_ROWS - 1, bound.MIN_ROWS
+    assert bound.bound_kernels(rhs, small, "jacobians_kernel", np.float64) is None
+    module = bound.bound_kernels(rhs, large, "jacobians_kernel", np.float64)
+    assert module is not None
+    assert bound.bound_kernels(rhs, small, "jacobians_kernel", np.float64) is module
+    assert bound.bound_kernels(rhs, small, "jacobians_kernel", np.float32) is None
+    assert bound.bound_kernels(rhs, small, "armijo_rollout_kernel", np.float64) is None
+    assert bound.bound_kernels(rhs.py_func, large, "jacobians_kernel", np.float64) is None
+
+    monkeypatch.setattr(bound, "_TAKEN", set())
+    eye = torch.eye(4, dtype=torch.float64)
+    problem = ts.Problem(
+        step.double(), ts.QuadraticCost(Q=0.1 * eye, R=0.1 * eye[:1, :1], Qf=10 * eye), 30
+    )
+    x0 = torch.zeros(64, 4, dtype=torch.float64)
+    x0[:, 1] = torch.linspace(-0.5, 0.5, 64, dtype=torch.float64)
+    solver = ts.ILQR(max_iter=30, tol=1e-9, progress=False)
+    generic = solver.solve(problem, x0[:1])  # 30 rows: the generic kernels
+    kernel, fns = model_fns.rollout_kernel(
+        "closed_loop_rollout_kernel", step.compiled_step()[0], np.float64, np.float64, 30
+    )
+    assert fns and kernel is not module.closed_loop_rollout_kernel
+    solver.solve(problem, x0)  # 64 x 30 rows: the module's kernels
+    kernel, fns = model_fns.rollout_kernel(
+        "closed_loop_rollout_kernel", step.compiled_step()[0], np.float64, np.float64, 30
+    )
+    assert kernel is module.closed_loop_rollout_kernel and len(fns) == 1
+    again = solver.solve(problem, x0[:1])
+    assert torch.equal(generic.u, again.u) and torch.equal(generic.x, again.x)
 
 
 class UserUnicycle(ts.Dynamics):

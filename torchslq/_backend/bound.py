@@ -8,19 +8,27 @@ defines those kernels with its functions bound in (the same source, rewritten), 
 they are inlined: measured at B = 512, T = 50 on the cart-pole, the closed-loop rollout
 takes 6.5-7.0 ms instead of 7.7-7.9 ms and the Jacobian pass ~10% less. Compiling them
 costs seconds per model, once per machine (numba caches them with the module), so the
-launchers take them only for passes of at least :data:`MIN_ROWS` rows (rows x steps for
+launchers take them for passes of at least :data:`MIN_ROWS` rows (rows x steps for
 a rollout): a small solve (real-time MPC, a first try of a new model) starts without
-that compilation, a large one repays it.
+that compilation, a large one repays it. Once a large pass has taken a kernel for a
+dtype, the process has it compiled, and smaller passes take it too: a batch whose
+working set shrinks to its last slow elements (or a small solve after a large one)
+keeps the inlined kernels and skips typing the function values at every launch
+(measured on the cart-pole, T = 50: ILQR at B = 1 after a B = 64 solve 0.65 ms per
+iteration instead of 0.73).
 """
 
 from __future__ import annotations
 
 from types import ModuleType
 
+import numpy as np
+
 #: a pass over fewer rows (points, or rollout element-steps) runs the generic kernels
 MIN_ROWS = 1024
 
 _BOUND: dict = {}
+_TAKEN: set = set()  # (rhs, kernel name, dtype) a large pass has taken in this process
 
 
 def register(module: ModuleType) -> None:
@@ -44,12 +52,19 @@ def is_generated(fn) -> bool:
         return False
 
 
-def bound_kernels(fn, rows: int) -> ModuleType | None:
-    """The generated module whose ``rhs`` is ``fn`` when a pass of ``rows`` rows is
-    large enough to use its kernels (see :data:`MIN_ROWS`), else None."""
-    if rows < MIN_ROWS:
-        return None
+def bound_kernels(fn, rows: int, kernel: str, dtype) -> ModuleType | None:
+    """The generated module whose ``rhs`` is ``fn`` when a pass of ``rows`` rows over
+    arrays of ``dtype`` should run its ``kernel`` (a name): the pass is large enough
+    (:data:`MIN_ROWS`), or a large pass has taken that kernel for ``dtype`` in this
+    process (it is compiled); else None."""
     try:
-        return _BOUND.get(fn)
+        module = _BOUND.get(fn)
     except TypeError:  # unhashable
         return None
+    if module is None:
+        return None
+    key = (fn, kernel, np.dtype(dtype).str)
+    if rows >= MIN_ROWS:
+        _TAKEN.add(key)
+        return module
+    return module if key in _TAKEN else None

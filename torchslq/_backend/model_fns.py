@@ -145,7 +145,7 @@ def rollout_kernel(kernel_name: str, step: Any, x_dtype, p_dtype, rows: int, mod
         fn, rhs, mode = step, K.no_rhs, K.STEP_GIVEN
     else:
         fn, (rhs, mode) = K.no_step, source
-        bound = bound_kernels(rhs, rows)
+        bound = bound_kernels(rhs, rows, kernel_name, x_dtype)
         if bound is not None and hasattr(bound, kernel_name):
             return getattr(bound, kernel_name), (mode,)  # the same kernel, functions bound in
     fns = (

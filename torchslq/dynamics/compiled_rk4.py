@@ -72,9 +72,10 @@ def _kernel_and_functions(hooks: RK4Hooks, dtype, static: bool, rows: int):
     """The derivative kernel for ``hooks`` and the model's functions as its first-class
     function arguments (:mod:`torchslq._backend.model_fns`); for a large pass of a
     generated model, its module's kernel with them bound in (:mod:`torchslq._backend.bound`)."""
-    bound = bound_kernels(hooks.rhs, rows)
+    name = "jacobians_kernel" if static else "hessians_kernel"
+    bound = bound_kernels(hooks.rhs, rows, name, dtype)
     if bound is not None:
-        return (bound.jacobians_kernel if static else bound.hessians_kernel), ()
+        return getattr(bound, name), ()
     if hooks.discrete:
         from ._numba_step import step_derivatives_kernel as kernel
     else:
