@@ -461,9 +461,10 @@ def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeyp
     tensors are never built: the same factors as the torch path. With bounds the
     homogeneous kernel assembles each step's F_t, H_t itself (bitwise the kernel fed
     with the F, H built by homogeneous_dynamics/_cost); without, this small problem's
-    pass runs in gain form (riccati_gain_reg_kernel), equal to within rounding, DDP's
-    Hessian terms included (the same bits from separate blocks or one joint tensor)."""
-    from torchslq._backend import _numba_gain
+    pass runs in gain form (riccati_gain_reg_kernel, or without Hessians the pass
+    generated for its size, gain_codegen), equal to within rounding, DDP's Hessian terms
+    included (the same bits from separate blocks or one joint tensor)."""
+    from torchslq._backend import _numba_gain, gain_codegen
     from torchslq.lq import riccati
 
     kw = _pieces_cases()[case]
@@ -494,6 +495,12 @@ def test_riccati_backward_assembles_the_stages_in_the_kernel(torch_path, monkeyp
             "riccati_gain_reg_kernel",
             lambda *a: gain_calls.append(1) or gain_kernel(*a),
         )
+        generated = gain_codegen.gain_kernels(n, m)
+        if generated is not None:
+            first = generated.riccati_gain_reg_first
+            mp.setattr(
+                generated, "riccati_gain_reg_first", lambda *a: gain_calls.append(1) or first(*a)
+            )
         fast = ts.riccati_backward(**kw)
     assert fast.Kk.shape == ref.Kk.shape == (*batch, T, 2, 5)
     _close(fast, ref)

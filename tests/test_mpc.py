@@ -287,8 +287,10 @@ def test_warm_start_shifts_previous_solution_and_saves_iterations():
         Qf=torch.diag(torch.tensor([10.0, 1.0], dtype=torch.float64)),
         x_ref=torch.tensor([1.0, 0.0], dtype=torch.float64),
     )
-    warm = MPC(dyn, cost, T, solver=ILQR(max_iter=200, tol=1e-9, progress=False))
-    cold = MPC(dyn, cost, T, solver=ILQR(max_iter=200, tol=1e-9, progress=False), warm_start=False)
+    # (at tol 1e-9 the last iterations are at the gradient's rounding level, and how
+    # many a solve takes there changes with the rounding of its LQ passes)
+    warm = MPC(dyn, cost, T, solver=ILQR(max_iter=200, tol=1e-7, progress=False))
+    cold = MPC(dyn, cost, T, solver=ILQR(max_iter=200, tol=1e-7, progress=False), warm_start=False)
     x = X0.clone()
     a = warm.step(x)
     u_prev = warm.last_result.u

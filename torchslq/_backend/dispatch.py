@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
+from .gain_codegen import gain_kernels
 from .model_fns import rollout_kernel
 
 __all__ = [
@@ -308,12 +309,26 @@ def riccati_compiled(
         # blocks of Vh. (DDP's pass in float32 keeps the homogeneous kernel: in gain form
         # a float32 cart-pole DDP stalled at a gradient of 1.8e-3 instead of 1.7e-4.)
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
-        with_slp(
-            _launch, _gain_kernels().riccati_gain_reg_kernel, nb, T, piece_arrays,
+        args = (
+            piece_arrays,
             restart_arrays[1] if restarts is not None else _reg_array(reg, batch, dtype),
             *_hessian_arrays(hessians, dtype), Kk.numpy(), Vh.numpy(), L.numpy(),
             failed.numpy(), *restart_arrays[1:], restart_arrays[0], *witness,
         )  # fmt: skip
+        generated = gain_kernels(n1 - 1, m) if hessians is None else None
+        if generated is None:
+            with_slp(_launch, _gain_kernels().riccati_gain_reg_kernel, nb, T, *args)
+        else:
+            # the element pass written out for (n, m) (gain_codegen): its first try;
+            # an element that fails it runs again on the element kernel, restarts and
+            # all, from a fresh pass's zeros
+            _launch(
+                generated.riccati_gain_reg_first, nb, T, args[0], args[1], args[4], args[5],
+                args[6], args[7], args[8],
+            )  # fmt: skip
+            for b in np.flatnonzero(args[7]).tolist():
+                Kk[b], Vh[b], L[b] = 0.0, 0.0, 0.0
+                with_slp(_gain_kernels().riccati_gain_reg_kernel, b, b + 1, *args)
     else:
         with_slp(
             _riccati_homogeneous_launch, arrays, reg, batch, dtype, hessians, boxed, lower,
@@ -845,6 +860,8 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
 
     gain = _gain_kernels()
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
+    # the element pass written out for (n, m) where it is generated (gain_codegen)
+    passes = gain_kernels(n, m) or gain
     nb = x0.shape[0]
     x0n = _np(x0)
     # outputs allocated by numpy and shared with torch (a torch allocation and its numpy
@@ -867,10 +884,10 @@ def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T
             pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten, nt, mt,
         )  # fmt: skip
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
-        with_slp(gain.gain_solve_kernel, *args)
+        with_slp(passes.gain_solve_kernel, *args)
     else:
         with_slp(
-            _launch, gain.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn,
+            _launch, passes.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn,
             failedn, nt, mt,
         )  # fmt: skip
         _launch(
