@@ -391,6 +391,35 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
         assert torch.equal(a, b)
 
 
+def test_straight_line_jacobians_equal_the_lanes_kernel(monkeypatch):
+    """A generated continuous model's Jacobian-only kernel (every stage in local
+    variables, the model's constant zeros left out of the chain rule) gives the lanes
+    kernel's bits on finite rows, and a row with a NaN state is not finite in both."""
+    from torchslq._backend import bound
+
+    step = ts.discretize(UserCartPole(), 0.05)
+    gen = torch.Generator().manual_seed(4)
+    x = 3 * torch.randn(1100, 4, generator=gen, dtype=torch.float64)
+    u = 5 * torch.randn(1100, 1, generator=gen, dtype=torch.float64)
+    x[7, 1] = float("nan")
+    x[9, 3] = float("inf")
+    monkeypatch.setattr(bound, "_TAKEN", set())
+    monkeypatch.setattr(bound, "MIN_ROWS", 10**9)  # the lanes kernel, function values
+    A0, B0 = step.compiled_jacobians(x, u)
+    monkeypatch.setattr(bound, "MIN_ROWS", 0)
+    A1, B1 = step.compiled_jacobians(x, u)
+    module = bound.bound_kernels(step.continuous.compiled_rhs()[0], 1, "jacobians_kernel", "f8")
+    assert module.jacobians_only_kernel.signatures  # it ran
+    fin = torch.isfinite(x).all(1)
+    assert torch.equal(A1[fin], A0[fin]) and torch.equal(B1[fin], B0[fin])
+    for A, B in ((A0, B0), (A1, B1)):
+        bad = ~(torch.isfinite(A).flatten(1).all(1) & torch.isfinite(B).flatten(1).all(1))
+        assert bad.tolist() == (~fin).tolist()
+    A_ad, B_ad = torch.func.vmap(torch.func.jacrev(step, argnums=(0, 1)))(x[:3], u[:3])
+    torch.testing.assert_close(A1[:3], A_ad, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(B1[:3], B_ad, rtol=1e-12, atol=1e-12)
+
+
 def test_small_passes_take_the_bound_kernels_once_a_large_pass_has(monkeypatch):
     """A pass under MIN_ROWS rows runs the generic kernels until a large pass has taken
     the generated module's kernel for that dtype (then compiled); per kernel and dtype.

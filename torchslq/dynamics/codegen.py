@@ -757,6 +757,8 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
             *deriv_body,
         ]
     src += _kernel_source(kind)
+    if kind == "continuous":
+        src += _jacobian_rows_source(xs, us, reads(f + jac), rhs_body, deriv_body, n, m)
     refused = rhs_printer._not_supported | printer._not_supported
     if refused:
         raise _Unsupported(f"cannot print {sorted(map(str, refused))[:3]}")
@@ -834,6 +836,102 @@ def _kernel_source(kind: str) -> list[str]:
         lines += ["", "", derivs, "", "", roll, "", "", *names]
         _KERNELS[kind] = lines
     return _KERNELS[kind]
+
+
+def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str]:
+    """``jacobians_only_kernel``: the RK4 step's Jacobians ``A``, ``B`` (what
+    :func:`torchslq.dynamics._numba_rk4.rk4_lanes_kernel` computes without weights) as
+    straight-line code per row: every stage's ``f``, ``f_z`` and ``dk_i/dz`` in local
+    variables instead of lane arrays, the model's entries that are the constant 0 left
+    out of the chain rule (with those of ``dk_i/dz`` they make zero) and those that are
+    1 not multiplied. The same operations in the same order otherwise (no FMA
+    contraction here or there), so for finite inputs the same bits (a dropped product
+    ``0 * v`` only matters where ``v`` is not finite, and such a row has non-finite
+    entries either way); the argument list is ``rk4_lanes_kernel``'s less ``rhs``,
+    ``derivs``, its weights and Hessians unread."""
+    import re
+
+    nz = n + m
+    out_line = re.compile(r"^    out\[(\d+)\] = (.*)$")
+    fz_line = re.compile(r"^    fz\[(\d+), (\d+)\] = (.*)$")
+    rhs_assign = [ln for ln in rhs_body if not out_line.match(ln)]
+    rhs_vals = {int(mt.group(1)): mt.group(2) for ln in rhs_body if (mt := out_line.match(ln))}
+    stop = deriv_body.index("    if H.shape[0] == 0:")
+    jac_assign = [ln for ln in deriv_body[:stop] if not fz_line.match(ln)]
+    F = {}
+    for ln in deriv_body[:stop]:
+        mt = fz_line.match(ln)
+        if mt:
+            F[int(mt.group(1)), int(mt.group(2))] = mt.group(3)
+    const = {k: v for k, v in F.items() if re.fullmatch(r"-?\d+\.\d+(e-?\d+)?", v)}
+
+    def fval(j, c):
+        return const.get((j, c), f"F{j}_{c}")
+
+    ind = " " * 8
+    lines = [
+        "",
+        "",
+        "@numba.njit(nogil=True, cache=True, _nrt=False)",
+        "def jacobians_only_kernel(r0, r1, p, dt, curved_outputs, curved_entries, x, u, S, Hz, A, B):",
+        *[ln for ln in reads if "= p[" in ln],
+        "    c6 = dt / 6.0",
+        "    for row in range(r0, r1):",
+        f"{ind}xr = x[row]",
+        f"{ind}ur = u[row]",
+        *[f"{ind}{s.name} = ur[{i}]" for i, s in enumerate(us)],
+    ]
+    zero_prev: dict = {}
+    for i in range(4):
+        if i == 0:
+            lines += [f"{ind}{s.name} = xr[{k}]" for k, s in enumerate(xs)]
+        else:
+            lines.append(f"{ind}a_dt = {0.5 if i < 3 else 1.0!r} * dt")
+            lines += [f"{ind}{s.name} = xr[{k}] + a_dt * k{i - 1}_{k}" for k, s in enumerate(xs)]
+        if i < 3:  # the stage's f (the last stage's is not needed)
+            lines += [ind + ln.strip() for ln in rhs_assign]
+            lines += [f"{ind}k{i}_{j} = {rhs_vals[j]}" for j in range(n)]
+        lines += [ind + ln.strip() for ln in jac_assign]
+        lines += [f"{ind}F{j}_{c} = {v}" for (j, c), v in F.items() if (j, c) not in const]
+        zero = {}
+        for j in range(n):
+            for c in range(nz):
+                if i == 0:
+                    zero[j, c] = fval(j, c) == "0.0"
+                    if not zero[j, c]:
+                        lines.append(f"{ind}d0_{j}_{c} = {fval(j, c)}")
+                    continue
+                terms = []
+                for q in range(n):
+                    fq = fval(j, q)
+                    if fq == "0.0" or zero_prev[q, c]:
+                        continue
+                    terms.append(f"d{i - 1}_{q}_{c}" if fq == "1.0" else f"{fq} * d{i - 1}_{q}_{c}")
+                zero[j, c] = fval(j, c) == "0.0" and not terms
+                if zero[j, c]:
+                    continue
+                lines.append(f"{ind}s = 0.0")
+                lines += [f"{ind}s = s + {t}" for t in terms]
+                lines.append(f"{ind}d{i}_{j}_{c} = {fval(j, c)} + a_dt * s")
+        zero_prev = zero
+        if i == 0:
+            zeros = [dict(zero)]
+        else:
+            zeros.append(dict(zero))
+    for j in range(n):
+        for c in range(nz):
+            d = ["0.0" if zeros[i][j, c] else f"d{i}_{j}_{c}" for i in range(4)]
+            if c < n:  # A = I + c6 sk, B = c6 sk
+                target, eye = f"A[row, {j}, {c}]", ("1.0" if c == j else "0.0") + " + "
+            else:
+                target, eye = f"B[row, {j}, {c - n}]", ""
+            if all(zeros[i][j, c] for i in range(4)):
+                lines.append(f"{ind}{target} = {(eye[:3] if eye else '0.0')}")
+                continue
+            lines.append(f"{ind}sk = {d[0]} + 2.0 * {d[1]}")
+            lines.append(f"{ind}sk = sk + 2.0 * {d[2]} + {d[3]}")
+            lines.append(f"{ind}{target} = {eye}c6 * sk")
+    return lines
 
 
 def _without_function(source: str, name: str) -> str:

@@ -68,13 +68,19 @@ def rk4_hooks(rhs, derivatives, discrete: bool = False) -> RK4Hooks:
     return RK4Hooks(fn, derivatives, params, empty, empty, discrete)
 
 
-def _kernel_and_functions(hooks: RK4Hooks, dtype, static: bool, rows: int):
+def _kernel_and_functions(
+    hooks: RK4Hooks, dtype, static: bool, rows: int, jacobians_only: bool = False
+):
     """The derivative kernel for ``hooks`` and the model's functions as its first-class
     function arguments (:mod:`torchslq._backend.model_fns`); for a large pass of a
-    generated model, its module's kernel with them bound in (:mod:`torchslq._backend.bound`)."""
+    generated model, its module's kernel with them bound in (:mod:`torchslq._backend.bound`):
+    for ``jacobians_only`` (no weights) its straight-line Jacobian kernel where it has
+    one (:func:`torchslq.dynamics.codegen._jacobian_rows_source`)."""
     name = "jacobians_kernel" if static else "hessians_kernel"
+    if jacobians_only:
+        name = "jacobians_only_kernel"
     bound = bound_kernels(hooks.rhs, rows, name, dtype)
-    if bound is not None:
+    if bound is not None and hasattr(bound, name):
         return getattr(bound, name), ()
     if hooks.discrete:
         from ._numba_step import step_derivatives_kernel as kernel
@@ -119,7 +125,7 @@ def rk4_jacobians_compiled(hooks, dt: float, x: Tensor, u: Tensor) -> tuple[Tens
     no_pattern = np.zeros(0, dtype=np.int64)
     no_weights = np.zeros((0, R, n), dtype=xa.dtype)  # W = 0: no Hessians asked
     no_hessians = np.zeros((0, R, n + m, n + m), dtype=xa.dtype)
-    kernel, fns = _kernel_and_functions(hooks, xa.dtype, True, R)
+    kernel, fns = _kernel_and_functions(hooks, xa.dtype, True, R, jacobians_only=True)
     _launch(
         kernel,
         R,
