@@ -759,6 +759,7 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
     src += _kernel_source(kind)
     if kind == "continuous":
         src += _jacobian_rows_source(xs, us, reads(f + jac), rhs_body, deriv_body, n, m)
+        src += _rk4_step_source(xs, us, reads(f), rhs_body, n)
     refused = rhs_printer._not_supported | printer._not_supported
     if refused:
         raise _Unsupported(f"cannot print {sorted(map(str, refused))[:3]}")
@@ -932,6 +933,49 @@ def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str
             lines.append(f"{ind}sk = sk + 2.0 * {d[2]} + {d[3]}")
             lines.append(f"{ind}{target} = {eye}c6 * sk")
     return lines
+
+
+def _rk4_step_source(xs, us, reads, rhs_body, n) -> list[str]:
+    """``rk4_step_locals(x, u, p, out, work)``, the module's ``step`` (``p[0] = dt``, the
+    model's parameters after it): :func:`torchslq._backend._numba_kernels.rk4_step_with`
+    as straight-line code, the stages' arguments and ``k_i`` in local variables instead
+    of ``work``'s rows; the same operations in the same order, so the same bits."""
+    import re
+
+    out_line = re.compile(r"^    out\[(\d+)\] = (.*)$")
+    assign = [ln for ln in rhs_body if not out_line.match(ln)]
+    vals = {int(mt.group(1)): mt.group(2) for ln in rhs_body if (mt := out_line.match(ln))}
+    params = []
+    for ln in reads:
+        mt = re.match(r"^    (\w+) = p\[(\d+)\]$", ln)
+        if mt:  # the model's parameters follow dt
+            params.append(f"    {mt.group(1)} = p[{int(mt.group(2)) + 1}]")
+    lines = [
+        "",
+        "",
+        "@numba.njit(nogil=True, _nrt=False, cache=True)",
+        "def rk4_step_locals(x, u, p, out, work):",
+        "    dt = p[0]",
+        *params,
+        *[f"    {s.name} = u[{i}]" for i, s in enumerate(us)],
+        *[f"    xo{i} = x[{i}]" for i in range(n)],
+        *[f"    {s.name} = xo{i}" for i, s in enumerate(xs)],
+    ]
+    for stage, k in enumerate(("ka", "kb", "kc", "kd")):
+        lines += assign
+        lines += [f"    {k}{j} = {vals[j]}" for j in range(n)]
+        for i, sym in enumerate(xs):
+            if stage == 0:
+                lines.append(f"    a{i} = ka{i}")
+                lines.append(f"    {sym.name} = xo{i} + (0.5 * dt) * ka{i}")
+            elif stage == 1:
+                lines.append(f"    a{i} = a{i} + 2.0 * kb{i}")
+                lines.append(f"    {sym.name} = xo{i} + (0.5 * dt) * kb{i}")
+            elif stage == 2:
+                lines.append(f"    {sym.name} = xo{i} + dt * kc{i}")
+            else:
+                lines.append(f"    out[{i}] = xo{i} + (dt / 6.0) * (a{i} + (kd{i} + 2.0 * kc{i}))")
+    return [*lines, "", "", "step = rk4_step_locals"]
 
 
 def _without_function(source: str, name: str) -> str:
