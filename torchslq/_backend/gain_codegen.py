@@ -26,11 +26,11 @@ its compiled code beside it, as the library's own kernels.
 
 from __future__ import annotations
 
-import importlib.util
 import os
-import sys
 from pathlib import Path
 from types import ModuleType
+
+from .source_modules import import_source, write_atomic
 
 #: the largest ``n (n + m)`` generated
 MAX_ENTRIES = 48
@@ -361,18 +361,5 @@ def _load(directory: Path, name: str, n: int, m: int) -> ModuleType:
     path = directory / f"{name}.py"
     if not path.exists() or path.read_text() != source:
         directory.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
-        tmp.write_text(source)
-        os.replace(tmp, path)  # atomic: a concurrent process sees all or nothing
-    modname = f"torchslq_{name}"
-    if modname in sys.modules:
-        return sys.modules[modname]
-    spec = importlib.util.spec_from_file_location(modname, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[modname] = module
-    try:
-        exec(compile(source, str(path), "exec"), module.__dict__)
-    except Exception:
-        del sys.modules[modname]
-        raise
-    return module
+        write_atomic(path, source)
+    return import_source(path, f"torchslq_{name}")

@@ -60,9 +60,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
-import importlib.util
 import os
-import sys
 import threading
 import time
 import warnings
@@ -75,6 +73,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from .._backend.source_modules import import_source, write_atomic
 from .._pinned import _PINNED, solve_scope
 from ._symbolic import Unsupported as _Unsupported
 from ._symbolic import as_array, evaluate, symbols
@@ -322,9 +321,7 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
                 checked.touch()
     if skey is not None and path is not None:
         with contextlib.suppress(OSError):
-            tmp = _cache_dir() / f"s_{skey}.{os.getpid()}.tmp"
-            tmp.write_text(digest)
-            os.replace(tmp, _cache_dir() / f"s_{skey}.txt")
+            write_atomic(_cache_dir() / f"s_{skey}.txt", digest)
     return hooks
 
 
@@ -508,32 +505,18 @@ def _cache_dir() -> Path | None:
 
 
 def _import(path: Path, digest: str):
-    name = f"torchslq_generated_{digest}"
-    if name in sys.modules:
-        return sys.modules[name]
-    spec = importlib.util.spec_from_file_location(name, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    try:
-        # compiled from the file's text, not through a .pyc: a file rewritten within
-        # the same second at the same size would pass the .pyc's timestamp check
-        code = compile(path.read_text(), str(path), "exec")
-        exec(code, module.__dict__)
+    def check(module) -> None:
         missing = [k for k in _MODULE_NAMES if not hasattr(module, k)]
         if missing:
             raise ImportError(f"{path} defines no {', '.join(missing)}")
-    except Exception:
-        del sys.modules[name]
-        raise
-    return module
+
+    return import_source(path, f"torchslq_generated_{digest}", check)
 
 
 def _write_and_import(path: Path | None, digest: str, source: str):
     if path is not None:
-        tmp = path.with_suffix(f".{os.getpid()}.tmp")
         try:
-            tmp.write_text(source)
-            os.replace(tmp, path)  # atomic: a concurrent process sees all or nothing
+            write_atomic(path, source)
             return _import(path, digest)
         except OSError:
             pass
