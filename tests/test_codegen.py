@@ -326,7 +326,19 @@ def test_parameters_that_need_grad_take_the_autograd_path():
     torch.testing.assert_close(Ap, A.detach(), rtol=1e-5, atol=1e-5)
 
 
-def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
+@pytest.fixture
+def fresh_bound(monkeypatch, tmp_path):
+    """torchslq._backend.bound as in a new process on a machine where no large pass has
+    taken a bound kernel (its notes in ``tmp_path``)."""
+    from torchslq._backend import bound
+
+    monkeypatch.setattr(bound, "_TAKEN", set())
+    monkeypatch.setattr(bound, "_NOTED", {})
+    monkeypatch.setattr(bound, "_taken_file", lambda module: tmp_path / "module.taken")
+    return bound
+
+
+def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch, fresh_bound):
     """The RK4, rollout and fused line-search kernels called with the model's functions
     as first-class function values (compiled once per machine, cached) compute bit for bit what the
     generated module's copies with the functions bound in compute (large passes); their
@@ -338,7 +350,6 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
     from torchslq.dynamics import _numba_rk4
     from torchslq.dynamics.rollout import compiled_step_of, rollout, rollout_closed_loop
 
-    monkeypatch.setattr(bound, "_TAKEN", set())  # no large pass has taken them yet
     step = ts.discretize(UserCartPole(), 0.05)
     gen = torch.Generator().manual_seed(2)
     x = torch.randn(7, 3, 4, generator=gen, dtype=torch.float64)
@@ -391,7 +402,7 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch):
         assert torch.equal(a, b)
 
 
-def test_straight_line_jacobians_equal_the_lanes_kernel(monkeypatch):
+def test_straight_line_jacobians_equal_the_lanes_kernel(monkeypatch, fresh_bound):
     """A generated continuous model's Jacobian-only kernel (every stage in local
     variables, the model's constant zeros left out of the chain rule) gives the lanes
     kernel's bits on finite rows, and a row with a NaN state is not finite in both."""
@@ -403,7 +414,6 @@ def test_straight_line_jacobians_equal_the_lanes_kernel(monkeypatch):
     u = 5 * torch.randn(1100, 1, generator=gen, dtype=torch.float64)
     x[7, 1] = float("nan")
     x[9, 3] = float("inf")
-    monkeypatch.setattr(bound, "_TAKEN", set())
     monkeypatch.setattr(bound, "MIN_ROWS", 10**9)  # the lanes kernel, function values
     A0, B0 = step.compiled_jacobians(x, u)
     monkeypatch.setattr(bound, "MIN_ROWS", 0)
@@ -420,13 +430,14 @@ def test_straight_line_jacobians_equal_the_lanes_kernel(monkeypatch):
     torch.testing.assert_close(B1[:3], B_ad, rtol=1e-12, atol=1e-12)
 
 
-def test_small_passes_take_the_bound_kernels_once_a_large_pass_has(monkeypatch):
+def test_small_passes_take_the_bound_kernels_once_a_large_pass_has(monkeypatch, fresh_bound):
     """A pass under MIN_ROWS rows runs the generic kernels until a large pass has taken
-    the generated module's kernel for that dtype (then compiled); per kernel and dtype.
+    the generated module's kernel for that dtype (then compiled), in this process or,
+    by the note it leaves beside the module, in an earlier one; per kernel and dtype.
     A B = 1 solve after a B = 64 one takes them and gives the same controls."""
-    from torchslq._backend import bound, model_fns
+    from torchslq._backend import model_fns
 
-    monkeypatch.setattr(bound, "_TAKEN", set())
+    bound = fresh_bound
     step = ts.discretize(UserCartPole(), 0.05)
     rhs = step.continuous.compiled_rhs()[0]
     small, large = bound.MIN_ROWS - 1, bound.MIN_ROWS
@@ -437,8 +448,16 @@ def test_small_passes_take_the_bound_kernels_once_a_large_pass_has(monkeypatch):
     assert bound.bound_kernels(rhs, small, "jacobians_kernel", np.float32) is None
     assert bound.bound_kernels(rhs, small, "armijo_rollout_kernel", np.float64) is None
     assert bound.bound_kernels(rhs.py_func, large, "jacobians_kernel", np.float64) is None
+    # a later process: the note beside the module says the kernel is compiled and cached
+    monkeypatch.setattr(bound, "_TAKEN", set())
+    monkeypatch.setattr(bound, "_NOTED", {})
+    assert bound.bound_kernels(rhs, small, "jacobians_kernel", np.float64) is module
+    assert bound.bound_kernels(rhs, small, "jacobians_kernel", np.float32) is None
+    assert bound.bound_kernels(rhs, small, "armijo_rollout_kernel", np.float64) is None
 
     monkeypatch.setattr(bound, "_TAKEN", set())
+    monkeypatch.setattr(bound, "_NOTED", {})
+    bound._taken_file(module).unlink()
     eye = torch.eye(4, dtype=torch.float64)
     problem = ts.Problem(
         step.double(), ts.QuadraticCost(Q=0.1 * eye, R=0.1 * eye[:1, :1], Qf=10 * eye), 30

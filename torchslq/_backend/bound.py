@@ -15,11 +15,16 @@ dtype, the process has it compiled, and smaller passes take it too: a batch whos
 working set shrinks to its last slow elements (or a small solve after a large one)
 keeps the inlined kernels and skips typing the function values at every launch
 (measured on the cart-pole, T = 50: ILQR at B = 1 after a B = 64 solve 0.65 ms per
-iteration instead of 0.73).
+iteration instead of 0.73). A large pass also notes the kernel and dtype in a file
+beside the module (``.taken``): numba has then cached the compiled kernel with the
+module, and a later process loads it for its small passes too (a real-time loop at
+B = 1 after any large solve of that model on the machine).
 """
 
 from __future__ import annotations
 
+import contextlib
+from pathlib import Path
 from types import ModuleType
 
 import numpy as np
@@ -29,6 +34,38 @@ MIN_ROWS = 1024
 
 _BOUND: dict = {}
 _TAKEN: set = set()  # (rhs, kernel name, dtype) a large pass has taken in this process
+_NOTED: dict = {}  # module -> {(kernel name, dtype)} read from its .taken file
+
+
+def _taken_file(module: ModuleType) -> Path | None:
+    path = getattr(module, "__file__", None)
+    return None if path is None else Path(path).with_suffix(".taken")
+
+
+def _noted(module: ModuleType) -> set:
+    """``(kernel, dtype)`` pairs a large pass has taken in any process (the module's
+    ``.taken`` file), read once per process."""
+    if module not in _NOTED:
+        path, pairs = _taken_file(module), set()
+        with contextlib.suppress(OSError):
+            if path is not None:
+                pairs = {tuple(ln.split()) for ln in path.read_text().splitlines() if ln}
+        _NOTED[module] = pairs
+    return _NOTED[module]
+
+
+def _note(module: ModuleType, kernel: str, dtype: str) -> None:
+    """Add ``(kernel, dtype)`` to the module's ``.taken`` file (nothing where the file
+    cannot be written)."""
+    pairs = _noted(module)
+    if (kernel, dtype) in pairs:
+        return
+    pairs.add((kernel, dtype))
+    path = _taken_file(module)
+    with contextlib.suppress(OSError):
+        if path is not None:
+            with path.open("a") as fh:  # one short line: appends do not interleave
+                fh.write(f"{kernel} {dtype}\n")
 
 
 def register(module: ModuleType) -> None:
@@ -56,7 +93,7 @@ def bound_kernels(fn, rows: int, kernel: str, dtype) -> ModuleType | None:
     """The generated module whose ``rhs`` is ``fn`` when a pass of ``rows`` rows over
     arrays of ``dtype`` should run its ``kernel`` (a name): the pass is large enough
     (:data:`MIN_ROWS`), or a large pass has taken that kernel for ``dtype`` in this
-    process (it is compiled); else None."""
+    process (it is compiled) or in an earlier one (numba has cached it); else None."""
     try:
         module = _BOUND.get(fn)
     except TypeError:  # unhashable
@@ -64,7 +101,13 @@ def bound_kernels(fn, rows: int, kernel: str, dtype) -> ModuleType | None:
     if module is None:
         return None
     key = (fn, kernel, np.dtype(dtype).str)
+    if key in _TAKEN:
+        return module
     if rows >= MIN_ROWS:
         _TAKEN.add(key)
+        _note(module, kernel, key[2])
         return module
-    return module if key in _TAKEN else None
+    if (kernel, key[2]) in _noted(module):
+        _TAKEN.add(key)
+        return module
+    return None
