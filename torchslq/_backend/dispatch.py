@@ -309,11 +309,11 @@ def riccati_compiled(
         # blocks of Vh. (DDP's pass in float32 keeps the homogeneous kernel: in gain form
         # a float32 cart-pole DDP stalled at a gradient of 1.8e-3 instead of 1.7e-4.)
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
+        reg_a = restart_arrays[1] if restarts is not None else _reg_array(reg, batch, dtype)
+        outs = (Kk.numpy(), Vh.numpy(), L.numpy(), failed.numpy())
         args = (
-            piece_arrays,
-            restart_arrays[1] if restarts is not None else _reg_array(reg, batch, dtype),
-            *_hessian_arrays(hessians, dtype), Kk.numpy(), Vh.numpy(), L.numpy(),
-            failed.numpy(), *restart_arrays[1:], restart_arrays[0], *witness,
+            piece_arrays, reg_a, *_hessian_arrays(hessians, dtype), *outs,
+            *restart_arrays[1:], restart_arrays[0], *witness,
         )  # fmt: skip
         generated = gain_kernels(n1 - 1, m) if hessians is None else None
         if generated is None:
@@ -322,11 +322,9 @@ def riccati_compiled(
             # the element pass written out for (n, m) (gain_codegen): its first try;
             # an element that fails it runs again on the element kernel, restarts and
             # all, from a fresh pass's zeros
-            _launch(
-                generated.riccati_gain_reg_first, nb, T, args[0], args[1], args[4], args[5],
-                args[6], args[7], args[8],
-            )  # fmt: skip
-            for b in np.flatnonzero(args[7]).tolist():
+            mu_io = restart_arrays[1]
+            _launch(generated.riccati_gain_reg_first, nb, T, piece_arrays, reg_a, *outs, mu_io)
+            for b in np.flatnonzero(outs[3]).tolist():
                 Kk[b], Vh[b], L[b] = 0.0, 0.0, 0.0
                 with_slp(_gain_kernels().riccati_gain_reg_kernel, b, b + 1, *args)
     else:
