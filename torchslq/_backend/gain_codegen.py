@@ -9,11 +9,12 @@ step is a local variable: registers, scheduled freely, and the value function ca
 to the next step without a store and a load.
 
 The statements are the element pass's operations in its order (the same sums, started
-the same way, the same contractions into FMAs), so the generated pass computes the
-same bits (tested). Only the pass without second-order terms (the LQ layer's, iLQR's)
-is generated; sizes up to :data:`MAX_ENTRIES` ``n (n + m)`` (larger ones would be
-thousands of statements for little gain: their products are what
-:mod:`._numba_gemm` already blocks).
+the same way), but LLVM contracts products into FMAs where it sees fit in either
+version, so the two agree to rounding, not bit for bit (a few 1e-15 relative;
+``tests/test_gain_codegen.py`` checks 1e-12). Only the pass without second-order terms
+(the LQ layer's, iLQR's) is generated, for sizes up to :data:`MAX_ENTRIES` ``n (n + m)``:
+larger ones would be thousands of statements to compile (not measured; their products
+are register-blocked by :mod:`._numba_gemm` already).
 
 :func:`module_source` gives a module with kernels of :mod:`._numba_gain` on this
 element pass: ``riccati_gain_kernel`` and ``gain_solve_kernel`` (the same arguments and
