@@ -18,7 +18,8 @@ keeps the inlined kernels and skips typing the function values at every launch
 iteration instead of 0.73). A large pass also notes the kernel and dtype in a file
 beside the module (``.taken``): numba has then cached the compiled kernel with the
 module, and a later process loads it for its small passes too (a real-time loop at
-B = 1 after any large solve of that model on the machine).
+B = 1 after any large solve of that model on the machine; where numba's cache has been
+removed since, that first small pass compiles the kernel again).
 """
 
 from __future__ import annotations
