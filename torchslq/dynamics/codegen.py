@@ -662,8 +662,9 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
 
     rhs_printer = _printer()  # one per function: its reciprocals
     subs, reduced = sympy.cse(f, symbols=sympy.numbered_symbols("r"), order="none")
-    rhs_body = [rhs_printer.assignment(s, e) for s, e in subs]
-    rhs_body += [f"    out[{i}] = {rhs_printer.doprint(v)}" for i, v in enumerate(reduced)]
+    rhs_assign = [rhs_printer.assignment(s, e) for s, e in subs]
+    rhs_vals = [rhs_printer.doprint(v) for v in reduced]
+    rhs_body = rhs_assign + [f"    out[{i}] = {v}" for i, v in enumerate(rhs_vals)]
     jac = [J[i][c] for i in range(n) for c in range(nz)]
     hes = list(H.values())
     # one elimination over the Jacobian and the Hessians (they share most terms): the
@@ -676,9 +677,13 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
     for sym, e in reversed(subs):  # subs are in dependency order
         if sym in need:
             need |= e.free_symbols
-    deriv_body = [printer.assignment(sym, e) for sym, e in subs if sym in need]
+    jac_assign = [printer.assignment(sym, e) for sym, e in subs if sym in need]
     vals = [printer.doprint(e) for e in reduced[: len(jac)]]
-    deriv_body += [f"    fz[{i}, {c}] = {vals[i * nz + c]}" for i in range(n) for c in range(nz)]
+    # the Jacobian's entries that are numbers (constant zeros and ones of the model)
+    jac_numbers = [e.is_Number for e in reduced[: len(jac)]]
+    deriv_body = jac_assign + [
+        f"    fz[{i}, {c}] = {vals[i * nz + c]}" for i in range(n) for c in range(nz)
+    ]
     deriv_body += ["    if H.shape[0] == 0:", "        return"]
     if hes:
         deriv_body += [printer.assignment(sym, e) for sym, e in subs if sym not in need]
@@ -741,8 +746,10 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
         ]
     src += _kernel_source(kind)
     if kind == "continuous":
-        src += _jacobian_rows_source(xs, us, reads(f + jac), rhs_body, deriv_body, n, m)
-        src += _rk4_step_source(xs, us, reads(f), rhs_body, n)
+        rhs_parts = (rhs_assign, rhs_vals)
+        jac_parts = (jac_assign, vals, jac_numbers)
+        src += _jacobian_rows_source(xs, us, reads(f + jac), rhs_parts, jac_parts, n, m)
+        src += _rk4_step_source(xs, us, reads(f), rhs_parts, n)
     refused = rhs_printer._not_supported | printer._not_supported
     if refused:
         raise _Unsupported(f"cannot print {sorted(map(str, refused))[:3]}")
@@ -770,7 +777,8 @@ def _kernel_source(kind: str) -> list[str]:
             source = "torchslq.dynamics._numba_rk4"
             names = ["jacobians_kernel = rk4_lanes_kernel"]
             names += ["hessians_kernel = rk4_second_derivatives_kernel"]
-            names += ["step = rk4_step_with", "ROLLOUT_MODE = STEP_RK4"]
+            # (step: the module's rk4_step_locals, written after these kernels)
+            names += ["ROLLOUT_MODE = STEP_RK4"]
         else:  # rhs is the step
             derivs, helpers = specialised_source(
                 _numba_step, {"rhs", "derivs"}, ["step_derivatives_kernel"]
@@ -790,7 +798,8 @@ def _kernel_source(kind: str) -> list[str]:
         )
         # this module's step is known: the bound rollouts call it without the mode test
         # (with the three branches inlined, numba's rollout ran ~25% slower)
-        roll = _without_function(roll, "_model_step")
+        # (and the library's RK4 step, which only _model_step called)
+        roll = _without_function(_without_function(roll, "_model_step"), "rk4_step_with")
         roll += (
             "\n\n\n@numba.njit(nogil=True, inline='always')\n"
             "def _model_step(mode, x, u, p, out, work):\n"
@@ -822,7 +831,7 @@ def _kernel_source(kind: str) -> list[str]:
     return _KERNELS[kind]
 
 
-def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str]:
+def _jacobian_rows_source(xs, us, reads, rhs_parts, jac_parts, n, m) -> list[str]:
     """``jacobians_only_kernel``: the RK4 step's Jacobians ``A``, ``B`` (what
     :func:`torchslq.dynamics._numba_rk4.rk4_lanes_kernel` computes without weights) as
     straight-line code per row: every stage's ``f``, ``f_z`` and ``dk_i/dz`` in local
@@ -832,22 +841,14 @@ def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str
     contraction here or there), so for finite inputs the same bits (a dropped product
     ``0 * v`` only matters where ``v`` is not finite, and such a row has non-finite
     entries either way); the argument list is ``rk4_lanes_kernel``'s less ``rhs``,
-    ``derivs``, its weights and Hessians unread."""
-    import re
-
+    ``derivs``, its weights and Hessians unread. ``rhs_parts``: the right-hand side's
+    assignment lines and printed outputs; ``jac_parts``: the Jacobian's assignment
+    lines, its printed entries (row-major ``(n, n + m)``) and which are numbers."""
     nz = n + m
-    out_line = re.compile(r"^    out\[(\d+)\] = (.*)$")
-    fz_line = re.compile(r"^    fz\[(\d+), (\d+)\] = (.*)$")
-    rhs_assign = [ln for ln in rhs_body if not out_line.match(ln)]
-    rhs_vals = {int(mt.group(1)): mt.group(2) for ln in rhs_body if (mt := out_line.match(ln))}
-    stop = deriv_body.index("    if H.shape[0] == 0:")
-    jac_assign = [ln for ln in deriv_body[:stop] if not fz_line.match(ln)]
-    F = {}
-    for ln in deriv_body[:stop]:
-        mt = fz_line.match(ln)
-        if mt:
-            F[int(mt.group(1)), int(mt.group(2))] = mt.group(3)
-    const = {k: v for k, v in F.items() if re.fullmatch(r"-?\d+\.\d+(e-?\d+)?", v)}
+    rhs_assign, rhs_vals = rhs_parts
+    jac_assign, jac_vals, jac_numbers = jac_parts
+    F = {(j, c): jac_vals[j * nz + c] for j in range(n) for c in range(nz)}
+    const = {(j, c): F[j, c] for j in range(n) for c in range(nz) if jac_numbers[j * nz + c]}
 
     def fval(j, c):
         return const.get((j, c), f"F{j}_{c}")
@@ -865,7 +866,7 @@ def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str
         f"{ind}ur = u[row]",
         *[f"{ind}{s.name} = ur[{i}]" for i, s in enumerate(us)],
     ]
-    zero_prev: dict = {}
+    zeros: list[dict] = []  # per stage: the entries of dk_i/dz that are exactly zero
     for i in range(4):
         if i == 0:
             lines += [f"{ind}{s.name} = xr[{k}]" for k, s in enumerate(xs)]
@@ -888,7 +889,7 @@ def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str
                 terms = []
                 for q in range(n):
                     fq = fval(j, q)
-                    if fq == "0.0" or zero_prev[q, c]:
+                    if fq == "0.0" or zeros[i - 1][q, c]:
                         continue
                     terms.append(f"d{i - 1}_{q}_{c}" if fq == "1.0" else f"{fq} * d{i - 1}_{q}_{c}")
                 zero[j, c] = fval(j, c) == "0.0" and not terms
@@ -897,11 +898,7 @@ def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str
                 lines.append(f"{ind}s = 0.0")
                 lines += [f"{ind}s = s + {t}" for t in terms]
                 lines.append(f"{ind}d{i}_{j}_{c} = {fval(j, c)} + a_dt * s")
-        zero_prev = zero
-        if i == 0:
-            zeros = [dict(zero)]
-        else:
-            zeros.append(dict(zero))
+        zeros.append(zero)
     for j in range(n):
         for c in range(nz):
             d = ["0.0" if zeros[i][j, c] else f"d{i}_{j}_{c}" for i in range(4)]
@@ -918,16 +915,15 @@ def _jacobian_rows_source(xs, us, reads, rhs_body, deriv_body, n, m) -> list[str
     return lines
 
 
-def _rk4_step_source(xs, us, reads, rhs_body, n) -> list[str]:
+def _rk4_step_source(xs, us, reads, rhs_parts, n) -> list[str]:
     """``rk4_step_locals(x, u, p, out, work)``, the module's ``step`` (``p[0] = dt``, the
     model's parameters after it): :func:`torchslq._backend._numba_kernels.rk4_step_with`
     as straight-line code, the stages' arguments and ``k_i`` in local variables instead
-    of ``work``'s rows; the same operations in the same order, so the same bits."""
+    of ``work``'s rows; the same operations in the same order, so the same bits.
+    ``rhs_parts``: as for :func:`_jacobian_rows_source`."""
     import re
 
-    out_line = re.compile(r"^    out\[(\d+)\] = (.*)$")
-    assign = [ln for ln in rhs_body if not out_line.match(ln)]
-    vals = {int(mt.group(1)): mt.group(2) for ln in rhs_body if (mt := out_line.match(ln))}
+    assign, vals = rhs_parts
     params = []
     for ln in reads:
         mt = re.match(r"^    (\w+) = p\[(\d+)\]$", ln)
