@@ -374,11 +374,17 @@ def _gain_reg_rows(
         if restarting:
             mu_io[b] = r
             delta_io[b] = delta
-        n = p.shape[2]
-        for t in range(T + 1):  # Vh's last row mirrors its last column
-            Vt = Vh[b, t]
-            for i in range(n):
-                Vt[n, i] = Vt[i, n]
+        mirror_last_row(Vh, b)
+
+
+@numba.njit(cache=True, nogil=True, _nrt=False)
+def mirror_last_row(Vh, b):
+    """``Vh[b]``'s last row set to mirror its last column (every step)."""
+    n = Vh.shape[2] - 1
+    for t in range(Vh.shape[1]):
+        Vt = Vh[b, t]
+        for i in range(n):
+            Vt[n, i] = Vt[i, n]
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
