@@ -636,17 +636,32 @@ def _count_standins(monkeypatch, name: str) -> list[bool]:
     return calls
 
 
-def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch):
+def _without_graph_path(monkeypatch) -> None:
+    """Learned models' Jacobians by autograd (not by their traced graph)."""
+    import importlib
+
+    linearize_module = importlib.import_module("torchslq.dynamics.linearize")
+    monkeypatch.setattr(linearize_module, "graph_jacobians", lambda *args: None)
+
+
+@pytest.mark.parametrize("graph", [True, False], ids=["graph", "autograd"])
+def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch, graph):
+    """By the model's traced graph (the step's Jacobians from its kernels) or, where
+    that does not apply, by autograd with the step standing in by its kernels."""
     model = ResidualOnStep()
     gen = torch.Generator().manual_seed(12)
     x = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
     u = torch.randn(3, 7, 1, generator=gen, dtype=torch.float64)
+    if not graph:
+        _without_graph_path(monkeypatch)
     calls = _count_standins(monkeypatch, "linear_standin")
+    kernels = _count_standins(monkeypatch, "compiled_jacobians")
     A, B = ts.linearize(model, x, u)
-    assert calls == [True]  # the step entered once, by its kernels
+    # the step entered once, by its kernels
+    assert (kernels, calls) == (([True], []) if graph else ([True], [True]))
     # torch.func's pullback of the whole model (the step on its torch ops)
     Ar, Br = ts.linearize(model, x, u, method="vjp")
-    assert calls == [True]
+    assert calls == ([] if graph else [True])
     torch.testing.assert_close(A, Ar, rtol=1e-12, atol=1e-12)
     torch.testing.assert_close(B, Br, rtol=1e-12, atol=1e-12)
     # and central differences
@@ -661,14 +676,18 @@ def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(mon
         torch.testing.assert_close(B[..., 0], fd, rtol=1e-7, atol=1e-8)
     # graphs through the Jacobians keep the torch ops
     A2, _ = ts.linearize(model, x, u, create_graph=True)
-    assert A2.requires_grad and calls == [True]
+    assert A2.requires_grad and calls == ([] if graph else [True])
 
 
-def test_a_generated_step_inside_a_model_in_a_large_batch():
-    """The autograd pass in a batch large enough to pull back one output at a time,
-    against torch.func's per-row Jacobians of the whole model."""
+@pytest.mark.parametrize("graph", [True, False], ids=["graph", "autograd"])
+def test_a_generated_step_inside_a_model_in_a_large_batch(monkeypatch, graph):
+    """The graph path in blocks of rows, and the autograd pass in a batch large enough
+    to pull back one output at a time, against torch.func's per-row Jacobians of the
+    whole model."""
     from torchslq.dynamics.linearize import POOL_ELEMENTS, _one_at_a_time
 
+    if not graph:
+        _without_graph_path(monkeypatch)
     model = ResidualOnStep()
     half = POOL_ELEMENTS // 64 + 5  # rows x width 32 (the network's layers) past it
     assert _one_at_a_time(2 * half, 32)

@@ -21,6 +21,7 @@ from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from ._mlp import mlp_standin_hook, takes_mlp_standin
 from .base import Dynamics, state_control_dims
+from .graph_jacobian import graph_jacobians
 
 __all__ = [
     "linearize",
@@ -382,7 +383,11 @@ def linearize(
         x, u = x.detach(), u.detach()
     ctx = nullcontext() if create_graph else torch.no_grad()
     with ctx:
-        if method == "auto" and not create_graph and _has_linear_standins(dynamics):
+        # a learned model's Jacobians by its traced graph (None where it does not apply)
+        graph = None if method != "auto" or create_graph else graph_jacobians(dynamics, x, u)
+        if graph is not None:
+            A, B = graph
+        elif method == "auto" and not create_graph and _has_linear_standins(dynamics):
             # a submodule with compiled derivatives (e.g. a discretised physics model
             # under a learned residual) enters by its Jacobians, not its torch ops
             Jx, Ju = _jacobians_by_autograd(f, x, u)

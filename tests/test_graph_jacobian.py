@@ -1,0 +1,273 @@
+"""Jacobians of learned models by their traced graph (torchslq.dynamics.graph_jacobian)
+against torch.func's per-row jacrev, the cases that keep autograd, and a solve's iterates
+with and without the graph path."""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+import torch
+import torch.nn.functional as F
+from torch import nn
+from torch.func import jacrev, vmap
+
+import torchslq as ts
+from torchslq.dynamics import graph_jacobian as gj
+from torchslq.dynamics import linearize
+from torchslq.systems import CartPole
+
+F64 = torch.float64
+linearize_module = importlib.import_module("torchslq.dynamics.linearize")
+
+
+def reference(model, x, u):
+    """Per-row Jacobians by torch.func (no graph path: it declines inside transforms)."""
+    lead = x.shape[:-1]
+    xf, uf = x.reshape(-1, x.shape[-1]), u.reshape(-1, u.shape[-1])
+
+    def one(xi, ui):
+        return model(xi.unsqueeze(0), ui.unsqueeze(0)).squeeze(0)
+
+    A, B = vmap(jacrev(one, argnums=(0, 1)))(xf, uf)
+    return A.reshape(*lead, *A.shape[-2:]), B.reshape(*lead, *B.shape[-2:])
+
+
+def data(lead=(6, 7), n=4, m=2, dtype=F64, scale=1.5, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    x = scale * torch.randn(*lead, n, generator=g, dtype=dtype)
+    u = scale * torch.randn(*lead, m, generator=g, dtype=dtype)
+    return x, u
+
+
+def mlp(*acts, k=6, out=4, seed=0, dtype=F64) -> nn.Sequential:
+    torch.manual_seed(seed)
+    layers, width = [], k
+    for act in acts:
+        layers += [nn.Linear(width, 16), act]
+        width = 16
+    return nn.Sequential(*layers, nn.Linear(width, out)).to(dtype)
+
+
+ACTIVATIONS = {
+    "tanh": (nn.Tanh(), nn.Tanh()),
+    "sigmoid-silu": (nn.Sigmoid(), nn.SiLU()),
+    "softplus-elu": (nn.Softplus(beta=2.0, threshold=3.0), nn.ELU(alpha=0.7)),
+    "relu-leaky": (nn.ReLU(), nn.LeakyReLU(0.1)),
+    "identity": (nn.Identity(), nn.Tanh()),
+}
+
+
+@pytest.mark.parametrize("name", list(ACTIVATIONS))
+@pytest.mark.parametrize("residual", [True, False])
+def test_learned_dynamics_equal_jacrev(name, residual):
+    model = ts.LearnedDynamics(mlp(*ACTIVATIONS[name]), 4, 2, residual=residual)
+    x, u = data()
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None  # the graph path is taken
+    A_ref, B_ref = reference(model, x, u)
+    assert B_ref.abs().max() > 1e-3
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
+    # linearize takes it by default
+    A, B = linearize(model, x, u)
+    torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+
+
+class PhysicsResidual(ts.Dynamics):
+    """A learned residual on a discretised physics step, with the arithmetic nodes the
+    graph path differentiates: sums, differences, products with numbers, a vector and
+    another node, division by a number, negation, functional and method activations."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.step = ts.discretize(CartPole(), 0.05, "rk4").to(F64)
+        torch.manual_seed(3)
+        self.net = nn.Sequential(nn.Linear(5, 12), nn.Tanh(), nn.Linear(12, 4)).to(F64)
+        self.gate = nn.Linear(4, 4).to(F64)
+        self.register_buffer("scale", torch.tensor([1.0, 0.5, -2.0, 0.25], dtype=F64))
+
+    def forward(self, x, u):
+        z = torch.cat([x, u], dim=-1)
+        r = self.net(z)
+        g = torch.sigmoid(self.gate(x)) * F.silu(r)  # a product of two nodes
+        h = self.gate(r).tanh() * self.scale - 0.5 * torch.relu(x) / 3.0
+        return self.step(x, u) + 0.1 * r - (-g) + h * 0.01
+
+
+def test_physics_residual_with_arithmetic_equals_jacrev():
+    model = PhysicsResidual()
+    x, u = data(m=1, scale=1.0)
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-11, atol=1e-13)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-11, atol=1e-13)
+
+
+def test_blocks_of_rows_give_the_same_jacobians(monkeypatch):
+    model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2)
+    x, u = data(lead=(13, 11))
+    whole = gj.graph_jacobians(model, x, u)
+    # 16-wide layers, 4 outputs, float64: 512 bytes a row, so blocks of 5 rows (the
+    # last one short); on the CPU only
+    monkeypatch.setattr(gj, "BLOCK_BYTES", 5 * 16 * 4 * 8)
+    blocked = gj.graph_jacobians(model, x, u)
+    torch.testing.assert_close(blocked[0], whole[0], rtol=1e-14, atol=1e-15)
+    torch.testing.assert_close(blocked[1], whole[1], rtol=1e-14, atol=1e-15)
+
+
+def test_float32_works():
+    model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.ReLU(), dtype=torch.float32), 4, 2)
+    x, u = data(dtype=torch.float32)
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None and got[0].dtype == torch.float32
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-5, atol=1e-6)
+
+
+def test_a_plain_network_on_the_concatenation():
+    net = mlp(nn.Tanh(), nn.SiLU())
+    x, u = data()
+    A_ref, B_ref = reference(lambda x, u: net(torch.cat([x, u], -1)), x, u)
+    got = gj.graph_jacobians(net, x, u)
+    assert got is not None
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    A, B = linearize(net, x, u)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+
+
+class Indexing(ts.Dynamics):
+    """A model the graph path does not take (indexing the state), with a network."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self):
+        super().__init__()
+        self.net = mlp(nn.Tanh())
+
+    def forward(self, x, u):
+        out = self.net(torch.cat([x, u], -1))
+        return out + torch.sin(x[..., :1])
+
+
+class PerElement(ts.Dynamics):
+    """A network with a per-element gain ``(B, 1, 1)``: its rows are not independent."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self, batch):
+        super().__init__()
+        self.net = mlp(nn.Tanh())
+        self.gain = nn.Parameter(torch.linspace(0.5, 2.0, batch, dtype=F64).reshape(batch, 1, 1))
+
+    def forward(self, x, u):
+        return x + self.net(torch.cat([x, u], -1)) * self.gain
+
+
+class Broadcasting(ts.Dynamics):
+    """A node combined with one of another width (broadcast): kept on autograd."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.net = mlp(nn.Tanh(), k=5)
+
+    def forward(self, x, u):
+        return self.net(torch.cat([x, u], -1)) + x * u
+
+
+@pytest.mark.parametrize(
+    "make, m",
+    [(Indexing, 2), (lambda: PerElement(6), 2), (Broadcasting, 1)],
+    ids=["indexing", "per-element", "broadcasting"],
+)
+def test_what_keeps_autograd_is_still_right(make, m):
+    model = make()
+    x, u = data(m=m)
+    assert gj.graph_jacobians(model, x, u) is None
+    A, B = linearize(model, x, u)
+    if isinstance(model, PerElement):  # per-row references would lose the gain's rows
+        with torch.no_grad():
+            g = model.gain
+        Jn, Ju = reference(lambda x, u: model.net(torch.cat([x, u], -1)), x, u)
+        A_ref = torch.eye(4, dtype=F64) + Jn * g.unsqueeze(-1)
+        B_ref = Ju * g.unsqueeze(-1)
+    else:
+        A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+
+
+def test_a_model_without_a_linear_layer_is_not_traced(monkeypatch):
+    traced = []
+    monkeypatch.setattr(gj, "_program", lambda model: traced.append(model))
+    step = ts.discretize(CartPole(), 0.05, "rk4").to(F64)
+    x, u = data(m=1, scale=0.5)
+    linearize(step, x, u)
+    assert traced == []
+
+
+def test_an_output_that_is_not_a_state_is_reported():
+    model = ts.LearnedDynamics(mlp(nn.Tanh(), out=3), 4, 2, residual=False)
+    x, u = data()
+    with pytest.raises(ValueError, match="its last dim must be state_dim = 4"):
+        linearize(model, x, u)
+
+
+def test_learned_solve_iterates_equal_autograd(monkeypatch):
+    """ILQR with multiple shooting on a learned residual cart-pole (a cart move): the
+    same iterations and costs with the graph path as with autograd's Jacobians."""
+    torch.manual_seed(0)
+
+    class Learned(ts.Dynamics):
+        state_dim, control_dim = 4, 1
+
+        def __init__(self):
+            super().__init__()
+            self.step = ts.discretize(CartPole(), 0.05, "rk4").to(F64)
+            self.net = nn.Sequential(
+                nn.Linear(5, 16), nn.Tanh(), nn.Linear(16, 16), nn.Tanh(), nn.Linear(16, 4)
+            ).to(F64)
+            with torch.no_grad():
+                self.net[-1].weight.mul_(1e-2)
+
+        def forward(self, x, u):
+            return self.step(x, u) + self.net(torch.cat([x, u], -1))
+
+    cost = ts.QuadraticCost(
+        Q=torch.eye(4, dtype=F64),
+        R=0.1 * torch.eye(1, dtype=F64),
+        Qf=10.0 * torch.eye(4, dtype=F64),
+        x_ref=torch.tensor([0.5, 0.0, 0.0, 0.0], dtype=F64),
+    )
+    problem = ts.Problem(Learned(), cost, 30)
+    x0 = torch.zeros(3, 4, dtype=F64)
+    x0[:, 1] = torch.tensor([0.0, 0.1, -0.2], dtype=F64)
+    solver = ts.ILQR(max_iter=150, tol=1e-6, shooting="multiple", progress=False)
+    calls = []
+    real = gj.graph_jacobians
+
+    def counted(*args):
+        out = real(*args)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(linearize_module, "graph_jacobians", counted)
+    with_graph = solver.solve(problem, x0)
+    assert calls and all(calls)
+    monkeypatch.setattr(linearize_module, "graph_jacobians", lambda *a: None)
+    without = solver.solve(problem, x0)
+    assert torch.equal(with_graph.iterations, without.iterations)
+    assert torch.equal(with_graph.status, without.status)
+    assert bool((with_graph.status == ts.Status.CONVERGED).all())
+    assert int(with_graph.iterations.min()) >= 3
+    # the same iterates up to the Jacobians' rounding
+    torch.testing.assert_close(
+        with_graph.history["cost"], without.history["cost"], rtol=1e-11, atol=0.0
+    )
