@@ -14,7 +14,7 @@ from torch.func import jacrev, vmap
 
 import torchslq as ts
 from torchslq.dynamics import graph_jacobian as gj
-from torchslq.dynamics import linearize
+from torchslq.dynamics import linearize, row_blocks
 from torchslq.systems import CartPole
 
 F64 = torch.float64
@@ -114,7 +114,7 @@ def test_blocks_of_rows_give_the_same_jacobians(monkeypatch):
     whole = gj.graph_jacobians(model, x, u)
     # 16-wide layers, 4 outputs, float64: 512 bytes a row, so blocks of 5 rows (the
     # last one short); on the CPU only
-    monkeypatch.setattr(gj, "BLOCK_BYTES", 5 * 16 * 4 * 8)
+    monkeypatch.setattr(row_blocks, "BLOCK_BYTES", 5 * 16 * 4 * 8)
     blocked = gj.graph_jacobians(model, x, u)
     torch.testing.assert_close(blocked[0], whole[0], rtol=1e-14, atol=1e-15)
     torch.testing.assert_close(blocked[1], whole[1], rtol=1e-14, atol=1e-15)
@@ -271,3 +271,44 @@ def test_learned_solve_iterates_equal_autograd(monkeypatch):
     torch.testing.assert_close(
         with_graph.history["cost"], without.history["cost"], rtol=1e-11, atol=0.0
     )
+
+
+class Counting(ts.Dynamics):
+    """A learned residual that counts its calls and their rows."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self, batch: int | None = None):
+        super().__init__()
+        self.net = mlp(nn.Tanh(), nn.Tanh())
+        self.calls: list[int] = []
+        if batch is not None:  # a per-element gain (B, 1, 1)
+            self.gain = nn.Parameter(torch.linspace(0.5, 2.0, batch, dtype=F64).reshape(-1, 1, 1))
+
+    def forward(self, x, u):
+        self.calls.append(x.shape[:-1].numel())
+        out = x + self.net(torch.cat([x, u], -1))
+        return out * self.gain if hasattr(self, "gain") else out
+
+
+def test_call_in_blocks(monkeypatch):
+    # 16-wide layers, float64: 128 bytes a row; blocks of 10 rows
+    monkeypatch.setattr(row_blocks, "BLOCK_BYTES", 10 * 16 * 8)
+    x, u = data(lead=(6, 7))
+    model = Counting()
+    with torch.no_grad():
+        whole = model(x, u)
+        model.calls.clear()
+        blocked = row_blocks.call_in_blocks(model, x, u)
+    assert model.calls == [10, 10, 10, 10, 2]  # 42 rows
+    torch.testing.assert_close(blocked, whole, rtol=1e-14, atol=1e-15)
+    # one call: per-element data, a graph to record, few rows
+    per_element = Counting(batch=6)
+    with torch.no_grad():
+        row_blocks.call_in_blocks(per_element, x, u)
+    model.calls.clear()
+    out = row_blocks.call_in_blocks(model, x, u)  # the network's weights need grad
+    assert out.requires_grad
+    with torch.no_grad():
+        row_blocks.call_in_blocks(model, x[:1, :1], u[:1, :1])
+    assert (per_element.calls, model.calls) == ([42], [42, 1])

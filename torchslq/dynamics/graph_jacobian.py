@@ -19,7 +19,7 @@ the ``n`` output sensitivities ``G (rows, n, width)`` back through it (reverse m
   ``G <- G J_a`` and ``G J_b``.
 
 On the CPU the rows go through in blocks whose sensitivities fit in cache
-(:data:`BLOCK_BYTES`); no intermediate is then large enough for the allocator to map
+(:data:`~torchslq.dynamics.row_blocks.BLOCK_BYTES`); no intermediate is then large enough for the allocator to map
 fresh pages at every call. A model whose graph has anything else (indexing, control
 flow on values, an unknown layer), or per-element data, keeps autograd:
 :func:`graph_jacobians` returns None and remembers it for that module.
@@ -36,15 +36,10 @@ import torch.nn.functional as F
 from torch import Tensor, fx, nn
 
 from .._pinned import pinned
-from ..per_element import per_element_names
 from .base import Dynamics
+from .row_blocks import block_rows, linear_width, rows_independent
 
-__all__ = ["BLOCK_BYTES", "graph_jacobians"]
-
-# Rows per block on the CPU: the sensitivities (rows, n_out, width) of one block take at
-# most this many bytes. Measured, one thread, a 5-64-64-4 tanh MLP at 2,400 rows: 7.7 ms
-# in one block against 3.7-4.0 ms in blocks of 128 to 1,024 rows (autograd: 5.7-6.3 ms).
-BLOCK_BYTES = 1 << 20
+__all__ = ["graph_jacobians"]
 
 
 class _Unsupported(Exception):
@@ -255,7 +250,7 @@ def graph_jacobians(model: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tens
         return None
     root = _root(model)
     lead = x.shape[:-1]
-    if len(lead) > 0 and _has_per_element(model, lead[0]):
+    if not rows_independent(model, lead):
         return None
     n, m = x.shape[-1], u.shape[-1]
     rows = lead.numel()
@@ -266,8 +261,7 @@ def graph_jacobians(model: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tens
             n_out = env[program.output].shape[-1]
             if n_out != n:
                 return None  # the model's output is not a state: linearize reports it
-            width = max(_widths(model), n + m)
-            block = max(1, BLOCK_BYTES // (width * n_out * x.element_size()))
+            block = block_rows(max(linear_width(model), n + m) * n_out, x.element_size())
             if rows <= block:
                 Jx, Ju = _reverse(program, env, local, n_out, slice(None))
             else:
@@ -285,22 +279,6 @@ def _has_linear(model: nn.Module) -> bool:
         return any(isinstance(mod, nn.Linear) for mod in model.modules())
 
     return pinned(model, "graph_jacobian_has_linear", widest)
-
-
-def _widths(model: nn.Module) -> int:
-    def widest() -> int:
-        return max(
-            (mod.out_features for mod in model.modules() if isinstance(mod, nn.Linear)),
-            default=0,
-        )
-
-    return pinned(model, "graph_jacobian_width", widest)
-
-
-def _has_per_element(model: nn.Module, batch: int) -> bool:
-    return pinned(
-        model, ("graph_jacobian_per_element", batch), lambda: bool(per_element_names(model, batch))
-    )
 
 
 def _arg(env: dict, a):

@@ -17,11 +17,11 @@ from torch.func import jacfwd, jacrev, vjp, vmap
 from torch.nn.modules.module import register_module_forward_hook
 
 from .._backend import can_use_compiled
-from .._pinned import pinned
 from .._shapes import broadcast_shapes
 from ._mlp import mlp_standin_hook, takes_mlp_standin
 from .base import Dynamics, state_control_dims
 from .graph_jacobian import graph_jacobians
+from .row_blocks import linear_width
 
 __all__ = [
     "linearize",
@@ -185,15 +185,7 @@ POOL_ELEMENTS = 1 << 16
 
 def _model_width(f: Callable) -> int:
     """The widest ``nn.Linear`` output of ``f`` (0 without one), once per solve."""
-    if not isinstance(f, nn.Module):
-        return 0
-
-    def widest() -> int:
-        return max(
-            (mod.out_features for mod in f.modules() if isinstance(mod, nn.Linear)), default=0
-        )
-
-    return pinned(f, "linear_width", widest)
+    return linear_width(f)
 
 
 def _one_at_a_time(rows: int, width: int) -> bool:

@@ -43,6 +43,7 @@ import torch
 from torch import Tensor
 
 from ..dynamics.rollout import costate_gradient, rollout
+from ..dynamics.row_blocks import call_in_blocks
 from ..lq.riccati import rollout_linear
 from .descent import DescentState, LineSearch, nonfinite_rows
 from .line_search import TrialRecorder
@@ -59,9 +60,10 @@ PENALTY_MARGIN = 1.1
 
 def node_defects(f, x: Tensor, u: Tensor) -> Tensor:
     """``d_t = f(x_t, u_t) - x_{t+1}`` ``(..., T, n)`` for nodes ``x (..., T+1, n)`` and
-    controls ``u (..., T, m)``: one model call over all nodes."""
+    controls ``u (..., T, m)``: one model call over all nodes (a learned model's in
+    blocks of rows that stay in cache, :func:`~torchslq.dynamics.row_blocks.call_in_blocks`)."""
     T = u.shape[-2]
-    return f(x[..., :T, :], u) - x[..., 1:, :]
+    return call_in_blocks(f, x[..., :T, :], u) - x[..., 1:, :]
 
 
 def _quadratic_form(e, dx: Tensor, du: Tensor) -> Tensor:
