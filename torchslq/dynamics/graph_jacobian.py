@@ -296,8 +296,8 @@ def _var(a) -> bool:
 def _forward(program: _Program, root: nn.Module, x: Tensor, u: Tensor) -> tuple[dict, dict]:
     """The program of ``root`` (see :func:`_root`) run forward at the rows ``x (rows,
     n)``, ``u (rows, m)``: every node's value, and what its reverse rule needs
-    (``(kind, data)``: an activation's slope, a layer's weight, a submodule's
-    Jacobians, the widths of a concatenation's pieces)."""
+    (``(kind, data)``: an activation's slope function with its input and output, a
+    layer's weight, a submodule's Jacobians, the widths of a concatenation's pieces)."""
     from .linearize import linearize
 
     env: dict = {}
@@ -328,14 +328,14 @@ def _forward(program: _Program, root: nn.Module, x: Tensor, u: Tensor) -> tuple[
                 if slope is None:  # replaced since the trace
                     raise _Unsupported(type(mod).__name__)
                 env[nd] = h = mod(args[0])
-                local[nd] = ("slope", slope(args[0], h))
+                local[nd] = ("slope", (slope, args[0], h))
         elif nd.op == "call_method":
             env[nd] = h = getattr(args[0], nd.target)()
-            local[nd] = ("slope", _METHODS[nd.target](args[0], h))
+            local[nd] = ("slope", (_METHODS[nd.target], args[0], h))
         elif nd.target in _FUNCTIONS:
             fn, slope = _FUNCTIONS[nd.target]
             env[nd] = h = fn(args[0])
-            local[nd] = ("slope", slope(args[0], h))
+            local[nd] = ("slope", (slope, args[0], h))
         elif nd.target is torch.cat:
             pieces = args[0]
             dim = nd.kwargs.get("dim", args[1] if len(args) > 1 else 0)
@@ -420,8 +420,9 @@ def _reverse(
                 add(args[0], W.unsqueeze(0).expand(val(nd).shape[0], *W.shape))
             else:
                 add(args[0], (g.reshape(-1, W.shape[0]) @ W).view(g.shape[0], -1, W.shape[1]))
-        elif kind == "slope":
-            slope = data[rows]
+        elif kind == "slope":  # (taken here, on the block's rows, while they are in cache)
+            fn, a, h = data
+            slope = fn(a[rows], h[rows])
             add(args[0], torch.diag_embed(slope) if g is _IDENTITY else g * slope.unsqueeze(1))
         elif kind == "cat":
             g = _dense(g, val(nd), n_out)
