@@ -312,3 +312,34 @@ def test_call_in_blocks(monkeypatch):
     with torch.no_grad():
         row_blocks.call_in_blocks(model, x[:1, :1], u[:1, :1])
     assert (per_element.calls, model.calls) == ([42], [42, 1])
+
+
+class Scaled(ts.Dynamics):
+    """A residual scaled by a Python number and a branch on a flag, both read by the
+    trace as they are when it is made."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self):
+        super().__init__()
+        self.net = mlp(nn.Tanh())
+        self.scale = 0.1
+        self.residual = True
+
+    def forward(self, x, u):
+        out = self.scale * self.net(torch.cat([x, u], -1))
+        return x + out if self.residual else out
+
+
+def test_a_model_changed_after_its_trace_is_traced_again():
+    model = Scaled()
+    x, u = data()
+    first = gj.graph_jacobians(model, x, u)
+    torch.testing.assert_close(first[1], reference(model, x, u)[1], rtol=1e-12, atol=1e-14)
+    model.scale = 0.5
+    model.residual = False
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None  # traced again
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)

@@ -261,6 +261,17 @@ def graph_jacobians(model: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tens
             n_out = env[program.output].shape[-1]
             if n_out != n:
                 return None  # the model's output is not a state: linearize reports it
+            if not _traced_as_called(model, root, env[program.output], xf, uf):
+                # the trace is stale (a constant or a branch of forward changed): trace
+                # again once, and keep autograd if the model still differs from it
+                _PROGRAMS.pop(model, None)
+                program = _program(model)
+                if program is None:
+                    return None
+                env, local = _forward(program, root, xf, uf)
+                if not _traced_as_called(model, root, env[program.output], xf, uf):
+                    _PROGRAMS[model] = None
+                    return None
             block = block_rows(max(linear_width(model), n + m) * n_out, x.element_size())
             if rows <= block:
                 Jx, Ju = _reverse(program, env, local, n_out, slice(None))
@@ -272,6 +283,21 @@ def graph_jacobians(model: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tens
     except _Unsupported:
         return None
     return Jx.reshape(*lead, n, n), Ju.reshape(*lead, n, m)
+
+
+def _traced_as_called(model: nn.Module, root: nn.Module, out: Tensor, x: Tensor, u: Tensor) -> bool:
+    """Whether the traced program's output ``out (rows, n)`` equals the model's own
+    ``forward`` at the first row (to rounding): a trace holds the Python numbers and
+    branches of ``forward`` as they were when it was made. Once per solve (a model does
+    not change during one), at every call outside a solve."""
+
+    def check() -> bool:
+        real = root(x[:1], u[:1])
+        eps = torch.finfo(out.dtype).eps
+        scale = 1.0 + float(real.detach().abs().max())
+        return torch.allclose(out[:1], real.detach(), rtol=0.0, atol=1e3 * eps * scale)
+
+    return pinned(model, "graph_jacobian_traced_as_called", check)
 
 
 def _has_linear(model: nn.Module) -> bool:
