@@ -10,11 +10,11 @@ import pytest
 import torch
 import torch.nn.functional as F
 from torch import nn
-from torch.func import jacrev, vmap
+from torch.func import jacfwd, jacrev, vmap
 
 import torchslq as ts
+from torchslq.dynamics import _mlp, linearize, linearize_with_hessians, row_blocks
 from torchslq.dynamics import graph_jacobian as gj
-from torchslq.dynamics import linearize, row_blocks
 from torchslq.systems import CartPole
 
 F64 = torch.float64
@@ -220,9 +220,8 @@ def test_an_output_that_is_not_a_state_is_reported():
         linearize(model, x, u)
 
 
-def test_learned_solve_iterates_equal_autograd(monkeypatch):
-    """ILQR with multiple shooting on a learned residual cart-pole (a cart move): the
-    same iterations and costs with the graph path as with autograd's Jacobians."""
+def _learned_cart_move():
+    """A learned residual cart-pole moving the cart, three initial angles."""
     torch.manual_seed(0)
 
     class Learned(ts.Dynamics):
@@ -246,9 +245,15 @@ def test_learned_solve_iterates_equal_autograd(monkeypatch):
         Qf=10.0 * torch.eye(4, dtype=F64),
         x_ref=torch.tensor([0.5, 0.0, 0.0, 0.0], dtype=F64),
     )
-    problem = ts.Problem(Learned(), cost, 30)
     x0 = torch.zeros(3, 4, dtype=F64)
     x0[:, 1] = torch.tensor([0.0, 0.1, -0.2], dtype=F64)
+    return ts.Problem(Learned(), cost, 30), x0
+
+
+def test_learned_solve_iterates_equal_autograd(monkeypatch):
+    """ILQR with multiple shooting on a learned residual cart-pole (a cart move): the
+    same iterations and costs with the graph path as with autograd's Jacobians."""
+    problem, x0 = _learned_cart_move()
     solver = ts.ILQR(max_iter=150, tol=1e-6, shooting="multiple", progress=False)
     calls = []
     real = gj.graph_jacobians
@@ -343,3 +348,87 @@ def test_a_model_changed_after_its_trace_is_traced_again():
     A_ref, B_ref = reference(model, x, u)
     torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
     torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
+
+
+def reference_hessians(model, x, u):
+    """Every output's Hessian blocks per row by torch.func (jacfwd over jacrev), in
+    dynamics_hessians' layout."""
+    n, m = x.shape[-1], u.shape[-1]
+    z = torch.cat([x, u], -1).reshape(-1, n + m)
+
+    def one(zi):
+        return model(zi[:n].unsqueeze(0), zi[n:].unsqueeze(0)).squeeze(0)
+
+    H = vmap(jacfwd(jacrev(one)))(z).movedim(1, 0)  # (n, rows, k, k)
+    lead = x.shape[:-1]
+    return (
+        H[..., :n, :n].reshape(n, *lead, n, n),
+        H[..., n:, n:].reshape(n, *lead, m, m),
+        H[..., n:, :n].reshape(n, *lead, m, n),
+    )
+
+
+@pytest.mark.parametrize("name", list(ACTIVATIONS))
+def test_graph_hessians_of_learned_dynamics_equal_nested_autodiff(name):
+    model = ts.LearnedDynamics(mlp(*ACTIVATIONS[name]), 4, 2)
+    x, u = data()
+    got = gj.graph_hessians(model, x, u)
+    assert got is not None
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
+    H_ref = reference_hessians(model, x, u)
+    assert max(h.abs().max() for h in H_ref) > 1e-4 or name == "relu-leaky"
+    for h, r in zip(got[2], H_ref, strict=True):
+        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-14)
+
+
+def test_graph_hessians_of_products_and_a_physics_step(monkeypatch):
+    """Products of two nodes, functional and method activations, and a discretised
+    physics submodule (its own Hessians), in blocks of rows and in one."""
+    model = PhysicsResidual()
+    x, u = data(m=1, scale=1.0)
+    H_ref = reference_hessians(model, x, u)
+    whole = gj.graph_hessians(model, x, u)
+    monkeypatch.setattr(row_blocks, "BLOCK_BYTES", 7 * 16 * 5 * 8)  # blocks of 7 rows
+    blocked = gj.graph_hessians(model, x, u)
+    for got in (whole, blocked):
+        for h, r in zip(got[2], H_ref, strict=True):
+            torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+    # linearize_with_hessians takes it
+    A, B, hessians = linearize_with_hessians(model, x, u)
+    for h, r in zip(hessians(), H_ref, strict=True):
+        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+
+
+def test_graph_hessians_decline_wide_inputs():
+    k = _mlp.MAX_INPUT + 1
+    model = ts.LearnedDynamics(mlp(nn.Tanh(), k=k, out=k - 1), k - 1, 1)
+    x, u = data(n=k - 1, m=1)
+    assert gj.graph_hessians(model, x, u) is None
+    assert gj.graph_jacobians(model, x, u) is not None
+
+
+def test_learned_ddp_iterates_equal_autograd(monkeypatch):
+    """DDP (value mode: every output's Hessians) on a learned residual cart-pole: the
+    same iterations and costs with the graph's Hessians as with autograd's."""
+    problem, x0 = _learned_cart_move()
+    solver = ts.DDP(max_iter=60, tol=1e-8, progress=False)
+    calls = []
+    real = gj.graph_hessians
+
+    def counted(*args):
+        out = real(*args)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(linearize_module, "graph_hessians", counted)
+    with_graph = solver.solve(problem, x0)
+    assert calls and all(calls)
+    monkeypatch.setattr(linearize_module, "graph_hessians", lambda *a: None)
+    without = solver.solve(problem, x0)
+    assert bool((with_graph.status == ts.Status.CONVERGED).all())
+    assert torch.equal(with_graph.iterations, without.iterations)
+    torch.testing.assert_close(
+        with_graph.history["cost"], without.history["cost"], rtol=1e-11, atol=0.0
+    )

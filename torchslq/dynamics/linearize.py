@@ -20,7 +20,7 @@ from .._backend import can_use_compiled
 from .._shapes import broadcast_shapes
 from ._mlp import mlp_standin_hook, takes_mlp_standin
 from .base import Dynamics, state_control_dims
-from .graph_jacobian import graph_jacobians
+from .graph_jacobian import graph_hessians, graph_jacobians
 from .row_blocks import linear_width
 
 __all__ = [
@@ -550,6 +550,12 @@ def linearize_with_hessians(
             out = share(x.detach(), u.detach())
         if out is not None:
             A, B, blocks = out
+            return A, B, lambda: blocks
+    if method == "auto" and x.shape[:-1] == u.shape[:-1]:
+        # a learned model's by its traced graph (None where it does not apply)
+        graph = graph_hessians(dynamics, x, u)
+        if graph is not None:
+            A, B, blocks = graph
             return A, B, lambda: blocks
     f = as_transition(dynamics)
     if (
