@@ -250,24 +250,29 @@ def _learned_cart_move():
     return ts.Problem(Learned(), cost, 30), x0
 
 
-def test_learned_solve_iterates_equal_autograd(monkeypatch):
-    """ILQR with multiple shooting on a learned residual cart-pole (a cart move): the
-    same iterations and costs with the graph path as with autograd's Jacobians."""
-    problem, x0 = _learned_cart_move()
-    solver = ts.ILQR(max_iter=150, tol=1e-6, shooting="multiple", progress=False)
+def _with_and_without(monkeypatch, name: str, solver, problem, x0):
+    """The solve with the graph path ``name`` (every call taking it) and without it."""
     calls = []
-    real = gj.graph_jacobians
+    real = getattr(gj, name)
 
     def counted(*args):
         out = real(*args)
         calls.append(out is not None)
         return out
 
-    monkeypatch.setattr(linearize_module, "graph_jacobians", counted)
+    monkeypatch.setattr(linearize_module, name, counted)
     with_graph = solver.solve(problem, x0)
     assert calls and all(calls)
-    monkeypatch.setattr(linearize_module, "graph_jacobians", lambda *a: None)
-    without = solver.solve(problem, x0)
+    monkeypatch.setattr(linearize_module, name, lambda *a: None)
+    return with_graph, solver.solve(problem, x0)
+
+
+def test_learned_solve_iterates_equal_autograd(monkeypatch):
+    """ILQR with multiple shooting on a learned residual cart-pole (a cart move): the
+    same iterations and costs with the graph path as with autograd's Jacobians."""
+    problem, x0 = _learned_cart_move()
+    solver = ts.ILQR(max_iter=150, tol=1e-6, shooting="multiple", progress=False)
+    with_graph, without = _with_and_without(monkeypatch, "graph_jacobians", solver, problem, x0)
     assert torch.equal(with_graph.iterations, without.iterations)
     assert torch.equal(with_graph.status, without.status)
     assert bool((with_graph.status == ts.Status.CONVERGED).all())
@@ -414,19 +419,7 @@ def test_learned_ddp_iterates_equal_autograd(monkeypatch):
     same iterations and costs with the graph's Hessians as with autograd's."""
     problem, x0 = _learned_cart_move()
     solver = ts.DDP(max_iter=60, tol=1e-8, progress=False)
-    calls = []
-    real = gj.graph_hessians
-
-    def counted(*args):
-        out = real(*args)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(linearize_module, "graph_hessians", counted)
-    with_graph = solver.solve(problem, x0)
-    assert calls and all(calls)
-    monkeypatch.setattr(linearize_module, "graph_hessians", lambda *a: None)
-    without = solver.solve(problem, x0)
+    with_graph, without = _with_and_without(monkeypatch, "graph_hessians", solver, problem, x0)
     assert bool((with_graph.status == ts.Status.CONVERGED).all())
     assert torch.equal(with_graph.iterations, without.iterations)
     torch.testing.assert_close(

@@ -263,16 +263,18 @@ def _program(model: nn.Module) -> _Program | None:
     return program
 
 
-def graph_jacobians(model: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:
-    """``A = df/dx (..., n, n)`` and ``B = df/du (..., n, m)`` of a learned model at
-    ``x (..., n)``, ``u (..., m)`` by its traced graph (module docstring), detached; None
-    where this does not apply: ``model`` is not an ``nn.Module`` with an ``nn.Linear``
-    layer, its graph has a node this module does not differentiate, or it holds
-    per-element data (its rows are then not independent)."""
+def _run_forward(model: Callable, x: Tensor, u: Tensor, second: bool = False):
+    """``(program, env, local, xf, uf)``: the model's traced program run forward
+    (:func:`_forward`) at the rows ``xf (rows, n)``, ``uf (rows, m)`` of ``x``, ``u``;
+    None where the graph path does not apply (:func:`graph_jacobians`). A stale trace (a
+    Python number or branch of ``forward`` changed since it was made) is traced again
+    once; a model that still differs from its trace keeps autograd."""
     if not isinstance(model, nn.Module) or not _has_linear(model):
         return None
     if not x.is_cpu or torch._C._functorch.peek_interpreter_stack() is not None:
         return None  # (on a GPU it is unmeasured: autograd's batched pass stays)
+    if x.shape[:-1] != u.shape[:-1]:
+        return None
     program = _program(model)
     if program is None:
         return None
@@ -283,33 +285,47 @@ def graph_jacobians(model: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tens
     n, m = x.shape[-1], u.shape[-1]
     rows = lead.numel()
     xf, uf = x.detach().reshape(rows, n), u.detach().reshape(rows, m)
+    env, local = _forward(program, root, xf, uf, second)
+    if env[program.output].shape[-1] != n:
+        return None  # the model's output is not a state: linearize reports it
+    if not _traced_as_called(model, root, env[program.output], xf, uf):
+        _PROGRAMS.pop(model, None)
+        program = _program(model)
+        if program is None:
+            return None
+        env, local = _forward(program, root, xf, uf, second)
+        if not _traced_as_called(model, root, env[program.output], xf, uf):
+            _PROGRAMS[model] = None
+            return None
+    return program, env, local, xf, uf
+
+
+def graph_jacobians(model: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:
+    """``A = df/dx (..., n, n)`` and ``B = df/du (..., n, m)`` of a learned model at
+    ``x (..., n)``, ``u (..., m)`` by its traced graph (module docstring), detached; None
+    where this does not apply: ``model`` is not an ``nn.Module`` with an ``nn.Linear``
+    layer, its graph has a node this module does not differentiate, it holds
+    per-element data (its rows are then not independent), or the data are not on the
+    CPU."""
+    n, m = x.shape[-1], u.shape[-1]
     try:
         with torch.no_grad():
-            env, local = _forward(program, root, xf, uf)
-            n_out = env[program.output].shape[-1]
-            if n_out != n:
-                return None  # the model's output is not a state: linearize reports it
-            if not _traced_as_called(model, root, env[program.output], xf, uf):
-                # the trace is stale (a constant or a branch of forward changed): trace
-                # again once, and keep autograd if the model still differs from it
-                _PROGRAMS.pop(model, None)
-                program = _program(model)
-                if program is None:
-                    return None
-                env, local = _forward(program, root, xf, uf)
-                if not _traced_as_called(model, root, env[program.output], xf, uf):
-                    _PROGRAMS[model] = None
-                    return None
-            block = block_rows(max(linear_width(model), n + m) * n_out, x.element_size())
+            ran = _run_forward(model, x, u)
+            if ran is None:
+                return None
+            program, env, local, xf, uf = ran
+            rows = xf.shape[0]
+            block = block_rows(max(linear_width(model), n + m) * n, x.element_size())
             if rows <= block:
-                Jx, Ju = _reverse(program, env, local, n_out, slice(None))
+                Jx, Ju = _reverse(program, env, local, n, slice(None))
             else:
                 Jx, Ju = xf.new_empty(rows, n, n), uf.new_empty(rows, n, m)
                 for r in range(0, rows, block):
-                    part = _reverse(program, env, local, n_out, slice(r, r + block))
+                    part = _reverse(program, env, local, n, slice(r, r + block))
                     Jx[r : r + block], Ju[r : r + block] = part
     except _Unsupported:
         return None
+    lead = x.shape[:-1]
     return Jx.reshape(*lead, n, n), Ju.reshape(*lead, n, m)
 
 
@@ -323,36 +339,22 @@ def graph_hessians(
     node adding ``T_in' (sum_i G_i d2 node) T_in`` (module docstring of
     :mod:`._mlp` for a network's layers). Detached; None where :func:`graph_jacobians`
     does not apply or ``n + m`` exceeds :data:`~torchslq.dynamics._mlp.MAX_INPUT`."""
-    if not isinstance(model, nn.Module) or not _has_linear(model):
-        return None
-    if not x.is_cpu or torch._C._functorch.peek_interpreter_stack() is not None:
-        return None
     n, m = x.shape[-1], u.shape[-1]
     k = n + m
-    if k > _mlp.MAX_INPUT or x.shape[:-1] != u.shape[:-1]:
+    if k > _mlp.MAX_INPUT:
         return None
-    program = _program(model)
-    if program is None:
-        return None
-    root = _root(model)
-    lead = x.shape[:-1]
-    if not rows_independent(model, lead):
-        return None
-    rows = lead.numel()
-    xf, uf = x.detach().reshape(rows, n), u.detach().reshape(rows, m)
     try:
         with torch.no_grad():
-            env, local = _forward(program, root, xf, uf, second=True)
-            if env[program.output].shape[-1] != n:
+            ran = _run_forward(model, x, u, second=True)
+            if ran is None:
                 return None
-            if not _traced_as_called(model, root, env[program.output], xf, uf):
-                return None  # (graph_jacobians traces it again; this call keeps autograd)
-            width = max(linear_width(model), k)
+            program, env, local, xf, uf = ran
+            rows = xf.shape[0]
             # blocks as if only the tangents (rows, k, width) counted: the curvature's
             # (rows, k * k, width) products are then a few megabytes, and each block's
             # graph walk is paid fewer times (measured, 3,200 rows of the 5-64-64-4 MLP
             # on the cart-pole step: 35 ms, against 47 ms in blocks of 4x fewer rows)
-            block = block_rows(width * max(n, k), x.element_size())
+            block = block_rows(max(linear_width(model), k) * max(n, k), x.element_size())
             parts = []
             for r in range(0, rows, block):
                 sl = slice(r, r + block)
@@ -362,6 +364,7 @@ def graph_hessians(
             Jx, Ju, H = (torch.cat([p[i] for p in parts]) for i in range(3))
     except _Unsupported:
         return None
+    lead = x.shape[:-1]
     H = H.movedim(1, 0)  # (n, rows, k, k)
     blocks = (
         H[..., :n, :n].reshape(n, *lead, n, n).contiguous(),
