@@ -1,4 +1,4 @@
-"""Jacobians of a learned model by its traced graph, without autograd.
+"""Jacobians and Hessians of a learned model by its traced graph, without autograd.
 
 A learned model is mostly ``nn.Linear`` layers, elementwise activations, concatenations
 and sums, often around a physics step (a residual network on a discretised model, as
@@ -18,11 +18,20 @@ the ``n`` output sensitivities ``G (rows, n, width)`` back through it (reverse m
   :func:`~torchslq.dynamics.linearize.linearize` (compiled kernels where it has them),
   ``G <- G J_a`` and ``G J_b``.
 
+Every output's Hessian (:func:`graph_hessians`, DDP's value mode) adds the forward
+mode: the input basis pushed through the graph gives each node's tangents ``T (rows,
+n + m, width)``, and each nonlinear node adds ``T_in' (sum_i G_i d2 node) T_in`` during
+the sweep (an activation's ``s''``, a product's two cross terms, a submodule's own
+Hessians).
+
 On the CPU the rows go through in blocks whose sensitivities fit in cache
-(:data:`~torchslq.dynamics.row_blocks.BLOCK_BYTES`); no intermediate is then large enough for the allocator to map
-fresh pages at every call. A model whose graph has anything else (indexing, control
-flow on values, an unknown layer), or per-element data, keeps autograd:
-:func:`graph_jacobians` returns None and remembers it for that module.
+(:data:`~torchslq.dynamics.row_blocks.BLOCK_BYTES`): no intermediate is then large
+enough for the allocator to map fresh pages at every call. A model whose graph has
+anything else (indexing, control flow on values, an unknown layer), per-element data,
+or data off the CPU keeps autograd: the functions return None (a graph that cannot be
+taken is remembered for its module). A trace holds the Python numbers and branches of
+``forward`` as they were when it was made; its output is compared with the model's own
+``forward`` at one row once per solve, and a model that changed is traced again.
 """
 
 from __future__ import annotations
@@ -47,103 +56,48 @@ class _Unsupported(Exception):
     """A node this module cannot differentiate (the caller keeps autograd)."""
 
 
-def _tanh_slope(a: Tensor, h: Tensor) -> Tensor:
-    return 1.0 - h * h
+def _first(fn) -> Callable[[Tensor, Tensor], Tensor]:
+    """``s'(a)`` from :mod:`._mlp`'s ``(a, h) -> (s', s'')`` of an activation (its table
+    of activations and their derivatives is the one both passes read)."""
+    return lambda a, h: fn(a, h)[0]
 
 
-def _sigmoid_slope(a: Tensor, h: Tensor) -> Tensor:
-    return h * (1.0 - h)
-
-
-def _relu_slope(a: Tensor, h: Tensor) -> Tensor:
-    return (a > 0).to(a.dtype)
-
-
-def _silu_slope(a: Tensor, h: Tensor) -> Tensor:
-    s = torch.sigmoid(a)
-    return s + a * s * (1.0 - s)
-
-
-def _identity_slope(a: Tensor, h: Tensor) -> Tensor:
-    return torch.ones_like(a)
-
-
-# elementwise activations: their function (the call's target) and slope s'(a) from the
-# input a and output h
-_FUNCTIONS = {
-    torch.tanh: (torch.tanh, _tanh_slope),
-    F.tanh: (torch.tanh, _tanh_slope),
-    torch.sigmoid: (torch.sigmoid, _sigmoid_slope),
-    F.sigmoid: (torch.sigmoid, _sigmoid_slope),
-    torch.relu: (torch.relu, _relu_slope),
-    F.relu: (F.relu, _relu_slope),
-    F.silu: (F.silu, _silu_slope),
-}
-_METHODS = {"tanh": _tanh_slope, "sigmoid": _sigmoid_slope, "relu": _relu_slope}
-
-
-def _curvature_of(fn) -> Callable[[Tensor, Tensor], Tensor]:
+def _second(fn) -> Callable[[Tensor, Tensor], Tensor]:
     """``s''(a)`` from :mod:`._mlp`'s ``(a, h) -> (s', s'')`` of an activation."""
     return lambda a, h: fn(a, h)[1]
 
 
+# the functional and method activations: the function a call's target names, and the
+# (s', s'') of :mod:`._mlp`
+_DERIVATIVES = {
+    torch.tanh: (torch.tanh, _mlp._tanh),
+    F.tanh: (torch.tanh, _mlp._tanh),
+    torch.sigmoid: (torch.sigmoid, _mlp._sigmoid),
+    F.sigmoid: (torch.sigmoid, _mlp._sigmoid),
+    torch.relu: (torch.relu, _mlp._relu),
+    F.relu: (F.relu, _mlp._relu),
+    F.silu: (F.silu, _mlp._silu),
+}
+_FUNCTIONS = {k: (f, _first(d)) for k, (f, d) in _DERIVATIVES.items()}
+_METHOD_DERIVATIVES = {"tanh": _mlp._tanh, "sigmoid": _mlp._sigmoid, "relu": _mlp._relu}
+_METHODS = {k: _first(d) for k, d in _METHOD_DERIVATIVES.items()}
 # second derivatives s''(a) of the functional and method activations (the layers':
 # _module_curvature)
-_CURVATURE = {
-    torch.tanh: _curvature_of(_mlp._tanh),
-    F.tanh: _curvature_of(_mlp._tanh),
-    torch.sigmoid: _curvature_of(_mlp._sigmoid),
-    F.sigmoid: _curvature_of(_mlp._sigmoid),
-    torch.relu: _curvature_of(_mlp._relu),
-    F.relu: _curvature_of(_mlp._relu),
-    F.silu: _curvature_of(_mlp._silu),
-    "tanh": _curvature_of(_mlp._tanh),
-    "sigmoid": _curvature_of(_mlp._sigmoid),
-    "relu": _curvature_of(_mlp._relu),
+_CURVATURE = {k: _second(d) for k, (_, d) in _DERIVATIVES.items()} | {
+    k: _second(d) for k, d in _METHOD_DERIVATIVES.items()
 }
 
 
 def _module_curvature(layer: nn.Module) -> Callable[[Tensor, Tensor], Tensor] | None:
     """``s''(a)`` of an activation layer (None where :mod:`._mlp` does not know it)."""
     fn = _mlp._activation(layer)
-    return None if fn is None else _curvature_of(fn)
+    return None if fn is None else _second(fn)
 
 
 def _module_slope(layer: nn.Module) -> Callable[[Tensor, Tensor], Tensor] | None:
-    """The slope of an activation layer, or None for a layer this module does not know."""
-    kind = type(layer)
-    simple = {
-        nn.Tanh: _tanh_slope,
-        nn.Sigmoid: _sigmoid_slope,
-        nn.ReLU: _relu_slope,
-        nn.SiLU: _silu_slope,
-        nn.Identity: _identity_slope,
-    }
-    if kind in simple:
-        return simple[kind]
-    if kind is nn.Softplus:
-        beta, threshold = float(layer.beta), float(layer.threshold)
-
-        def softplus(a: Tensor, h: Tensor) -> Tensor:
-            # torch's softplus is the identity where beta a > threshold
-            return torch.where(beta * a > threshold, 1.0, torch.sigmoid(beta * a))
-
-        return softplus
-    if kind is nn.LeakyReLU:
-        slope = float(layer.negative_slope)
-
-        def leaky(a: Tensor, h: Tensor) -> Tensor:
-            return torch.full_like(a, slope).masked_fill_(a > 0, 1.0)
-
-        return leaky
-    if kind is nn.ELU:
-        alpha = float(layer.alpha)
-
-        def elu(a: Tensor, h: Tensor) -> Tensor:
-            return torch.where(a > 0, 1.0, h + alpha)
-
-        return elu
-    return None
+    """``s'(a)`` of an activation layer (None where :mod:`._mlp` does not know it)."""
+    fn = _mlp._activation(layer)
+    return None if fn is None else _first(fn)
 
 
 class _Tracer(fx.Tracer):
