@@ -1,0 +1,155 @@
+"""A learned model's derivatives by its traced graph against autograd's passes.
+
+Not part of the test suite. Run from the repo root::
+
+    .venv/bin/python benchmarks/learned_derivatives.py            # -> benchmarks/results
+    .venv/bin/python benchmarks/learned_derivatives.py --quick    # fewer rows and rounds
+
+The model is ``benchmarks/user_models.py``'s ``learned``: the user's cart-pole RK4 step
+(generated code) plus a 5-64-64-4 tanh residual MLP. float64, one thread. For each
+number of rows ``B x 50`` (random states and controls), the two ways alternate in one
+process, ``--rounds`` times, and the minimum is reported:
+
+* ``jacobians``: :func:`torchslq.linearize` (the graph path,
+  ``torchslq/dynamics/graph_jacobian.py``) against the same call with the graph path
+  off (autograd through one call of the model, its step standing in by its kernels);
+* ``hessians``: :func:`torchslq.dynamics.linearize_with_hessians` and its Hessians (DDP's
+  value mode) the same way.
+
+The largest difference between the two ways' results is printed beside the times.
+Results go to ``--out`` (``learned_derivatives.{json,md}``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _env import load, package_versions  # noqa: E402
+from user_models import LearnedCartPole  # noqa: E402
+
+linearize_module = importlib.import_module("torchslq.dynamics.linearize")
+COMMAND = "python benchmarks/learned_derivatives.py"
+
+
+def _jacobians(model, x, u):
+    return linearize_module.linearize(model, x, u)
+
+
+def _hessians(model, x, u):
+    A, B, hessians = linearize_module.linearize_with_hessians(model, x, u)
+    return (A, B, *hessians())
+
+
+PASSES = {"jacobians": (_jacobians, "graph_jacobians"), "hessians": (_hessians, "graph_hessians")}
+
+
+def _time(fn, repeats: int = 3) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def measure(kind: str, batch: int, rounds: int) -> dict:
+    """Minimum times (ms) of the pass with and without the graph path, alternating."""
+    fn, switch = PASSES[kind]
+    model = LearnedCartPole()
+    g = torch.Generator().manual_seed(batch)
+    x = torch.randn(batch, 50, 4, generator=g, dtype=torch.float64)
+    u = torch.randn(batch, 50, 1, generator=g, dtype=torch.float64)
+    real = getattr(linearize_module, switch)
+    ways = {"graph": real, "autograd": lambda *args: None}
+    times = {k: float("inf") for k in ways}
+    outs = {}
+    try:
+        for _ in range(rounds):
+            for way, path in ways.items():
+                setattr(linearize_module, switch, path)
+                outs[way] = fn(model, x, u)  # (a warm-up in the first round)
+                times[way] = min(times[way], _time(lambda: fn(model, x, u)) * 1e3)
+    finally:
+        setattr(linearize_module, switch, real)
+    diff = max(
+        float((a - b).abs().max()) for a, b in zip(outs["graph"], outs["autograd"], strict=True)
+    )
+    return {
+        "pass": kind,
+        "rows": batch * 50,
+        "graph_ms": round(times["graph"], 3),
+        "autograd_ms": round(times["autograd"], 3),
+        "speedup": round(times["autograd"] / times["graph"], 2),
+        "max_abs_diff": diff,
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="B = 1, 64 and 2 rounds, to /tmp")
+    ap.add_argument("--batches", default="1,10,64,256,512")
+    ap.add_argument("--rounds", type=int, default=4)
+    ap.add_argument("--out", default="benchmarks/results")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.batches, args.rounds, args.out = "1,64", 2, "/tmp"
+    torch.set_num_threads(1)
+    load0 = load()
+    rows = []
+    for kind in PASSES:
+        for batch in (int(b) for b in args.batches.split(",")):
+            row = measure(kind, batch, args.rounds)
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    command = COMMAND + (
+        "" if argv is None and len(sys.argv) == 1 else " " + " ".join(sys.argv[1:])
+    )
+    meta = {
+        "command": command,
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": f"{platform.machine()}, {torch.get_num_threads()} thread",
+        "load_average": {"start": load0, "end": load()},
+        "versions": package_versions("torch", "numba"),
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "learned_derivatives.json").write_text(
+        json.dumps({"meta": meta, "rows": rows}, indent=1)
+    )
+    lines = [
+        "# A learned model's derivatives: traced graph vs autograd (`benchmarks/learned_derivatives.py`)",
+        "",
+        f"```\n{command}\n```",
+        "",
+        f"{meta['date']}, {meta['machine']}, float64; load average at start {load0}, at end "
+        f"{meta['load_average']['end']}; {meta['versions']}. The cart-pole RK4 step plus a "
+        "5-64-64-4 tanh residual MLP at `B x 50` random rows; the two ways alternate in one "
+        f"process, {args.rounds} rounds, minimum of 3 calls each. `max |diff|`: the largest "
+        "difference between the two ways' Jacobians (and Hessians).",
+        "",
+        "| pass | rows | graph [ms] | autograd [ms] | autograd / graph | max abs diff |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['pass']} | {r['rows']} | {r['graph_ms']} | {r['autograd_ms']} | "
+            f"{r['speedup']}x | {r['max_abs_diff']:.1e} |"
+        )
+    (out / "learned_derivatives.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'learned_derivatives.json'} and {out / 'learned_derivatives.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
