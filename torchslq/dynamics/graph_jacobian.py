@@ -227,7 +227,8 @@ def _run_forward(model: Callable, x: Tensor, u: Tensor, second: bool = False):
         return None
     if not x.is_cpu or torch._C._functorch.peek_interpreter_stack() is not None:
         return None  # (on a GPU it is unmeasured: autograd's batched pass stays)
-    if x.shape[:-1] != u.shape[:-1]:
+    if torch.compiler.is_compiling() or x.shape[:-1] != u.shape[:-1]:
+        return None  # (under torch.compile the model's own ops are what gets traced)
         return None
     program = _program(model)
     if program is None:
