@@ -223,13 +223,12 @@ def _run_forward(model: Callable, x: Tensor, u: Tensor, second: bool = False):
     None where the graph path does not apply (:func:`graph_jacobians`). A stale trace (a
     Python number or branch of ``forward`` changed since it was made) is traced again
     once; a model that still differs from its trace keeps autograd."""
-    if not isinstance(model, nn.Module) or not _has_linear(model):
+    if not isinstance(model, nn.Module) or linear_width(model) == 0:
         return None
     if not x.is_cpu or torch._C._functorch.peek_interpreter_stack() is not None:
         return None  # (on a GPU it is unmeasured: autograd's batched pass stays)
     if torch.compiler.is_compiling() or x.shape[:-1] != u.shape[:-1]:
         return None  # (under torch.compile the model's own ops are what gets traced)
-        return None
     program = _program(model)
     if program is None:
         return None
@@ -342,13 +341,6 @@ def _traced_as_called(model: nn.Module, root: nn.Module, out: Tensor, x: Tensor,
         return torch.allclose(out[:1], real.detach(), rtol=0.0, atol=1e3 * eps * scale)
 
     return pinned(model, "graph_jacobian_traced_as_called", check)
-
-
-def _has_linear(model: nn.Module) -> bool:
-    def widest() -> bool:
-        return any(isinstance(mod, nn.Linear) for mod in model.modules())
-
-    return pinned(model, "graph_jacobian_has_linear", widest)
 
 
 def _arg(env: dict, a):
@@ -519,8 +511,8 @@ def _reverse(
                 add(a, J[rows] if g is _IDENTITY else g @ J[rows])
             if tangents is not None:
                 g_d = _dense(g, val(nd), n_out)
-                _submodule_curvature(nd, g_d, extra[0], rows, tangents, program.inputs)
-                H = _pending_add(H, tangents)
+                term = _submodule_curvature(nd, g_d, extra[0], rows, tangents, program.inputs)
+                H = term if H is None else H + term
         elif kind == "linear":
             W = data
             if g is _IDENTITY:
@@ -570,23 +562,12 @@ def _slope(nd: fx.Node, data: tuple, rows: slice, slopes: dict) -> Tensor:
     return have
 
 
-def _pending_add(H, tangents: dict):
-    """``H`` plus the submodule term :func:`_submodule_curvature` left in ``tangents``."""
-    term = tangents.pop(_PENDING, None)
-    if term is None:
-        return H
-    return term if H is None else H + term
-
-
-_PENDING = object()  # a submodule's Hessian term, handed from _submodule_curvature
-
-
 def _submodule_curvature(
     nd: fx.Node, g: Tensor, blocks, rows: slice, tangents: dict, inputs: list
-) -> None:
+) -> Tensor:
     """A :class:`Dynamics` submodule's Hessian term ``T_in' (sum_l G_l H_l) T_in``
-    (``H_l`` its outputs' Hessians in its inputs ``(a, b)``, ``T_in (r, k, n_a + n_b)``
-    their tangents), left in ``tangents`` under :data:`_PENDING`."""
+    ``(r, n_out, k, k)`` (``H_l`` its outputs' Hessians in its inputs ``(a, b)``, ``T_in
+    (r, k, n_a + n_b)`` their tangents; ``g (r, n_out, n_l)`` its sensitivities)."""
     Hxx, Huu, Hux = (blk[:, rows] for blk in blocks)  # (n_l, r, ., .)
     top = torch.cat([Hxx, Hux.mT], -1)
     bottom = torch.cat([Hux, Huu], -1)
@@ -595,17 +576,14 @@ def _submodule_curvature(
     M = (g @ Hl.reshape(r, n_l, kl * kl)).view(r, -1, kl, kl)  # (r, n_out, kl, kl)
     a, b = nd.args
     if a is inputs[0] and b is inputs[1]:
-        tangents[_PENDING] = M  # called on (x, u) itself: its inputs' tangents are I
-        return
+        return M  # called on (x, u) itself: its inputs' tangents are the identity
+    k = tangents[inputs[0]].shape[1]
     parts = []
     for arg, width in ((a, Hxx.shape[-1]), (b, Huu.shape[-1])):
         T = tangents.get(arg) if _var(arg) else None
-        if T is None:
-            ref = next(t for t in tangents.values() if torch.is_tensor(t))
-            T = ref.new_zeros(ref.shape[0], ref.shape[1], width)
-        parts.append(T)
+        parts.append(g.new_zeros(r, k, width) if T is None else T)
     T_in = torch.cat(parts, -1).unsqueeze(1)  # (r, 1, k, kl)
-    tangents[_PENDING] = T_in @ M @ T_in.mT
+    return T_in @ M @ T_in.mT
 
 
 def _tangents(

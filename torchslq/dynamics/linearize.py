@@ -183,11 +183,6 @@ def _vhp_by_autograd(
 POOL_ELEMENTS = 1 << 16
 
 
-def _model_width(f: Callable) -> int:
-    """The widest ``nn.Linear`` output of ``f`` (0 without one), once per solve."""
-    return linear_width(f)
-
-
 def _one_at_a_time(rows: int, width: int) -> bool:
     """Whether :func:`_pull_back_basis` pulls the basis back one vector at a time."""
     return rows * width >= POOL_ELEMENTS
@@ -232,7 +227,7 @@ def _jacobians_by_autograd(f: Callable, x: Tensor, u: Tensor) -> tuple[Tensor, T
                 lambda b: torch.autograd.grad(
                     out, (xg, ug), b, is_grads_batched=True, allow_unused=True
                 ),
-                _model_width(f),
+                linear_width(f),
             )
     finally:
         _FIRST_ORDER.reset(token)
@@ -388,7 +383,7 @@ def linearize(
             # one call on the full (..., n) batch keeps per-element parameters aligned
             out, pullback = vjp(f, x, u)
             Jx, Ju = _pull_back_basis(  # (n_out, ..., n), (n_out, ..., m)
-                lambda c, last: pullback(c), out, vmap(pullback), _model_width(dynamics)
+                lambda c, last: pullback(c), out, vmap(pullback), linear_width(dynamics)
             )
             A, B = Jx.movedim(0, -2), Ju.movedim(0, -2)
         else:
