@@ -5,8 +5,12 @@ Not part of the test suite. Run from the repo root::
     .venv/bin/python benchmarks/learned_derivatives.py            # -> benchmarks/results
     .venv/bin/python benchmarks/learned_derivatives.py --quick    # fewer rows and rounds
 
-The model is ``benchmarks/user_models.py``'s ``learned``: the user's cart-pole RK4 step
-(generated code) plus a 5-64-64-4 tanh residual MLP. float64, one thread. For each
+Two models (``--models``): ``learned``, ``benchmarks/user_models.py``'s learned model (the
+user's cart-pole RK4 step, generated code, plus a 5-64-64-4 tanh residual MLP), and
+``features``, a fully learned cart-pole step on features of the state
+(:class:`FeatureCartPole`: slices of the state, ``sin`` and ``cos`` of the angle, a
+6-64-64-4 tanh MLP; on autograd before the graph path took slices and ``sin``/``cos``).
+float64, one thread. For each
 number of rows ``B x 50`` (random states and controls), the two ways alternate in one
 process, ``--rounds`` times, and the minimum is reported:
 
@@ -32,14 +36,40 @@ import time
 from pathlib import Path
 
 import torch
+from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from _env import load, package_versions  # noqa: E402
 from user_models import LearnedCartPole  # noqa: E402
 
+import torchslq as ts  # noqa: E402
+
 linearize_module = importlib.import_module("torchslq.dynamics.linearize")
 COMMAND = "python benchmarks/learned_derivatives.py"
+
+
+class FeatureCartPole(ts.Dynamics):
+    """A fully learned cart-pole step on features of the state, as such models are often
+    written: ``x + 0.05 net([s, sin th, cos th, s_dot, th_dot, u])``, ``net`` a 6-64-64-4
+    tanh MLP (seed 2)."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        torch.manual_seed(2)
+        self.net = nn.Sequential(
+            nn.Linear(6, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(), nn.Linear(64, 4)
+        ).double()
+
+    def forward(self, x, u):
+        th = x[..., 1:2]
+        z = torch.cat([x[..., :1], torch.sin(th), torch.cos(th), x[..., 2:], u], -1)
+        return x + 0.05 * self.net(z)
+
+
+MODELS = {"learned": LearnedCartPole, "features": FeatureCartPole}
 
 
 def _jacobians(model, x, u):
@@ -63,10 +93,10 @@ def _time(fn, repeats: int = 3) -> float:
     return best
 
 
-def measure(kind: str, batch: int, rounds: int) -> dict:
+def measure(name: str, kind: str, batch: int, rounds: int) -> dict:
     """Minimum times (ms) of the pass with and without the graph path, alternating."""
     fn, switch = PASSES[kind]
-    model = LearnedCartPole()
+    model = MODELS[name]()
     g = torch.Generator().manual_seed(batch)
     x = torch.randn(batch, 50, 4, generator=g, dtype=torch.float64)
     u = torch.randn(batch, 50, 1, generator=g, dtype=torch.float64)
@@ -86,6 +116,7 @@ def measure(kind: str, batch: int, rounds: int) -> dict:
         float((a - b).abs().max()) for a, b in zip(outs["graph"], outs["autograd"], strict=True)
     )
     return {
+        "model": name,
         "pass": kind,
         "rows": batch * 50,
         "graph_ms": round(times["graph"], 3),
@@ -98,6 +129,7 @@ def measure(kind: str, batch: int, rounds: int) -> dict:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--quick", action="store_true", help="B = 1, 64 and 2 rounds, to /tmp")
+    ap.add_argument("--models", default="learned,features", help="of " + ",".join(MODELS))
     ap.add_argument("--batches", default="1,10,64,256,512")
     ap.add_argument("--rounds", type=int, default=4)
     ap.add_argument("--out", default="benchmarks/results")
@@ -107,11 +139,12 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     load0 = load()
     rows = []
-    for kind in PASSES:
-        for batch in (int(b) for b in args.batches.split(",")):
-            row = measure(kind, batch, args.rounds)
-            print(json.dumps(row), flush=True)
-            rows.append(row)
+    for name in args.models.split(","):
+        for kind in PASSES:
+            for batch in (int(b) for b in args.batches.split(",")):
+                row = measure(name, kind, batch, args.rounds)
+                print(json.dumps(row), flush=True)
+                rows.append(row)
     command = COMMAND + (
         "" if argv is None and len(sys.argv) == 1 else " " + " ".join(sys.argv[1:])
     )
@@ -133,17 +166,19 @@ def main(argv: list[str] | None = None) -> int:
         f"```\n{command}\n```",
         "",
         f"{meta['date']}, {meta['machine']}, float64; load average at start {load0}, at end "
-        f"{meta['load_average']['end']}; {meta['versions']}. The cart-pole RK4 step plus a "
-        "5-64-64-4 tanh residual MLP at `B x 50` random rows; the two ways alternate in one "
+        f"{meta['load_average']['end']}; {meta['versions']}. `learned`: the cart-pole RK4 step "
+        "plus a 5-64-64-4 tanh residual MLP; `features`: a 6-64-64-4 tanh MLP on slices of "
+        "the state and sin/cos of its angle (`FeatureCartPole`). `B x 50` random rows; the "
+        "two ways alternate in one "
         f"process, {args.rounds} rounds, minimum of 3 calls each. `max |diff|`: the largest "
         "difference between the two ways' Jacobians (and Hessians).",
         "",
-        "| pass | rows | graph [ms] | autograd [ms] | autograd / graph | max abs diff |",
-        "|---|---|---|---|---|---|",
+        "| model | pass | rows | graph [ms] | autograd [ms] | autograd / graph | max abs diff |",
+        "|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['pass']} | {r['rows']} | {r['graph_ms']} | {r['autograd_ms']} | "
+            f"| {r['model']} | {r['pass']} | {r['rows']} | {r['graph_ms']} | {r['autograd_ms']} | "
             f"{r['speedup']}x | {r['max_abs_diff']:.1e} |"
         )
     (out / "learned_derivatives.md").write_text("\n".join(lines) + "\n")

@@ -55,6 +55,7 @@ ACTIVATIONS = {
     "softplus-elu": (nn.Softplus(beta=2.0, threshold=3.0), nn.ELU(alpha=0.7)),
     "relu-leaky": (nn.ReLU(), nn.LeakyReLU(0.1)),
     "identity": (nn.Identity(), nn.Tanh()),
+    "gelu": (nn.GELU(), nn.Tanh()),
 }
 
 
@@ -108,6 +109,50 @@ def test_physics_residual_with_arithmetic_equals_jacrev():
     torch.testing.assert_close(got[1], B_ref, rtol=1e-11, atol=1e-13)
 
 
+class Features(ts.Dynamics):
+    """Features made from the state before a network, as learned models often do: slices
+    of the last dim, ``sin`` and ``cos`` of an angle, squares, an exponential and
+    powers (functional, method and operator forms), and a slice of the network's
+    output."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self):
+        super().__init__()
+        self.net = mlp(nn.GELU(), nn.Tanh(), k=10, out=6)
+
+    def forward(self, x, u):
+        angle = x[..., 1:2]
+        feats = torch.cat(
+            [
+                x[..., :1],
+                torch.sin(angle),
+                angle.cos(),
+                torch.square(x[..., 2:]),
+                0.1 * u.exp(),
+                x[..., 2:3] ** 3,
+                x[..., 3:].pow(2),
+                u[..., 1:].sin().square(),
+            ],
+            -1,
+        )
+        return x + 0.1 * self.net(feats)[..., 1:5]
+
+
+def test_features_of_the_state_equal_jacrev():
+    model = Features()
+    x, u = data(scale=1.0)
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None  # every op of the features is taken
+    A_ref, B_ref = reference(model, x, u)
+    assert B_ref.abs().max() > 1e-3
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
+    A, B = linearize(model, x, u)
+    torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+
+
 def test_blocks_of_rows_give_the_same_jacobians(monkeypatch):
     model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2)
     x, u = data(lead=(13, 11))
@@ -142,7 +187,8 @@ def test_a_plain_network_on_the_concatenation():
 
 
 class Indexing(ts.Dynamics):
-    """A model the graph path does not take (indexing the state), with a network."""
+    """A model the graph path does not take (an integer index drops the last dim), with
+    a network."""
 
     state_dim, control_dim = 4, 2
 
@@ -152,7 +198,7 @@ class Indexing(ts.Dynamics):
 
     def forward(self, x, u):
         out = self.net(torch.cat([x, u], -1))
-        return out + torch.sin(x[..., :1])
+        return out + torch.sin(x[..., 0]).unsqueeze(-1)
 
 
 class PerElement(ts.Dynamics):
@@ -404,6 +450,50 @@ def test_graph_hessians_of_products_and_a_physics_step(monkeypatch):
     A, B, hessians = linearize_with_hessians(model, x, u)
     for h, r in zip(hessians(), H_ref, strict=True):
         torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+
+
+def test_graph_hessians_of_features_equal_nested_autodiff(monkeypatch):
+    """The features' curvature (sin, cos, exp, squares, powers; slices add none), in
+    blocks of rows and in one."""
+    model = Features()
+    x, u = data(scale=1.0)
+    H_ref = reference_hessians(model, x, u)
+    assert max(h.abs().max() for h in H_ref) > 1e-3
+    whole = gj.graph_hessians(model, x, u)
+    assert whole is not None
+    monkeypatch.setattr(row_blocks, "BLOCK_BYTES", 9 * 16 * 6 * 8)  # blocks of 9 rows
+    blocked = gj.graph_hessians(model, x, u)
+    for got in (whole, blocked):
+        for h, r in zip(got[2], H_ref, strict=True):
+            torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+
+
+def test_indexing_that_is_not_a_last_dim_slice_is_declined():
+    """``z[:, i:j]`` slices the state on (rows, n) but a time dim on (B, T, n); a step,
+    an integer, a tensor index: all keep autograd."""
+    assert gj._last_dim_slice((Ellipsis, slice(1, 3))) == slice(1, 3)
+    assert gj._last_dim_slice((Ellipsis, slice(None, -1))) == slice(None, -1)
+    for index in (
+        (slice(None), slice(1, 3)),
+        slice(1, 3),
+        (Ellipsis, slice(0, 4, 2)),
+        (Ellipsis, 1),
+        (Ellipsis, torch.tensor([0, 1])),
+    ):
+        assert gj._last_dim_slice(index) is None
+
+    class RowsSliced(ts.Dynamics):
+        state_dim, control_dim = 4, 2
+
+        def __init__(self):
+            super().__init__()
+            self.net = mlp(nn.Tanh())
+
+        def forward(self, x, u):
+            return x[:, :] + self.net(torch.cat([x, u], -1))
+
+    x, u = data(lead=(5,))
+    assert gj.graph_jacobians(RowsSliced(), x, u) is None
 
 
 def test_graph_hessians_decline_wide_inputs():

@@ -55,6 +55,43 @@ def _identity(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
     return torch.ones_like(a), torch.zeros_like(a)
 
 
+_INV_SQRT_2PI = 0.3989422804014327  # 1 / sqrt(2 pi)
+_INV_SQRT_2 = 0.7071067811865476
+
+
+def _gelu(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    """GELU's ``a Phi(a)`` (the exact form): ``Phi + a phi`` and ``phi (2 - a^2)``."""
+    pdf = _INV_SQRT_2PI * torch.exp(-0.5 * a * a)
+    cdf = 0.5 * (1.0 + torch.erf(_INV_SQRT_2 * a))
+    return cdf + a * pdf, pdf * (2.0 - a * a)
+
+
+# elementwise functions a model applies to its features (graph_jacobian's table)
+def _sin(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    return torch.cos(a), -h
+
+
+def _cos(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    return -torch.sin(a), -h
+
+
+def _exp(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    return h, h
+
+
+def _square(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+    return 2.0 * a, torch.full_like(a, 2.0)
+
+
+def _power(p: float):
+    """``(d1, d2)`` of ``a ** p`` for a number ``p``."""
+
+    def power(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
+        return p * a ** (p - 1), (p * (p - 1)) * a ** (p - 2)
+
+    return power
+
+
 def _activation(layer: nn.Module):
     """``(d1, d2)`` of an elementwise activation from its input ``a`` and output ``h``, or
     None for a layer this module does not know."""
@@ -69,6 +106,8 @@ def _activation(layer: nn.Module):
         return _silu
     if kind is nn.Identity:
         return _identity
+    if kind is nn.GELU and layer.approximate == "none":
+        return _gelu
     if kind is nn.Softplus:
         beta, threshold = float(layer.beta), float(layer.threshold)
 

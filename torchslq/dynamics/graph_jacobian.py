@@ -10,9 +10,10 @@ runs the graph forward on plain tensors, keeping what each node's derivative nee
 the ``n`` output sensitivities ``G (rows, n, width)`` back through it (reverse mode):
 
 * ``nn.Linear``: ``G <- G W``, one matrix product over the rows;
-* an elementwise activation: ``G <- G * s'(a)``;
+* an elementwise activation, or ``sin``, ``cos``, ``exp``, a square or a power by a
+  number of the features: ``G <- G * s'(a)``;
 * ``+``, ``-``, ``*`` and ``/`` by a number or by a node of the same shape, negation,
-  ``torch.cat`` along the last dim;
+  ``torch.cat`` along the last dim, a slice of the last dim (``z[..., i:j]``);
 * a :class:`~torchslq.dynamics.base.Dynamics` submodule called on ``(a, b)`` (e.g. the
   discretised physics under a residual): its own Jacobians, by
   :func:`~torchslq.dynamics.linearize.linearize` (compiled kernels where it has them),
@@ -27,7 +28,7 @@ Hessians).
 On the CPU the rows go through in blocks whose sensitivities fit in cache
 (:data:`~torchslq.dynamics.row_blocks.BLOCK_BYTES`): no intermediate is then large
 enough for the allocator to map fresh pages at every call. A model whose graph has
-anything else (indexing, control flow on values, an unknown layer), per-element data,
+anything else (other indexing, control flow on values, an unknown layer), per-element data,
 or data off the CPU keeps autograd: the functions return None (a graph that cannot be
 taken is remembered for its module). A trace holds the Python numbers and branches of
 ``forward`` as they were when it was made; its output is compared with the model's own
@@ -77,15 +78,57 @@ _DERIVATIVES = {
     torch.relu: (torch.relu, _mlp._relu),
     F.relu: (F.relu, _mlp._relu),
     F.silu: (F.silu, _mlp._silu),
+    F.gelu: (F.gelu, _mlp._gelu),
+    # elementwise functions of the features
+    torch.sin: (torch.sin, _mlp._sin),
+    torch.cos: (torch.cos, _mlp._cos),
+    torch.exp: (torch.exp, _mlp._exp),
+    torch.square: (torch.square, _mlp._square),
 }
 _FUNCTIONS = {k: (f, _first(d)) for k, (f, d) in _DERIVATIVES.items()}
-_METHOD_DERIVATIVES = {"tanh": _mlp._tanh, "sigmoid": _mlp._sigmoid, "relu": _mlp._relu}
+_METHOD_DERIVATIVES = {
+    "tanh": _mlp._tanh,
+    "sigmoid": _mlp._sigmoid,
+    "relu": _mlp._relu,
+    "sin": _mlp._sin,
+    "cos": _mlp._cos,
+    "exp": _mlp._exp,
+    "square": _mlp._square,
+}
 _METHODS = {k: _first(d) for k, d in _METHOD_DERIVATIVES.items()}
 # second derivatives s''(a) of the functional and method activations (the layers':
 # _module_curvature)
 _CURVATURE = {k: _second(d) for k, (_, d) in _DERIVATIVES.items()} | {
     k: _second(d) for k, d in _METHOD_DERIVATIVES.items()
 }
+
+
+_POWERS = (operator.pow, torch.pow)  # a node to a number's power: ``z ** p``
+
+
+def _power_exponent(nd: fx.Node) -> float | None:
+    """``p`` of a node ``z ** p`` (``operator.pow``, ``torch.pow`` or ``z.pow(p)``) with
+    ``p`` a number, else None."""
+    is_power = nd.target in _POWERS if nd.op == "call_function" else nd.target == "pow"
+    if not is_power or len(nd.args) != 2 or not isinstance(nd.args[0], fx.Node):
+        return None
+    p = nd.args[1]
+    return float(p) if isinstance(p, (int, float)) and not isinstance(p, bool) else None
+
+
+def _last_dim_slice(index) -> slice | None:
+    """The slice of ``z[..., i:j]`` (a step of 1, bounds given as numbers), else None:
+    other indexing would reach the rows, or drop the last dim."""
+    if not (isinstance(index, tuple) and len(index) == 2 and index[0] is Ellipsis):
+        return None
+    s = index[1]
+    if not isinstance(s, slice) or s.step not in (None, 1):
+        return None
+    if not all(
+        b is None or (isinstance(b, int) and not isinstance(b, bool)) for b in (s.start, s.stop)
+    ):
+        return None
+    return s
 
 
 def _module_curvature(layer: nn.Module) -> Callable[[Tensor, Tensor], Tensor] | None:
@@ -176,6 +219,10 @@ class _Program:
                 or type(mod) is nn.Linear
                 or _module_slope(mod) is not None
             )
+        elif _power_exponent(nd) is not None:
+            ok = True
+        elif nd.op == "call_function" and nd.target is operator.getitem:
+            ok = _last_dim_slice(nd.args[1]) is not None
         elif nd.op == "call_function":
             ok = nd.target in _FUNCTIONS or nd.target in (
                 operator.add,
@@ -397,6 +444,15 @@ def _forward(
                     raise _Unsupported(type(mod).__name__)
                 env[nd] = h = mod(args[0])
                 local[nd] = ("slope", (slope, args[0], h, _module_curvature(mod)))
+        elif _power_exponent(nd) is not None:
+            p = _power_exponent(nd)
+            env[nd] = h = args[0] ** p
+            power = _mlp._power(p)
+            local[nd] = ("slope", (_first(power), args[0], h, _second(power)))
+        elif nd.target is operator.getitem:
+            s = _last_dim_slice(nd.args[1])
+            env[nd] = args[0][..., s]
+            local[nd] = ("slice", (s, args[0].shape[-1]))
         elif nd.op == "call_method":
             env[nd] = h = getattr(args[0], nd.target)()
             local[nd] = ("slope", (_METHODS[nd.target], args[0], h, _CURVATURE[nd.target]))
@@ -529,6 +585,12 @@ def _reverse(
                 T = tangents[args[0]]
                 curvature(T, c, T)
             add(args[0], torch.diag_embed(slope) if g is _IDENTITY else g * slope.unsqueeze(1))
+        elif kind == "slice":  # zero sensitivity outside the slice
+            s, width = data
+            g = _dense(g, val(nd), n_out)
+            whole = g.new_zeros(*g.shape[:-1], width)
+            whole[..., s] = g
+            add(args[0], whole)
         elif kind == "cat":
             g = _dense(g, val(nd), n_out)
             start = 0
@@ -624,6 +686,10 @@ def _tangents(
             t = tan(args[0])
             if t is not None:
                 out = t * _slope(nd, data, rows, slopes).unsqueeze(1)
+        elif kind == "slice":
+            t = tan(args[0])
+            if t is not None:
+                out = t[..., data[0]]
         elif kind == "cat":
             pieces = [tan(p) for p in args[0]]
             if all(p is not None and p.stride(0) == 0 for p in pieces):
