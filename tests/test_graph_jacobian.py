@@ -119,7 +119,7 @@ class Features(ts.Dynamics):
 
     def __init__(self):
         super().__init__()
-        self.net = mlp(nn.GELU(), nn.Tanh(), k=10, out=6)
+        self.net = mlp(nn.GELU(), nn.Tanh(), k=13, out=6)
 
     def forward(self, x, u):
         angle = x[..., 1:2]
@@ -133,6 +133,8 @@ class Features(ts.Dynamics):
                 x[..., 2:3] ** 3,
                 x[..., 3:].pow(2),
                 u[..., 1:].sin().square(),
+                (1.0 + u.square()) ** 0.5,
+                x[..., :1] ** 1,
             ],
             -1,
         )

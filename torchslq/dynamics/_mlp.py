@@ -84,10 +84,14 @@ def _square(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _power(p: float):
-    """``(d1, d2)`` of ``a ** p`` for a number ``p``."""
+    """``(d1, d2)`` of ``a ** p`` for a number ``p`` (a zero coefficient gives zeros, not
+    ``0 * a ** -1``, NaN at ``a = 0``)."""
+    c1, c2 = p, p * (p - 1)
 
     def power(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
-        return p * a ** (p - 1), (p * (p - 1)) * a ** (p - 2)
+        d1 = c1 * a ** (p - 1) if c1 != 0 else torch.zeros_like(a)
+        d2 = c2 * a ** (p - 2) if c2 != 0 else torch.zeros_like(a)
+        return d1, d2
 
     return power
 

@@ -108,12 +108,13 @@ _POWERS = (operator.pow, torch.pow)  # a node to a number's power: ``z ** p``
 
 def _power_exponent(nd: fx.Node) -> float | None:
     """``p`` of a node ``z ** p`` (``operator.pow``, ``torch.pow`` or ``z.pow(p)``) with
-    ``p`` a number, else None."""
+    ``p`` a number (as written: torch takes an integer power by repeated products), else
+    None."""
     is_power = nd.target in _POWERS if nd.op == "call_function" else nd.target == "pow"
     if not is_power or len(nd.args) != 2 or not isinstance(nd.args[0], fx.Node):
         return None
     p = nd.args[1]
-    return float(p) if isinstance(p, (int, float)) and not isinstance(p, bool) else None
+    return p if isinstance(p, (int, float)) and not isinstance(p, bool) else None
 
 
 def _last_dim_slice(index) -> slice | None:
