@@ -155,6 +155,87 @@ def test_features_of_the_state_equal_jacrev():
     torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
 
 
+class Entries(ts.Dynamics):
+    """Entries of the state taken one by one (``x[..., i]`` drops the last dim) and put
+    back with ``torch.stack(..., -1)`` and ``unsqueeze(-1)``, as physics code writes it,
+    around a network."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self):
+        super().__init__()
+        self.net = mlp(nn.Tanh(), k=8, out=4)
+
+    def forward(self, x, u):
+        s, th, v, w = x[..., 0], x[..., 1], x[..., 2], x[..., 3]
+        f = u[..., -1]
+        feats = torch.stack(
+            [
+                s,
+                torch.sin(th),
+                th.cos(),
+                v * w,
+                -w / 2.0,
+                f**2,
+                torch.tanh(f) * 0.5 + 1.0,
+                u[..., 0],
+            ],
+            -1,
+        )
+        physics = torch.stack([v, w, torch.sin(th) * f, 2.0 - s], -1)
+        out = x + 0.1 * self.net(feats) + 0.01 * physics
+        return torch.cat([out[..., :3], out[..., 3:] + (th * v).unsqueeze(-1)], -1)
+
+
+def test_entries_of_the_state_equal_jacrev():
+    model = Entries()
+    x, u = data(scale=1.0)
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None  # integer indexing, stack and unsqueeze are taken
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
+    H_ref = reference_hessians(model, x, u)
+    hess = gj.graph_hessians(model, x, u)
+    assert hess is not None and max(h.abs().max() for h in H_ref) > 1e-3
+    for h, r in zip(hess[2], H_ref, strict=True):
+        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+
+
+class EntriesElsewhere(ts.Dynamics):
+    """Entries of the state whose meaning depends on the batch dims: stacked along
+    another dim, unsqueezed elsewhere, or combined with a tensor (broadcast along what
+    the graph holds as rows)."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self, how: str):
+        super().__init__()
+        self.how = how
+        self.net = mlp(nn.Tanh())
+        self.register_buffer("w", torch.tensor([0.5], dtype=F64))
+
+    def forward(self, x, u):
+        out = x + self.net(torch.cat([x, u], -1))
+        th = x[..., 1]
+        if self.how == "stack":
+            return out + torch.stack([th, th, th, th], 0).movedim(0, -1)
+        if self.how == "unsqueeze":
+            return out + th.unsqueeze(0).movedim(0, -1)
+        return out + (th * self.w).unsqueeze(-1)
+
+
+@pytest.mark.parametrize("how", ["stack", "unsqueeze", "tensor"])
+def test_entries_used_elsewhere_keep_autograd(how):
+    model = EntriesElsewhere(how)
+    x, u = data()
+    assert gj.graph_jacobians(model, x, u) is None
+    A, B = linearize(model, x, u)
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+
+
 def test_blocks_of_rows_give_the_same_jacobians(monkeypatch):
     model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2)
     x, u = data(lead=(13, 11))
@@ -189,8 +270,7 @@ def test_a_plain_network_on_the_concatenation():
 
 
 class Indexing(ts.Dynamics):
-    """A model the graph path does not take (an integer index drops the last dim), with
-    a network."""
+    """A model the graph path does not take (indexing by a tensor), with a network."""
 
     state_dim, control_dim = 4, 2
 
@@ -200,7 +280,7 @@ class Indexing(ts.Dynamics):
 
     def forward(self, x, u):
         out = self.net(torch.cat([x, u], -1))
-        return out + torch.sin(x[..., 0]).unsqueeze(-1)
+        return out + torch.sin(x[..., torch.tensor([0, 0, 1, 1])])
 
 
 class PerElement(ts.Dynamics):
@@ -230,10 +310,31 @@ class Broadcasting(ts.Dynamics):
         return self.net(torch.cat([x, u], -1)) + x * u
 
 
+class BroadcastAtTheOutput(ts.Dynamics):
+    """A one-wide node broadcast over the state by the output's sum (a feature, or a
+    single control added to every state): kept on autograd (the sum's identity
+    sensitivity is not the narrow node's, which feeds every output)."""
+
+    def __init__(self, m: int):
+        super().__init__()
+        self.state_dim, self.control_dim = 4, m
+        self.net = mlp(nn.Tanh(), k=4 + m)
+
+    def forward(self, x, u):
+        narrow = u if self.control_dim == 1 else torch.sin(x[..., 1:2])
+        return x + self.net(torch.cat([x, u], -1)) + narrow
+
+
 @pytest.mark.parametrize(
     "make, m",
-    [(Indexing, 2), (lambda: PerElement(6), 2), (Broadcasting, 1)],
-    ids=["indexing", "per-element", "broadcasting"],
+    [
+        (Indexing, 2),
+        (lambda: PerElement(6), 2),
+        (Broadcasting, 1),
+        (lambda: BroadcastAtTheOutput(2), 2),
+        (lambda: BroadcastAtTheOutput(1), 1),
+    ],
+    ids=["indexing", "per-element", "broadcasting", "broadcast-feature", "broadcast-control"],
 )
 def test_what_keeps_autograd_is_still_right(make, m):
     model = make()

@@ -117,6 +117,29 @@ def _power_exponent(nd: fx.Node) -> float | None:
     return p if isinstance(p, (int, float)) and not isinstance(p, bool) else None
 
 
+_ARITHMETIC = (operator.add, operator.sub, operator.mul, operator.truediv, operator.neg)
+
+
+def _is_number(a) -> bool:
+    return isinstance(a, (int, float)) and not isinstance(a, bool)
+
+
+def _node_args(args) -> list:
+    """A node's arguments, those in lists (a concatenation's pieces) included."""
+    out = []
+    for a in args:
+        out.extend(_node_args(a) if isinstance(a, (list, tuple)) else [a])
+    return out
+
+
+def _last_dim_index(index) -> int | None:
+    """``i`` of ``z[..., i]`` (an integer), else None."""
+    if isinstance(index, tuple) and len(index) == 2 and index[0] is Ellipsis:
+        i = index[1]
+        return i if isinstance(i, int) and not isinstance(i, bool) else None
+    return None
+
+
 def _last_dim_slice(index) -> slice | None:
     """The slice of ``z[..., i:j]`` (a step of 1, bounds given as numbers), else None:
     other indexing would reach the rows, or drop the last dim."""
@@ -206,44 +229,68 @@ class _Program:
         self.output = outputs[0].args[0]
         if not isinstance(self.output, fx.Node):
             raise _Unsupported("the output must be one tensor")
+        # the nodes that are one entry of the last dim (``z[..., i]``, which drops it,
+        # and elementwise functions of such nodes): held as (rows, 1) columns, they may
+        # only meet numbers and each other until ``torch.stack(..., -1)`` or
+        # ``unsqueeze(-1)`` makes them a (rows, width) node again
+        self.columns: set[fx.Node] = set()
         for nd in self.nodes:
             self._check(root, nd)
 
-    @staticmethod
-    def _check(root: nn.Module, nd: fx.Node) -> None:
+    def _check(self, root: nn.Module, nd: fx.Node) -> None:
         if nd.op in ("placeholder", "output", "get_attr"):
             return
+        on_column = [a in self.columns for a in _node_args(nd.args) if _var(a)]
+        column = any(on_column)  # an elementwise node of columns is one
         if nd.op == "call_module":
             mod = root.get_submodule(nd.target)
-            ok = (
-                isinstance(mod, Dynamics)
-                or type(mod) is nn.Linear
-                or _module_slope(mod) is not None
+            ok = _module_slope(mod) is not None or (
+                not column and (isinstance(mod, Dynamics) or type(mod) is nn.Linear)
             )
         elif _power_exponent(nd) is not None:
             ok = True
         elif nd.op == "call_function" and nd.target is operator.getitem:
-            ok = _last_dim_slice(nd.args[1]) is not None
-        elif nd.op == "call_function":
-            ok = nd.target in _FUNCTIONS or nd.target in (
-                operator.add,
-                operator.sub,
-                operator.mul,
-                operator.truediv,
-                operator.neg,
-                torch.cat,
+            ok = not column and (
+                _last_dim_slice(nd.args[1]) is not None or _last_dim_index(nd.args[1]) is not None
             )
+            column = ok and _last_dim_slice(nd.args[1]) is None
+        elif nd.op == "call_function" and nd.target is torch.stack:
+            pieces = nd.args[0]
+            dim = nd.kwargs.get("dim", nd.args[1] if len(nd.args) > 1 else 0)
+            ok = (
+                dim == -1
+                and isinstance(pieces, (list, tuple))
+                and len(pieces) > 0
+                and all(_var(q) and q in self.columns for q in pieces)
+            )
+            column = False
+        elif nd.op == "call_function" and nd.target in _ARITHMETIC:
+            # with a column: the other operands columns or numbers (a vector would be
+            # broadcast along what is the rows here)
+            ok = not column or all(
+                (_var(a) and a in self.columns) or _is_number(a) for a in nd.args
+            )
+        elif nd.op == "call_function":
+            ok = nd.target in _FUNCTIONS or (nd.target is torch.cat and not column)
+        elif nd.op == "call_method" and nd.target == "unsqueeze":
+            dim = nd.kwargs.get("dim", nd.args[1] if len(nd.args) > 1 else None)
+            ok = column and dim == -1
+            column = False
         elif nd.op == "call_method":
             ok = nd.target in _METHODS
         else:
             ok = False
-        # keyword arguments: a concatenation's dim, a functional activation's
+        # keyword arguments: a concatenation's or stack's dim, a functional activation's
         # inplace=False (an in-place op would overwrite a value the sweep needs)
-        kwargs_ok = nd.target is torch.cat or all(
-            k == "inplace" and v is False for k, v in nd.kwargs.items()
+        kwargs_ok = (
+            nd.target in (torch.cat, torch.stack)
+            or (nd.target == "unsqueeze" and set(nd.kwargs) <= {"dim"})
+            or all(k == "inplace" and v is False for k, v in nd.kwargs.items())
         )
-        if not ok or not kwargs_ok:
+        if not ok or not kwargs_ok or (column and nd is self.output):
             raise _Unsupported(f"{nd.op} {nd.target}")
+        if column:
+            self.columns.add(nd)
 
 
 # model -> its program, or None where it cannot be traced or differentiated here
@@ -452,8 +499,17 @@ def _forward(
             local[nd] = ("slope", (_first(power), args[0], h, _second(power)))
         elif nd.target is operator.getitem:
             s = _last_dim_slice(nd.args[1])
+            if s is None:  # z[..., i], kept as the column z[..., i:i+1]
+                i = _last_dim_index(nd.args[1])
+                s = slice(i, i + 1 if i != -1 else None)
             env[nd] = args[0][..., s]
             local[nd] = ("slice", (s, args[0].shape[-1]))
+        elif nd.target is torch.stack:  # of columns, along the last dim
+            env[nd] = torch.cat(args[0], dim=-1)
+            local[nd] = ("cat", [1] * len(args[0]))
+        elif nd.target == "unsqueeze":  # of a column, at the last dim: held so already
+            env[nd] = args[0]
+            local[nd] = ("identity", None)
         elif nd.op == "call_method":
             env[nd] = h = getattr(args[0], nd.target)()
             local[nd] = ("slope", (_METHODS[nd.target], args[0], h, _CURVATURE[nd.target]))
@@ -472,6 +528,8 @@ def _forward(
             for a, v in zip(nd.args, args, strict=True):
                 if not _var(a) and torch.is_tensor(v) and v.ndim > 1:
                     raise _Unsupported("a constant operand must be a number or a vector")
+            if len({v.shape[-1] for a, v in zip(nd.args, args, strict=True) if _var(a)}) > 1:
+                raise _Unsupported("nodes broadcast against each other")
             env[nd] = nd.target(*args)
             local[nd] = ("arith", None)
     out = env[program.output]
@@ -586,6 +644,8 @@ def _reverse(
                 T = tangents[args[0]]
                 curvature(T, c, T)
             add(args[0], torch.diag_embed(slope) if g is _IDENTITY else g * slope.unsqueeze(1))
+        elif kind == "identity":
+            add(args[0], g)
         elif kind == "slice":  # zero sensitivity outside the slice
             s, width = data
             g = _dense(g, val(nd), n_out)
@@ -687,6 +747,8 @@ def _tangents(
             t = tan(args[0])
             if t is not None:
                 out = t * _slope(nd, data, rows, slopes).unsqueeze(1)
+        elif kind == "identity":
+            out = tan(args[0])
         elif kind == "slice":
             t = tan(args[0])
             if t is not None:
