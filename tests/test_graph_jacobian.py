@@ -202,6 +202,44 @@ def test_entries_of_the_state_equal_jacrev():
         torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
 
 
+class GrayBox(ts.Dynamics):
+    """Physics written inline in torch ops (the cart-pole's accelerations: entries of the
+    state, sin and cos, products, quotients by a state-dependent denominator, a
+    reciprocal) plus a network, one Euler step."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.net = mlp(nn.Tanh(), k=5, out=4)
+
+    def forward(self, x, u):
+        sd, th, thd = x[..., 2], x[..., 1], x[..., 3]
+        f = u[..., 0]
+        s, c = torch.sin(th), torch.cos(th)
+        D = 1.0 + 0.1 * s * s
+        sdd = (f + 0.1 * s * (0.5 * thd**2 + 9.81 * c)) / D
+        thdd = (-f * c - 0.05 * thd**2 * c * s - 1.1 * 9.81 * s) / (0.5 * D)
+        damp = 1.0 / (2.0 + c)
+        xdot = torch.stack([sd, thd, sdd - damp * sd, thdd], -1)
+        return x + 0.05 * xdot + 0.01 * self.net(torch.cat([x, u], -1))
+
+
+def test_gray_box_physics_equals_jacrev():
+    model = GrayBox()
+    x, u = data(m=1, scale=1.0)
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None  # quotients by nodes are taken
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
+    H_ref = reference_hessians(model, x, u)
+    hess = gj.graph_hessians(model, x, u)
+    assert hess is not None and max(h.abs().max() for h in H_ref) > 1e-3
+    for h, r in zip(hess[2], H_ref, strict=True):
+        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+
+
 class EntriesElsewhere(ts.Dynamics):
     """Entries of the state whose meaning depends on the batch dims: stacked along
     another dim, unsqueezed elsewhere, or combined with a tensor (broadcast along what

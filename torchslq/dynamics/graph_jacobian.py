@@ -12,7 +12,8 @@ the ``n`` output sensitivities ``G (rows, n, width)`` back through it (reverse m
 * ``nn.Linear``: ``G <- G W``, one matrix product over the rows;
 * an elementwise activation, or ``sin``, ``cos``, ``exp``, a square or a power by a
   number of the features: ``G <- G * s'(a)``;
-* ``+``, ``-``, ``*`` and ``/`` by a number or by a node of the same shape, negation,
+* ``+``, ``-``, ``*`` and ``/`` by a number or by a node of the same shape (a quotient
+  by a node adds ``-(a / b^2) db``), negation,
   ``torch.cat`` along the last dim, a slice of the last dim (``z[..., i:j]``);
 * a :class:`~torchslq.dynamics.base.Dynamics` submodule called on ``(a, b)`` (e.g. the
   discretised physics under a residual): its own Jacobians, by
@@ -665,6 +666,18 @@ def _reverse(
                     c = _dense(g, val(nd), n_out)
                     curvature(tangents[a], c, tangents[b])
                     curvature(tangents[b], c, tangents[a])
+            if tangents is not None and nd.target is operator.truediv and _var(args[1]):
+                # a / b: d2/da db = -1 / b^2, d2/db2 = 2 a / b^3
+                a, b = args
+                c = _dense(g, val(nd), n_out)
+                vb = val(b)
+                inv2 = 1.0 / (vb * vb)
+                if _var(a):
+                    cab = c * (-inv2).unsqueeze(1)
+                    curvature(tangents.get(a), cab, tangents.get(b))
+                    curvature(tangents.get(b), cab, tangents.get(a))
+                cbb = c * (2.0 * val(a) * inv2 / vb).unsqueeze(1)
+                curvature(tangents.get(b), cbb, tangents.get(b))
             _arithmetic(nd, g, val, n_out, add)
     x, u = program.inputs
     J = (_dense(G.get(x), val(x), n_out), _dense(G.get(u), val(u), n_out))
@@ -786,8 +799,17 @@ def _arithmetic_tangent(nd: fx.Node, tan, val):
         if ta is None or tb is None:
             return ta if tb is None else tb
         return ta + tb
-    if target is operator.truediv:
-        return None if ta is None else ta / val(b)
+    if target is operator.truediv:  # d(a / b) = da / b - (a / b^2) db
+        vb = val(b)
+        if not _var(b):
+            return None if ta is None else ta / vb
+        vb = vb.unsqueeze(1)
+        out = None if ta is None else ta / vb
+        if tb is not None:
+            va = val(a).unsqueeze(1) if _var(a) else val(a)
+            term = tb * (-va / (vb * vb))
+            out = term if out is None else out + term
+        return out
     # a product
     out = None
     if ta is not None:
@@ -817,9 +839,11 @@ def _arithmetic(nd: fx.Node, g, val, n_out: int, add) -> None:
         return
     va, vb = val(a), val(b)
     if target is operator.truediv:
-        if _var(b):
-            raise _Unsupported("division by a node")
-        add(a, g / vb)
+        if not _var(b):
+            add(a, g / vb)
+            return
+        add(a, g / vb.unsqueeze(1))
+        add(b, g * (-va / (vb * vb)).unsqueeze(1))
         return
     # a product: each factor's sensitivity is g times the other factor
     if _var(a):
