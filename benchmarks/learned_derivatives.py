@@ -56,6 +56,14 @@ linearize_module = importlib.import_module("torchslq.dynamics.linearize")
 COMMAND = "python benchmarks/learned_derivatives.py"
 
 
+def tanh_mlp(inputs: int, seed: int) -> nn.Sequential:
+    """An ``inputs``-64-64-4 tanh MLP in float64, initialised after ``manual_seed(seed)``."""
+    torch.manual_seed(seed)
+    return nn.Sequential(
+        nn.Linear(inputs, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(), nn.Linear(64, 4)
+    ).double()
+
+
 class FeatureCartPole(ts.Dynamics):
     """A fully learned cart-pole step on features of the state, as such models are often
     written: ``x + 0.05 net([s, sin th, cos th, s_dot, th_dot, u])``, ``net`` a 6-64-64-4
@@ -65,10 +73,7 @@ class FeatureCartPole(ts.Dynamics):
 
     def __init__(self):
         super().__init__()
-        torch.manual_seed(2)
-        self.net = nn.Sequential(
-            nn.Linear(6, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(), nn.Linear(64, 4)
-        ).double()
+        self.net = tanh_mlp(6, seed=2)
 
     def forward(self, x, u):
         th = x[..., 1:2]
@@ -84,10 +89,7 @@ class GrayBoxCartPole(ts.Dynamics):
 
     def __init__(self):
         super().__init__()
-        torch.manual_seed(3)
-        self.net = nn.Sequential(
-            nn.Linear(5, 64), nn.Tanh(), nn.Linear(64, 64), nn.Tanh(), nn.Linear(64, 4)
-        ).double()
+        self.net = tanh_mlp(5, seed=3)
 
     @staticmethod
     def rhs(x, f):

@@ -59,11 +59,9 @@ ACTIVATIONS = {
 }
 
 
-@pytest.mark.parametrize("name", list(ACTIVATIONS))
-@pytest.mark.parametrize("residual", [True, False])
-def test_learned_dynamics_equal_jacrev(name, residual):
-    model = ts.LearnedDynamics(mlp(*ACTIVATIONS[name]), 4, 2, residual=residual)
-    x, u = data()
+def assert_graph_equals_jacrev(model, x, u) -> None:
+    """The graph path is taken, by itself and by ``linearize``, and both give
+    torch.func's per-row Jacobians."""
     got = gj.graph_jacobians(model, x, u)
     assert got is not None  # the graph path is taken
     A_ref, B_ref = reference(model, x, u)
@@ -74,6 +72,31 @@ def test_learned_dynamics_equal_jacrev(name, residual):
     A, B = linearize(model, x, u)
     torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
     torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+
+
+def assert_graph_derivatives_equal_autodiff(model, x, u, curved: bool = True) -> None:
+    """:func:`graph_jacobians` and :func:`graph_hessians` are taken and give torch.func's
+    per-row Jacobians and nested-autodiff Hessians (``curved``: Hessians not all near
+    zero, so that there is curvature to get right)."""
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
+    H_ref = reference_hessians(model, x, u)
+    hess = gj.graph_hessians(model, x, u)
+    assert hess is not None and (max(h.abs().max() for h in H_ref) > 1e-4 or not curved)
+    torch.testing.assert_close(hess[0], A_ref, rtol=1e-12, atol=1e-14)
+    torch.testing.assert_close(hess[1], B_ref, rtol=1e-12, atol=1e-14)
+    for h, r in zip(hess[2], H_ref, strict=True):
+        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", list(ACTIVATIONS))
+@pytest.mark.parametrize("residual", [True, False])
+def test_learned_dynamics_equal_jacrev(name, residual):
+    model = ts.LearnedDynamics(mlp(*ACTIVATIONS[name]), 4, 2, residual=residual)
+    assert_graph_equals_jacrev(model, *data())
 
 
 class PhysicsResidual(ts.Dynamics):
@@ -142,17 +165,7 @@ class Features(ts.Dynamics):
 
 
 def test_features_of_the_state_equal_jacrev():
-    model = Features()
-    x, u = data(scale=1.0)
-    got = gj.graph_jacobians(model, x, u)
-    assert got is not None  # every op of the features is taken
-    A_ref, B_ref = reference(model, x, u)
-    assert B_ref.abs().max() > 1e-3
-    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
-    A, B = linearize(model, x, u)
-    torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-14)
+    assert_graph_equals_jacrev(Features(), *data(scale=1.0))  # every op of the features
 
 
 class Entries(ts.Dynamics):
@@ -187,19 +200,9 @@ class Entries(ts.Dynamics):
         return torch.cat([out[..., :3], out[..., 3:] + (th * v).unsqueeze(-1)], -1)
 
 
-def test_entries_of_the_state_equal_jacrev():
-    model = Entries()
-    x, u = data(scale=1.0)
-    got = gj.graph_jacobians(model, x, u)
-    assert got is not None  # integer indexing, stack and unsqueeze are taken
-    A_ref, B_ref = reference(model, x, u)
-    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
-    H_ref = reference_hessians(model, x, u)
-    hess = gj.graph_hessians(model, x, u)
-    assert hess is not None and max(h.abs().max() for h in H_ref) > 1e-3
-    for h, r in zip(hess[2], H_ref, strict=True):
-        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+def test_entries_of_the_state_equal_autodiff():
+    # integer indexing, stack and unsqueeze are taken
+    assert_graph_derivatives_equal_autodiff(Entries(), *data(scale=1.0))
 
 
 class GrayBox(ts.Dynamics):
@@ -234,16 +237,8 @@ def test_gray_box_physics_equals_jacrev(monkeypatch):
     assert gj.graph_jacobians(model, x, u) is None
     A, B = linearize(model, x, u)
     torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-14)
-    monkeypatch.setattr(gj, "MAX_ELEMENTWISE", 1000)
-    got = gj.graph_jacobians(model, x, u)
-    assert got is not None  # quotients by nodes are taken
-    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
-    H_ref = reference_hessians(model, x, u)
-    hess = gj.graph_hessians(model, x, u)
-    assert hess is not None and max(h.abs().max() for h in H_ref) > 1e-3
-    for h, r in zip(hess[2], H_ref, strict=True):
-        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
+    monkeypatch.setattr(gj, "MAX_ELEMENTWISE", 1000)  # quotients by nodes are taken
+    assert_graph_derivatives_equal_autodiff(model, x, u)
 
 
 class EntriesElsewhere(ts.Dynamics):
@@ -314,16 +309,20 @@ def test_a_plain_network_on_the_concatenation():
 
 
 class Indexing(ts.Dynamics):
-    """A model the graph path does not take (indexing by a tensor), with a network."""
+    """A model the graph path does not take (indexing by a tensor, or ``x[:, :]``, whose
+    meaning depends on the batch dims), with a network."""
 
     state_dim, control_dim = 4, 2
 
-    def __init__(self):
+    def __init__(self, rows: bool = False):
         super().__init__()
+        self.rows = rows
         self.net = mlp(nn.Tanh())
 
     def forward(self, x, u):
         out = self.net(torch.cat([x, u], -1))
+        if self.rows:
+            return out + x[:, :]
         return out + torch.sin(x[..., torch.tensor([0, 0, 1, 1])])
 
 
@@ -373,12 +372,20 @@ class BroadcastAtTheOutput(ts.Dynamics):
     "make, m",
     [
         (Indexing, 2),
+        (lambda: Indexing(rows=True), 2),
         (lambda: PerElement(6), 2),
         (Broadcasting, 1),
         (lambda: BroadcastAtTheOutput(2), 2),
         (lambda: BroadcastAtTheOutput(1), 1),
     ],
-    ids=["indexing", "per-element", "broadcasting", "broadcast-feature", "broadcast-control"],
+    ids=[
+        "indexing",
+        "indexing-rows",
+        "per-element",
+        "broadcasting",
+        "broadcast-feature",
+        "broadcast-control",
+    ],
 )
 def test_what_keeps_autograd_is_still_right(make, m):
     model = make()
@@ -569,16 +576,7 @@ def reference_hessians(model, x, u):
 @pytest.mark.parametrize("name", list(ACTIVATIONS))
 def test_graph_hessians_of_learned_dynamics_equal_nested_autodiff(name):
     model = ts.LearnedDynamics(mlp(*ACTIVATIONS[name]), 4, 2)
-    x, u = data()
-    got = gj.graph_hessians(model, x, u)
-    assert got is not None
-    A_ref, B_ref = reference(model, x, u)
-    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-14)
-    H_ref = reference_hessians(model, x, u)
-    assert max(h.abs().max() for h in H_ref) > 1e-4 or name == "relu-leaky"
-    for h, r in zip(got[2], H_ref, strict=True):
-        torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-14)
+    assert_graph_derivatives_equal_autodiff(model, *data(), curved=name != "relu-leaky")
 
 
 def test_graph_hessians_of_products_and_a_physics_step(monkeypatch):
@@ -628,19 +626,6 @@ def test_indexing_that_is_not_a_last_dim_slice_is_declined():
         (Ellipsis, torch.tensor([0, 1])),
     ):
         assert gj._last_dim_slice(index) is None
-
-    class RowsSliced(ts.Dynamics):
-        state_dim, control_dim = 4, 2
-
-        def __init__(self):
-            super().__init__()
-            self.net = mlp(nn.Tanh())
-
-        def forward(self, x, u):
-            return x[:, :] + self.net(torch.cat([x, u], -1))
-
-    x, u = data(lead=(5,))
-    assert gj.graph_jacobians(RowsSliced(), x, u) is None
 
 
 def test_graph_hessians_decline_wide_inputs():
