@@ -287,6 +287,16 @@ def test_blocks_of_rows_give_the_same_jacobians(monkeypatch):
     torch.testing.assert_close(blocked[1], whole[1], rtol=1e-14, atol=1e-15)
 
 
+def test_features_in_float32():
+    model = Features().to(torch.float32)
+    x, u = data(scale=1.0, dtype=torch.float32)
+    got = gj.graph_jacobians(model, x, u)
+    assert got is not None and got[0].dtype == torch.float32
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-5, atol=1e-6)
+
+
 def test_float32_works():
     model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.ReLU(), dtype=torch.float32), 4, 2)
     x, u = data(dtype=torch.float32)
