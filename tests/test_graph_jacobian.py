@@ -287,19 +287,17 @@ def test_blocks_of_rows_give_the_same_jacobians(monkeypatch):
     torch.testing.assert_close(blocked[1], whole[1], rtol=1e-14, atol=1e-15)
 
 
-def test_features_in_float32():
-    model = Features().to(torch.float32)
-    x, u = data(scale=1.0, dtype=torch.float32)
-    got = gj.graph_jacobians(model, x, u)
-    assert got is not None and got[0].dtype == torch.float32
-    A_ref, B_ref = reference(model, x, u)
-    torch.testing.assert_close(got[0], A_ref, rtol=1e-5, atol=1e-6)
-    torch.testing.assert_close(got[1], B_ref, rtol=1e-5, atol=1e-6)
-
-
-def test_float32_works():
-    model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.ReLU(), dtype=torch.float32), 4, 2)
-    x, u = data(dtype=torch.float32)
+@pytest.mark.parametrize(
+    "make, scale",
+    [
+        (lambda: ts.LearnedDynamics(mlp(nn.Tanh(), nn.ReLU()), 4, 2), 1.5),
+        (Features, 1.0),
+    ],
+    ids=["learned", "features"],
+)
+def test_float32_works(make, scale):
+    model = make().to(torch.float32)
+    x, u = data(scale=scale, dtype=torch.float32)
     got = gj.graph_jacobians(model, x, u)
     assert got is not None and got[0].dtype == torch.float32
     A_ref, B_ref = reference(model, x, u)
@@ -623,19 +621,22 @@ def test_graph_hessians_of_features_equal_nested_autodiff(monkeypatch):
             torch.testing.assert_close(h, r, rtol=1e-11, atol=1e-13)
 
 
-def test_indexing_that_is_not_a_last_dim_slice_is_declined():
-    """``z[:, i:j]`` slices the state on (rows, n) but a time dim on (B, T, n); a step,
-    an integer, a tensor index: all keep autograd."""
-    assert gj._last_dim_slice((Ellipsis, slice(1, 3))) == slice(1, 3)
-    assert gj._last_dim_slice((Ellipsis, slice(None, -1))) == slice(None, -1)
+def test_only_last_dim_slices_and_entries_are_taken():
+    """``z[..., i:j]`` and ``z[..., i]`` (held as the column ``i:i+1``) are taken;
+    ``z[:, i:j]`` slices the state on (rows, n) but a time dim on (B, T, n), and a step,
+    a bool or a tensor index: all keep autograd."""
+    assert gj._last_dim_part((Ellipsis, slice(1, 3))) == (slice(1, 3), False)
+    assert gj._last_dim_part((Ellipsis, slice(None, -1))) == (slice(None, -1), False)
+    assert gj._last_dim_part((Ellipsis, 1)) == (slice(1, 2), True)
+    assert gj._last_dim_part((Ellipsis, -1)) == (slice(-1, None), True)
     for index in (
         (slice(None), slice(1, 3)),
         slice(1, 3),
         (Ellipsis, slice(0, 4, 2)),
-        (Ellipsis, 1),
+        (Ellipsis, True),
         (Ellipsis, torch.tensor([0, 1])),
     ):
-        assert gj._last_dim_slice(index) is None
+        assert gj._last_dim_part(index) is None
 
 
 def test_graph_hessians_decline_wide_inputs():

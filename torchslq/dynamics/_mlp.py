@@ -79,10 +79,6 @@ def _exp(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
     return h, h
 
 
-def _square(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
-    return 2.0 * a, torch.full_like(a, 2.0)
-
-
 def _power(p: float):
     """``(d1, d2)`` of ``a ** p`` for a number ``p`` (a zero coefficient gives zeros, not
     ``0 * a ** -1``, NaN at ``a = 0``)."""
@@ -94,6 +90,9 @@ def _power(p: float):
         return d1, d2
 
     return power
+
+
+_square = _power(2)
 
 
 def _activation(layer: nn.Module):

@@ -97,14 +97,10 @@ _DERIVATIVES = {
     torch.square: (torch.square, _mlp._square),
 }
 _FUNCTIONS = {k: (f, _first(d)) for k, (f, d) in _DERIVATIVES.items()}
+# the same functions called as tensor methods (``z.tanh()``)
 _METHOD_DERIVATIVES = {
-    "tanh": _mlp._tanh,
-    "sigmoid": _mlp._sigmoid,
-    "relu": _mlp._relu,
-    "sin": _mlp._sin,
-    "cos": _mlp._cos,
-    "exp": _mlp._exp,
-    "square": _mlp._square,
+    name: _DERIVATIVES[getattr(torch, name)][1]
+    for name in ("tanh", "sigmoid", "relu", "sin", "cos", "exp", "square")
 }
 _METHODS = {k: _first(d) for k, d in _METHOD_DERIVATIVES.items()}
 # second derivatives s''(a) of the functional and method activations (the layers':
@@ -125,7 +121,7 @@ def _power_exponent(nd: fx.Node) -> float | None:
     if not is_power or len(nd.args) != 2 or not isinstance(nd.args[0], fx.Node):
         return None
     p = nd.args[1]
-    return p if isinstance(p, (int, float)) and not isinstance(p, bool) else None
+    return p if _is_number(p) else None
 
 
 _ARITHMETIC = (operator.add, operator.sub, operator.mul, operator.truediv, operator.neg)
@@ -133,6 +129,10 @@ _ARITHMETIC = (operator.add, operator.sub, operator.mul, operator.truediv, opera
 
 def _is_number(a) -> bool:
     return isinstance(a, (int, float)) and not isinstance(a, bool)
+
+
+def _is_int(a) -> bool:
+    return isinstance(a, int) and not isinstance(a, bool)
 
 
 def _node_args(args) -> list:
@@ -143,27 +143,20 @@ def _node_args(args) -> list:
     return out
 
 
-def _last_dim_index(index) -> int | None:
-    """``i`` of ``z[..., i]`` (an integer), else None."""
-    if isinstance(index, tuple) and len(index) == 2 and index[0] is Ellipsis:
-        i = index[1]
-        return i if isinstance(i, int) and not isinstance(i, bool) else None
-    return None
-
-
-def _last_dim_slice(index) -> slice | None:
-    """The slice of ``z[..., i:j]`` (a step of 1, bounds given as numbers), else None:
-    other indexing would reach the rows, or drop the last dim."""
+def _last_dim_part(index) -> tuple[slice, bool] | None:
+    """``(s, entry)`` for ``z[..., s]`` with ``s`` a slice of step 1 and bounds given as
+    numbers (``entry`` False), or for ``z[..., i]`` (``entry`` True, ``s`` the column
+    ``i:i+1`` it is held as); None for other indexing, which would reach the rows."""
     if not (isinstance(index, tuple) and len(index) == 2 and index[0] is Ellipsis):
         return None
-    s = index[1]
-    if not isinstance(s, slice) or s.step not in (None, 1):
+    key = index[1]
+    if _is_int(key):
+        return slice(key, key + 1 if key != -1 else None), True
+    if not isinstance(key, slice) or key.step not in (None, 1):
         return None
-    if not all(
-        b is None or (isinstance(b, int) and not isinstance(b, bool)) for b in (s.start, s.stop)
-    ):
+    if not all(b is None or _is_int(b) for b in (key.start, key.stop)):
         return None
-    return s
+    return key, False
 
 
 def _module_curvature(layer: nn.Module) -> Callable[[Tensor, Tensor], Tensor] | None:
@@ -269,10 +262,9 @@ class _Program:
         elif _power_exponent(nd) is not None:
             ok = True
         elif nd.op == "call_function" and nd.target is operator.getitem:
-            ok = not column and (
-                _last_dim_slice(nd.args[1]) is not None or _last_dim_index(nd.args[1]) is not None
-            )
-            column = ok and _last_dim_slice(nd.args[1]) is None
+            part = _last_dim_part(nd.args[1])
+            ok = not column and part is not None
+            column = ok and part[1]
         elif nd.op == "call_function" and nd.target is torch.stack:
             pieces = nd.args[0]
             dim = nd.kwargs.get("dim", nd.args[1] if len(nd.args) > 1 else 0)
@@ -511,16 +503,12 @@ def _forward(
                     raise _Unsupported(type(mod).__name__)
                 env[nd] = h = mod(args[0])
                 local[nd] = ("slope", (slope, args[0], h, _module_curvature(mod)))
-        elif _power_exponent(nd) is not None:
-            p = _power_exponent(nd)
+        elif (p := _power_exponent(nd)) is not None:
             env[nd] = h = args[0] ** p
             power = _mlp._power(p)
             local[nd] = ("slope", (_first(power), args[0], h, _second(power)))
         elif nd.target is operator.getitem:
-            s = _last_dim_slice(nd.args[1])
-            if s is None:  # z[..., i], kept as the column z[..., i:i+1]
-                i = _last_dim_index(nd.args[1])
-                s = slice(i, i + 1 if i != -1 else None)
+            s = _last_dim_part(nd.args[1])[0]  # z[..., i] as the column z[..., i:i+1]
             env[nd] = args[0][..., s]
             local[nd] = ("slice", (s, args[0].shape[-1]))
         elif nd.target is torch.stack:  # of columns, along the last dim
