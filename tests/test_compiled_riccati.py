@@ -635,6 +635,59 @@ def test_closed_loop_rollout_keeps_the_graph_of_a_model_that_needs_it(torch_path
     torch.testing.assert_close(grads[0], grads[1], rtol=0, atol=0)
 
 
+class _RowCounting(torch.nn.Module):
+    """A torch model (the unicycle's step, rows independent) recording how many rows it
+    is called on; ``scale`` optional per-element data ``(B, 1, 1)`` multiplying the
+    step's increment."""
+
+    def __init__(self, dtype, scale=None):
+        super().__init__()
+        from torchslq.systems import Unicycle
+
+        self.inner = Unicycle(0.1).to(dtype)
+        self.inner.compiled_step = lambda: None
+        self.scale = None if scale is None else torch.nn.Parameter(scale, requires_grad=False)
+        self.rows = []
+
+    def forward(self, x, u):
+        self.rows.append(x.shape[:-1].numel())
+        dx = self.inner(x, u) - x
+        return x + (dx if self.scale is None else self.scale * dx)
+
+
+@pytest.mark.parametrize(
+    "case", ["alphas", "bounds", "time-shared-bounds", "per-element", "float32"]
+)
+def test_closed_loop_rollout_of_the_needed_rows_only(torch_path, case):
+    """A line search's NaN trial steps (trials no element needs): a torch model whose rows
+    are independent is rolled out on the other rows only, and every row equals the torch
+    path's, where all rows are rolled out (the kept ones bit for bit; the skipped ones
+    NaN after ``x0``, NaN controls). A model with per-element data is called on all rows
+    (its data would not line up with a subset). float32: within the tolerance of
+    :func:`test_compiled_closed_loop_rollout_equals_torch_path`."""
+    from torchslq.dynamics.rollout import rollout_closed_loop
+
+    dtype = torch.float32 if case == "float32" else F64
+    Na, B, T, n, m = 4, 5, 7, 3, 2
+    d, kw = _rollout_case("alphas" if case == "per-element" else case, B, T, n, m, dtype)
+    needed = torch.rand(Na, B, generator=torch.Generator().manual_seed(2)) < 0.4
+    d["alpha"] = torch.where(needed, d["alpha"], float("nan"))
+    scale = 0.5 + torch.rand(B, 1, 1, dtype=dtype) if case == "per-element" else None
+    f = _RowCounting(dtype, scale)
+    x, u = rollout_closed_loop(f, **d, **kw)
+    with torch_path:
+        xr, ur = rollout_closed_loop(f, **d, **kw)
+    full = Na * B
+    assert f.rows[:T] == [full if case == "per-element" else int(needed.sum())] * T
+    assert f.rows[T:] == [full] * T
+    tol = 0.0 if dtype == F64 else 1e-6  # (float32: the feedback kernel's rounding)
+    torch.testing.assert_close(x, xr, rtol=0, atol=tol, equal_nan=True)
+    torch.testing.assert_close(u, ur, rtol=0, atol=tol, equal_nan=True)
+    assert bool(x[~needed][:, 1:].isnan().all()) and bool(u[~needed].isnan().all())
+    assert bool(x[needed].isfinite().all()) and bool(u[needed].isfinite().all())
+    torch.testing.assert_close(x[..., 0, :], d["x0"], rtol=0, atol=0)
+
+
 @pytest.mark.parametrize("case", ["plain", "feedback", "shared-dynamics", "float32"])
 def test_compiled_costate_gradient_equals_torch_path(torch_path, case):
     """costate_gradient on the CPU kernel == the torch recursion (same order of

@@ -6,7 +6,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import torch
-from torch import Tensor
+from torch import Tensor, nn
 
 from .._backend import (
     can_use_compiled,
@@ -17,6 +17,7 @@ from .._backend import (
 )
 from .._pinned import pinned
 from .._shapes import broadcast_shapes
+from .row_blocks import rows_independent
 
 __all__ = ["checked_step", "costate_gradient", "rollout", "rollout_closed_loop"]
 
@@ -137,17 +138,66 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
         skip = skip if bool(skip.any()) else None
         x = closed_loop_rollout_compiled(*compiled, x0, xn, KB, u, u_min, u_max, skip)
         return x, u
-    feedback = closed_loop_feedback_compiled(xn, KB, u, u_min, u_max)
+    x0 = x0.expand(*lead, n)
+    skip = torch.isnan(alpha).expand(lead)
+    if len(lead) > 1 and _rows_separable(f, B) and bool(skip.any()):
+        return _rollout_needed_rows(f, x0, xn, KB, u, u_min, u_max, ~skip)
+    x = _feedback_loop(f, x0, xn, KB, u, u_min, u_max)
+    return None if x is None else (x, u)
+
+
+def _rows_separable(f, batch_size: int) -> bool:
+    """Whether ``f`` may be called on any subset of a batch's rows: a module holding no
+    per-element data (:func:`~torchslq.dynamics.row_blocks.rows_independent`; a plain
+    callable may hold some out of sight)."""
+    return isinstance(f, nn.Module) and rows_independent(f, torch.Size([batch_size]))
+
+
+def _feedback_loop(f, x0, xn, K, u, u_min, u_max) -> Tensor | None:
+    """The closed-loop rollout of a torch model, step by step, with the feedback of each
+    step on the CPU kernel (:func:`_rollout_closed_loop_compiled`'s arguments, ``u``
+    overwritten with the applied controls); ``x (..., B, T+1, n)``, or None when the
+    model's states need autograd."""
+    feedback = closed_loop_feedback_compiled(xn, K, u, u_min, u_max)
     grad = torch.is_grad_enabled()
-    xt = x0.expand(*lead, n).unsqueeze(-2)
+    xt = x0.unsqueeze(-2)
     xs = [xt]
-    for t in range(T):
+    for t in range(u.shape[-2]):
         if grad and xt.requires_grad:
             return None
         feedback(t, xt)
         xt = checked_step(f(xt, u[..., t : t + 1, :]), xt)
         xs.append(xt)
-    return torch.cat(xs, dim=-2), u
+    return torch.cat(xs, dim=-2)
+
+
+def _rollout_needed_rows(f, x0, xn, K, u, u_min, u_max, needed):
+    """:func:`_feedback_loop` on the rows of ``needed (..., B)`` only: a line search's
+    later passes need the trials of the few elements still searching (NaN steps mark the
+    others), and a torch model's cost grows with its rows. The other rows' states after
+    ``x0`` and their controls are NaN, as a NaN step gives them."""
+    B, T, m = u.shape[-3:]
+    n = x0.shape[-1]
+    rows = needed.reshape(-1).nonzero().squeeze(-1)
+    elements = rows % B  # the lead's last dim is the batch
+    uf = u.view(-1, T, m)
+
+    def of_elements(b):
+        return None if b is None else b.expand(B, T, m)[elements]
+
+    u_rows = uf[rows]
+    x_rows = _feedback_loop(
+        f, x0.reshape(-1, n)[rows], xn[elements], K[elements], u_rows,
+        of_elements(u_min), of_elements(u_max),
+    )  # fmt: skip
+    if x_rows is None:
+        return None
+    x = x0.new_full((uf.shape[0], T + 1, n), float("nan"))
+    x[:, 0] = x0.reshape(-1, n)
+    x[rows] = x_rows
+    uf.fill_(float("nan"))
+    uf[rows] = u_rows
+    return x.view(*u.shape[:-2], T + 1, n), u
 
 
 def _rollout_compiled(f, x0: Tensor, u: Tensor) -> Tensor | None:
