@@ -90,6 +90,14 @@ def is_generated(fn) -> bool:
         return False
 
 
+def generated_module(fn) -> ModuleType | None:
+    """The generated module whose ``rhs`` is ``fn``, or None."""
+    try:
+        return _BOUND.get(fn)
+    except TypeError:  # unhashable
+        return None
+
+
 def bound_kernels(fn, rows: int, kernel: str, dtype) -> ModuleType | None:
     """The generated module whose ``rhs`` is ``fn`` when a pass of ``rows`` rows over
     arrays of ``dtype`` should run its ``kernel`` (a name): the pass is large enough

@@ -78,12 +78,15 @@ class Dynamics(nn.Module):
         one compiled loop (:func:`torchslq.dynamics.rollout_closed_loop`). It must compute
         what :meth:`forward` computes (up to the last bits of library functions such as
         ``cos``). By default generated from :meth:`forward`
-        (:mod:`torchslq.dynamics.codegen`, which says when it cannot be)."""
+        (:mod:`torchslq.dynamics.codegen`, which says when it cannot be), or for a
+        learned model from its traced graph (:mod:`torchslq.dynamics.network_codegen`)."""
         from .codegen import generated_hooks
 
         hooks = generated_hooks(self)
         if hooks is None:
-            return None
+            from .network_codegen import network_step
+
+            return network_step(self)  # a learned model's, from its traced graph
         return hooks.step, hooks.params(self)
 
     def compiled_jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:

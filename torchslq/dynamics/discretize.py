@@ -135,10 +135,15 @@ class DiscretizedDynamics(Dynamics):
         step = pinned(self, "generated_step", self._generated_step_now)
         if step is None:
             return None
-        if x.ndim == 2 and x.shape[0] == u.shape[0] and x.is_contiguous() and u.is_contiguous():
-            return step_rows_compiled(step[0], step[1], x.detach(), u.detach())
-        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
         n, m = x.shape[-1], u.shape[-1]
+        if x.shape[:-1] == u.shape[:-1] and x.is_contiguous():
+            # (a rollout's (..., 1, n) states: views of the rows, no copies; its
+            # controls are a time slice, strided, and copied)
+            ur = u.detach().reshape(-1, m)
+            ur = ur if ur.is_contiguous() else ur.contiguous()
+            out = step_rows_compiled(step[0], step[1], x.detach().view(-1, n), ur)
+            return out.view(x.shape)
+        lead = broadcast_shapes(x.shape[:-1], u.shape[:-1])
         xr = x.detach().expand(*lead, n).reshape(-1, n).contiguous()
         ur = u.detach().expand(*lead, m).reshape(-1, m).contiguous()
         return step_rows_compiled(step[0], step[1], xr, ur).view(*lead, n)

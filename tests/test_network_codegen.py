@@ -1,0 +1,257 @@
+"""A learned model's compiled step written from its traced graph
+(torchslq.dynamics.network_codegen): the step against the model's own forward, rollouts
+and a solve against the torch path, what it declines, and its activations against
+torch's."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from test_graph_jacobian import (
+    ACTIVATIONS,
+    BroadcastAtTheOutput,
+    Broadcasting,
+    Entries,
+    Features,
+    GrayBox,
+    Indexing,
+    PerElement,
+    PhysicsResidual,
+    Scaled,
+    data,
+    mlp,
+)
+from torch import nn
+
+import torchslq as ts
+from torchslq._backend import step_rows_compiled
+from torchslq.dynamics import _numba_net, codegen, network_codegen
+from torchslq.dynamics.rollout import rollout_closed_loop
+from torchslq.systems import CartPole
+
+pytestmark = pytest.mark.codegen  # (the suite's own models otherwise keep torch ops)
+
+F64 = torch.float64
+
+
+def compiled_rows(model, x, u):
+    """The network step of ``model`` on every row of ``x, u`` (None without one). (Its
+    ``compiled_step`` may be codegen's instead: that takes networks of up to 256
+    weights.)"""
+    got = network_codegen.network_step(model)
+    if got is None:
+        return None
+    n, m = x.shape[-1], u.shape[-1]
+    out = step_rows_compiled(*got, x.reshape(-1, n).contiguous(), u.reshape(-1, m).contiguous())
+    return out.reshape(x.shape)
+
+
+def torch_path(model):
+    """The same model without compiled code (its rollouts on torch ops)."""
+    model.generate_compiled_code = False
+    return model
+
+
+class LearnedPhysics(ts.Dynamics):
+    """A residual network on a generated physics step: the compiled step calls the
+    physics module's own."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.physics = ts.discretize(CartPole(), 0.05, "rk4").to(F64)
+        self.net = mlp(nn.Tanh(), nn.Tanh(), k=5, out=4)
+        with torch.no_grad():
+            self.net[-1].weight.mul_(0.01)
+
+    def forward(self, x, u):
+        return self.physics(x, u) + self.net(torch.cat([x, u], -1))
+
+
+MODELS = {
+    **{
+        f"learned-{name}": (lambda a=acts: ts.LearnedDynamics(mlp(*a), 4, 2), 2)
+        for name, acts in ACTIVATIONS.items()
+    },
+    "learned-not-residual": (
+        lambda: ts.LearnedDynamics(mlp(nn.Tanh()), 4, 2, residual=False),
+        2,
+    ),
+    "physics-residual": (PhysicsResidual, 1),
+    "learned-physics": (LearnedPhysics, 1),
+    "features": (Features, 2),
+    "entries": (Entries, 2),
+    "gray-box": (GrayBox, 1),
+}
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_compiled_step_equals_forward(name):
+    make, m = MODELS[name]
+    model = make()
+    x, u = data(m=m, scale=1.0)
+    got = compiled_rows(model, x, u)
+    assert got is not None  # the step is written
+    with torch.no_grad():
+        ref = model(x, u)
+    torch.testing.assert_close(got, ref, rtol=1e-13, atol=1e-13)
+
+
+@pytest.mark.parametrize(
+    "make, m",
+    [
+        (Indexing, 2),
+        (lambda: Indexing(rows=True), 2),
+        (lambda: PerElement(6), 2),
+        (Broadcasting, 1),
+        (lambda: BroadcastAtTheOutput(2), 2),
+        (lambda: BroadcastAtTheOutput(1), 1),
+        (lambda: torch_path(LearnedPhysics()), 1),
+    ],
+    ids=[
+        "indexing",
+        "indexing-rows",
+        "per-element",
+        "broadcasting",
+        "broadcast-feature",
+        "broadcast-control",
+        "switched-off",
+    ],
+)
+def test_what_the_step_declines(make, m):
+    assert network_codegen.network_step(make()) is None
+
+
+def test_a_physics_step_without_compiled_code_is_declined():
+    model = LearnedPhysics()
+    model.physics.continuous.generate_compiled_code = False
+    assert model.physics.compiled_step() is None
+    assert network_codegen.network_step(model) is None
+
+
+def test_a_model_changed_after_its_trace_is_written_again():
+    model = Scaled()
+    x, u = data()
+    with torch.no_grad():
+        torch.testing.assert_close(compiled_rows(model, x, u), model(x, u), rtol=1e-13, atol=1e-13)
+        model.scale = 0.5
+        model.residual = False
+        got = compiled_rows(model, x, u)
+        assert got is not None
+        torch.testing.assert_close(got, model(x, u), rtol=1e-13, atol=1e-13)
+
+
+def test_float32_model():
+    torch.manual_seed(0)
+    model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.SiLU(), dtype=torch.float32), 4, 2)
+    x, u = data(m=2, dtype=torch.float32, scale=1.0)
+    got = compiled_rows(model, x, u)
+    assert got is not None and got.dtype == torch.float32
+    with torch.no_grad():
+        torch.testing.assert_close(got, model(x, u), rtol=1e-5, atol=1e-5)
+
+
+def test_closed_loop_rollout_equals_torch_path():
+    """Candidate steps, a NaN step (not rolled out) and bounds: the compiled rollout's
+    states and controls are the torch path's to rounding."""
+    g = torch.Generator().manual_seed(4)
+    B, T, n, m = 5, 12, 4, 1
+    model = LearnedPhysics()
+    d = {
+        "x0": 0.3 * torch.randn(3, B, n, generator=g, dtype=F64),
+        "x_nom": 0.3 * torch.randn(B, T + 1, n, generator=g, dtype=F64),
+        "u_nom": torch.randn(B, T, m, generator=g, dtype=F64),
+        "K": 0.2 * torch.randn(B, T, m, n, generator=g, dtype=F64),
+        "k": torch.randn(B, T, m, generator=g, dtype=F64),
+        "alpha": torch.tensor([[1.0] * B, [0.5] * B, [0.25, float("nan"), 0.25, 0.25, 0.25]]),
+        "u_min": -1.5 * torch.ones(B, T, m, dtype=F64),
+        "u_max": 1.0 * torch.ones(B, T, m, dtype=F64),
+    }
+    d["alpha"] = d["alpha"].to(F64)
+    with torch.no_grad():
+        assert "256" in codegen.explain(model)  # codegen declines it: the network step
+        assert model.compiled_step() is not None
+        x, u = rollout_closed_loop(model, **d)
+        xr, ur = rollout_closed_loop(torch_path(LearnedPhysics()), **d)
+    torch.testing.assert_close(x, xr, rtol=1e-12, atol=1e-12, equal_nan=True)
+    torch.testing.assert_close(u, ur, rtol=1e-12, atol=1e-12, equal_nan=True)
+    assert bool(x[2, 1, 1:].isnan().all()) and bool(x[:2].isfinite().all())
+
+
+@pytest.mark.parametrize("solver", ["ddp", "ilqr"])
+def test_solve_equals_torch_path(solver, monkeypatch):
+    """A solve of a learned model with its compiled step (the fused line search) reaches
+    the torch path's solution: the same costs (to rounding) and, for DDP, the same
+    iterations."""
+    from torchslq.solvers import descent
+
+    calls = []
+    real = descent.armijo_rollout_compiled
+
+    def counting(*a, **k):
+        calls.append(1)
+        return real(*a, **k)
+
+    monkeypatch.setattr(descent, "armijo_rollout_compiled", counting)
+    cost = ts.QuadraticCost(
+        Q=0.1 * torch.eye(4, dtype=F64),
+        R=0.01 * torch.eye(1, dtype=F64),
+        Qf=10.0 * torch.eye(4, dtype=F64),
+        x_ref=torch.tensor([0.0, 0.5, 0.0, 0.0], dtype=F64),
+    )
+    x0 = 0.1 * torch.randn(6, 4, generator=torch.Generator().manual_seed(1), dtype=F64)
+    cls = {"ddp": ts.DDP, "ilqr": ts.ILQR}[solver]
+    results = []
+    for make in (LearnedPhysics, lambda: torch_path(LearnedPhysics())):
+        problem = ts.Problem(make(), cost, 20)
+        results.append(cls(max_iter=60, tol=1e-8, progress=False).solve(problem, x0))
+    fast, slow = results
+    assert calls  # the compiled search ran for the first solve
+    assert bool(slow.converged.any())
+    if solver == "ddp":  # (iLQR's slow tail crosses tol after a rounding-dependent count)
+        assert fast.status.tolist() == slow.status.tolist()
+        assert fast.iterations.tolist() == slow.iterations.tolist()
+    torch.testing.assert_close(fast.cost, slow.cost, rtol=1e-12, atol=0.0)
+    torch.testing.assert_close(fast.u, slow.u, rtol=0.0, atol=1e-5)  # (a flat optimum)
+
+
+@pytest.mark.parametrize(
+    "name, fn, ref",
+    [
+        ("tanh", _numba_net.tanh, torch.tanh),
+        ("sigmoid", _numba_net.sigmoid, torch.sigmoid),
+        ("relu", _numba_net.relu, torch.relu),
+        ("silu", _numba_net.silu, torch.nn.functional.silu),
+        ("gelu", _numba_net.gelu, torch.nn.functional.gelu),
+        ("softplus", lambda a: _numba_net.softplus(a, 2.0, 3.0), nn.Softplus(2.0, 3.0)),
+        ("elu", lambda a: _numba_net.elu(a, 0.7), nn.ELU(0.7)),
+        ("leaky", lambda a: _numba_net.leaky_relu(a, 0.1), nn.LeakyReLU(0.1)),
+    ],
+)
+def test_activations_equal_torch(name, fn, ref):
+    """Within a few ulp of torch's over N(0, 3^2), tiny inputs and the edges
+    (infinities, NaN, where an activation switches branch)."""
+    g = torch.Generator().manual_seed(0)
+    a = torch.cat(
+        [
+            3.0 * torch.randn(2000, generator=g, dtype=F64),
+            torch.logspace(-12, -1, 50, dtype=F64),
+            -torch.logspace(-12, -1, 50, dtype=F64),
+            torch.tensor([0.0, 0.25, -0.25, 1.5, 20.0, -20.0, 800.0, -800.0], dtype=F64),
+        ]
+    )
+    got = torch.tensor([fn(float(v)) for v in a], dtype=F64)
+    with torch.no_grad():
+        want = ref(a)
+    # (relative to |a| where that is larger: GELU's 1 + erf(a / sqrt 2) cancels for
+    # large negative a, in torch's formula as in this one)
+    ulp = torch.finfo(F64).eps * torch.maximum(want.abs(), a.abs()).clamp_min(1e-300)
+    assert float(((got - want).abs() / ulp).max()) <= 4.0
+    for v in (math.inf, -math.inf):
+        torch.testing.assert_close(
+            torch.tensor(fn(v), dtype=F64), ref(torch.tensor(v, dtype=F64)), equal_nan=True
+        )
+    assert math.isnan(fn(math.nan))
