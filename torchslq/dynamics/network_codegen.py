@@ -34,13 +34,14 @@ from __future__ import annotations
 
 import hashlib
 import operator
+import weakref
 from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import Tensor, fx, nn
+from torch import fx, nn
 
 from .base import Dynamics
 from .graph_jacobian import (
@@ -141,15 +142,15 @@ class _Writer:
         self.names: dict[fx.Node, str] = {}
         self.widths: dict[fx.Node, int] = {}
         self.subs: list[tuple[str, object]] = []  # (global name, step function)
+        self.sources: list[tuple[str, str]] = []  # what each piece of the array is
 
-    def param(self, values: Tensor | np.ndarray) -> int:
-        """Append ``values`` (flattened, float64) to the parameters; their offset."""
-        a = np.asarray(
-            values.detach().cpu().double().numpy() if torch.is_tensor(values) else values,
-            dtype=np.float64,
-        ).reshape(-1)
+    def param(self, root: nn.Module, source: tuple[str, str]) -> int:
+        """Append the parameters ``source`` names (:func:`_parameter`) to the array; their
+        offset."""
+        a = _parameter(root, source)
         offset = self.size
         self.params.append(a)
+        self.sources.append(source)
         self.size += a.size
         return offset
 
@@ -163,7 +164,7 @@ class _Writer:
         self.emit(f"{name} = np.empty({width})")
         return name
 
-    def operand(self, a, width: int, env: dict) -> Callable[[str], str]:
+    def operand(self, a, width: int, env: dict, root: nn.Module) -> Callable[[str], str]:
         """``i -> the text of operand a at entry i`` of an elementwise node ``width``
         wide: a node as wide, a number, or a constant of one or ``width`` entries."""
         if _var(a):
@@ -172,11 +173,13 @@ class _Writer:
                 raise _Unsupported("nodes of different widths")
             return lambda i: f"{name}[{i}]"
         value = env[a] if isinstance(a, fx.Node) else a
+        if torch.is_tensor(value) and not isinstance(a, fx.Node):
+            raise _Unsupported("a tensor constant that is not an attribute")
         if _is_number(value):
             text = repr(float(value))
             return lambda i: text
         if torch.is_tensor(value) and value.ndim <= 1 and value.numel() in (1, width):
-            off = self.param(value)
+            off = self.param(root, ("attribute", a.target))
             if value.numel() == 1:
                 return lambda i: f"p[{off}]"
             return lambda i: f"p[{off} + {i}]"
@@ -186,6 +189,26 @@ class _Writer:
         name = self.new(nd, width)
         self.emit(f"for i in range({width}):")
         self.emit(f"{name}[i] = {text('i')}", 2)
+
+
+def _parameter(root: nn.Module, source: tuple[str, str]) -> np.ndarray:
+    """The float64 entries of a piece of the parameter array: a layer's ``weight``
+    (transposed, its columns contiguous) or ``bias``, a constant ``attribute``, or a
+    Dynamics submodule's ``step`` parameters; named relative to ``root``."""
+    kind, target = source
+    if kind == "attribute":
+        value = root
+        for part in target.split("."):
+            value = getattr(value, part)
+    elif kind == "step":
+        value = root.get_submodule(target).compiled_step()[1]
+    else:
+        value = getattr(root.get_submodule(target), kind)
+        if kind == "weight":
+            value = value.detach().T
+    if torch.is_tensor(value):
+        value = value.detach().cpu().double().numpy()
+    return np.ascontiguousarray(value, dtype=np.float64).reshape(-1)
 
 
 def _sub_step(mod: Dynamics) -> tuple[object, np.ndarray, Path | None, str | None]:
@@ -236,7 +259,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 a, b = args
                 if not (_var(a) and _var(b)):
                     raise _Unsupported("a Dynamics submodule on constants")
-                off = w.param(params)
+                off = w.param(root, ("step", nd.target))
                 g = f"_sub{len(w.subs)}"
                 w.subs.append((g, step))
                 if path is not None:
@@ -252,11 +275,11 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 (a,) = args
                 if not _var(a) or w.widths[a] != mod.in_features:
                     raise _Unsupported("a layer on a constant")
-                woff = w.param(mod.weight.detach().T.contiguous())
+                woff = w.param(root, ("weight", nd.target))
                 name = w.new(nd, width)
                 w.emit(f"for o in range({width}):")
                 if mod.bias is not None:
-                    boff = w.param(mod.bias)
+                    boff = w.param(root, ("bias", nd.target))
                     w.emit(f"{name}[o] = p[{boff} + o]", 2)
                 else:
                     w.emit(f"{name}[o] = 0.0", 2)
@@ -268,10 +291,10 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 template = _activation_module(mod)
                 if template is None or len(args) != 1:
                     raise _Unsupported(type(mod).__name__)
-                a = w.operand(args[0], width, env)
+                a = w.operand(args[0], width, env, root)
                 w.elementwise(nd, width, lambda i, t=template, a=a: t.format(a(i)))
         elif (p := _power_exponent(nd)) is not None:
-            a = w.operand(args[0], width, env)
+            a = w.operand(args[0], width, env, root)
             if p == 2:
                 w.elementwise(nd, width, lambda i, a=a: f"({a(i)} * {a(i)})")
             else:
@@ -296,18 +319,18 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
         elif nd.target == "unsqueeze":
             w.names[nd], w.widths[nd] = w.names[args[0]], w.widths[args[0]]
         elif nd.op == "call_method" and nd.target in _METHOD_ELEMENTWISE:
-            a = w.operand(args[0], width, env)
+            a = w.operand(args[0], width, env, root)
             t = _METHOD_ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda i, t=t, a=a: t.format(a(i)))
         elif nd.op == "call_function" and nd.target in _ELEMENTWISE:
-            a = w.operand(args[0], width, env)
+            a = w.operand(args[0], width, env, root)
             t = _ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda i, t=t, a=a: t.format(a(i)))
         elif nd.target is operator.neg:
-            a = w.operand(args[0], width, env)
+            a = w.operand(args[0], width, env, root)
             w.elementwise(nd, width, lambda i, a=a: f"(-{a(i)})")
         elif nd.target in _OPERATORS:
-            a, b = (w.operand(q, width, env) for q in args)
+            a, b = (w.operand(q, width, env, root) for q in args)
             op = _OPERATORS[nd.target]
             w.elementwise(nd, width, lambda i, a=a, b=b, op=op: f"({a(i)} {op} {b(i)})")
         else:
@@ -414,20 +437,56 @@ def network_step(model: nn.Module) -> tuple[Callable, np.ndarray] | None:
         return None
     if any(not t.is_cpu for t in (*model.parameters(), *model.buffers())):
         return None
+    key = (_structure_key(model), dtype)
+    hit = _BUILT.get(model)
+    if hit is not None and hit[0] == key:  # the same structure: new weights only
+        step, sources = hit[1], hit[2]
+        root = _root(model)
+        params = _concatenated([_parameter(root, source) for source in sources])
+        if _matches(model, step, params, n, m, dtype):
+            return step, params
+    _BUILT.pop(model, None)
     for _ in range(2):
         got = _build(model, n, m, dtype)
         if got is not _STALE:
-            return got
+            if got is not None:
+                _BUILT[model] = (key, got[0], got[2])
+                return got[:2]
+            return None
         # a trace holds forward's Python numbers and branches: trace it again, once
         _PROGRAMS.pop(model, None)
     return None
+
+
+# model -> (structure key, step, the parameter array's sources): a solve of a model
+# built before reads its weights and checks the step, without tracing or writing it
+_BUILT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def _structure_key(model: nn.Module) -> tuple:
+    """codegen's structure key (tensor names and shapes, plain attributes) with the
+    values of float attributes, which a trace holds as numbers."""
+    from .codegen import _structure_key as structure
+
+    floats = tuple(
+        (name, k, v)
+        for name, mod in model.named_modules()
+        for k, v in vars(mod).items()
+        if type(v) is float and not k.startswith("_")
+    )
+    return structure(model), floats
+
+
+def _concatenated(pieces: list[np.ndarray]) -> np.ndarray:
+    return np.concatenate(pieces) if pieces else np.zeros(1)
 
 
 _STALE = object()
 
 
 def _build(model: nn.Module, n: int, m: int, dtype: torch.dtype):
-    """:func:`network_step` from the model's current trace: ``(step, params)``, None
+    """:func:`network_step` from the model's current trace: ``(step, params,
+    sources)``, None
     where it cannot be written or compiled, or ``_STALE`` where it differs from
     ``forward``."""
     program = _program(model)
@@ -444,7 +503,7 @@ def _build(model: nn.Module, n: int, m: int, dtype: torch.dtype):
     text = header + body
     digest = hashlib.sha256(text.encode()).hexdigest()[:24]
     in_memory = bool(w.subs) and "_import_source" not in body
-    params = np.concatenate(w.params) if w.params else np.zeros(1)
+    params = _concatenated(w.params)
     try:
         step = _load(text, digest, w.subs, in_memory)
         if not _matches(model, step, params, n, m, dtype):
@@ -452,7 +511,7 @@ def _build(model: nn.Module, n: int, m: int, dtype: torch.dtype):
     except Exception as e:  # noqa: BLE001 - a step numba cannot compile: the torch path
         _warn_once(type(model).__name__, e)
         return None
-    return step, params
+    return step, params, w.sources
 
 
 _WARNED: set[str] = set()
