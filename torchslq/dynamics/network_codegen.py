@@ -335,6 +335,8 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
             w.elementwise(nd, width, lambda i, a=a, b=b, op=op: f"({a(i)} {op} {b(i)})")
         else:
             raise _Unsupported(f"{nd.op} {nd.target}")
+    if not _var(program.output) or w.widths[program.output] != n:
+        raise _Unsupported("the output is not a state")
     out = w.names[program.output]
     w.emit(f"for i in range({n}):")
     w.emit(f"out[i] = {out}[i]", 2)

@@ -1,0 +1,151 @@
+"""A learned model's closed-loop rollouts on its compiled step against torch ops.
+
+Not part of the test suite. Run from the repo root::
+
+    .venv/bin/python benchmarks/learned_rollouts.py            # -> benchmarks/results
+    .venv/bin/python benchmarks/learned_rollouts.py --quick    # fewer rows and rounds
+
+The models of ``benchmarks/learned_derivatives.py``: ``learned`` (the user's cart-pole RK4
+step, generated code, plus a 5-64-64-4 tanh residual MLP), ``features`` (a 6-64-64-4 tanh
+MLP on slices and ``sin``/``cos`` of the state) and ``graybox`` (the cart-pole's
+equations inline in torch ops in one RK4 step, plus the MLP). Each has a compiled step
+written from its traced graph (``torchslq/dynamics/network_codegen.py``); the same
+model with ``generate_compiled_code = False`` is rolled out step by step on torch ops,
+as before that step existed. A rollout is
+:func:`torchslq.dynamics.rollout_closed_loop` over ``T = 50`` steps with random gains
+and a nominal trajectory, ``rows`` trials at once (a line search's candidate steps times
+the batch), inside one solve's scope (what a solve pins once, pinned once). float64, one
+thread; the two ways alternate ``--rounds`` times and the minimum of 3 calls each is
+kept. The largest difference between the two ways' states is printed beside the times.
+Results go to ``--out`` (``learned_rollouts.{json,md}``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+import datetime
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from _env import load, package_versions  # noqa: E402
+from learned_derivatives import MODELS  # noqa: E402
+
+from torchslq._pinned import solve_scope  # noqa: E402
+from torchslq.dynamics.rollout import rollout_closed_loop  # noqa: E402
+
+COMMAND = "python benchmarks/learned_rollouts.py"
+T = 50
+
+
+def _time(fn, repeats: int = 3) -> float:
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def measure(name: str, rows: int, rounds: int) -> dict:
+    """Minimum times (ms) of one rollout of ``rows`` rows, compiled step and torch ops."""
+    fast = MODELS[name]()
+    slow = copy.deepcopy(fast)
+    slow.generate_compiled_code = False
+    g = torch.Generator().manual_seed(rows)
+    n, m = fast.state_dim, fast.control_dim
+    data = {
+        "x0": 0.3 * torch.randn(rows, n, generator=g, dtype=torch.float64),
+        "x_nom": 0.3 * torch.randn(rows, T + 1, n, generator=g, dtype=torch.float64),
+        "u_nom": torch.randn(rows, T, m, generator=g, dtype=torch.float64),
+        "K": 0.1 * torch.randn(rows, T, m, n, generator=g, dtype=torch.float64),
+        "k": torch.randn(rows, T, m, generator=g, dtype=torch.float64),
+        "alpha": torch.full((1, rows), 0.5, dtype=torch.float64),
+    }
+    times = {"compiled": float("inf"), "torch": float("inf")}
+    outs = {}
+    with solve_scope(), torch.no_grad():
+        taken = fast.compiled_step() is not None
+        for _ in range(rounds):
+            for way, model in (("compiled", fast), ("torch", slow)):
+                outs[way] = rollout_closed_loop(model, **data)[0]  # (a warm-up at first)
+                times[way] = min(
+                    times[way], _time(lambda m=model: rollout_closed_loop(m, **data)) * 1e3
+                )
+    return {
+        "model": name,
+        "rows": rows,
+        "compiled_step": taken,
+        "compiled_ms": round(times["compiled"], 3),
+        "torch_ms": round(times["torch"], 3),
+        "speedup": round(times["torch"] / times["compiled"], 2),
+        "max_abs_diff": float((outs["compiled"] - outs["torch"]).abs().max()),
+    }
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--quick", action="store_true", help="rows 1, 64 and 2 rounds, to /tmp")
+    ap.add_argument("--models", default=",".join(MODELS), help="of " + ",".join(MODELS))
+    ap.add_argument("--rows", default="1,8,64,512,1536,4096")
+    ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--out", default="benchmarks/results")
+    args = ap.parse_args(argv)
+    if args.quick:
+        args.rows, args.rounds, args.out = "1,64", 2, "/tmp"
+    torch.set_num_threads(1)
+    load0 = load()
+    rows = []
+    for name in args.models.split(","):
+        for r in (int(b) for b in args.rows.split(",")):
+            row = measure(name, r, args.rounds)
+            print(json.dumps(row), flush=True)
+            rows.append(row)
+    command = COMMAND + (
+        "" if argv is None and len(sys.argv) == 1 else " " + " ".join(sys.argv[1:])
+    )
+    meta = {
+        "command": command,
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} thread",
+        "load_average": {"start": load0, "end": load()},
+        "versions": package_versions("torch", "numba"),
+    }
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "learned_rollouts.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    lines = [
+        "# A learned model's rollouts: compiled step vs torch ops (`benchmarks/learned_rollouts.py`)",
+        "",
+        f"```\n{command}\n```",
+        "",
+        f"{meta['date']}, {meta['machine']}, float64; load average at start {load0}, at end "
+        f"{meta['load_average']['end']}; {meta['versions']}. One closed-loop rollout of T = "
+        f"{T} steps over `rows` rows; the two ways alternate in one process, {args.rounds} "
+        "rounds, minimum of 3 calls each. `max abs diff`: the largest difference between the "
+        "two ways' states. `step taken`: the model has its compiled step (else both ways "
+        "are torch ops). Models as in `learned_derivatives.md`.",
+        "",
+        "| model | rows | step taken | compiled step [ms] | torch ops [ms] | torch / compiled | max abs diff |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        lines.append(
+            f"| {r['model']} | {r['rows']} | {'yes' if r['compiled_step'] else 'no'} | "
+            f"{r['compiled_ms']} | {r['torch_ms']} | "
+            f"{r['speedup']}x | {r['max_abs_diff']:.1e} |"
+        )
+    (out / "learned_rollouts.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {out / 'learned_rollouts.json'} and {out / 'learned_rollouts.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
