@@ -132,15 +132,23 @@ def _activation_module(mod: nn.Module) -> str | None:
     return None
 
 
-class _Writer:
-    """The step's text and its parameter array, built node by node."""
+#: nodes at most this wide are held as scalar locals (no allocation, straight-line
+#: code); wider ones as arrays, one allocation per node and call
+NARROW = 8
 
-    def __init__(self, n: int, m: int) -> None:
+
+class _Writer:
+    """The step's text and its parameter array, built node by node. A node's value is
+    a list of scalar expressions (a narrow node: locals, or entries of another node) or
+    the name of a 1-d array (a wide node)."""
+
+    def __init__(self) -> None:
         self.lines: list[str] = []
         self.params: list[np.ndarray] = []
         self.size = 0
-        self.names: dict[fx.Node, str] = {}
+        self.values: dict[fx.Node, list[str] | str] = {}
         self.widths: dict[fx.Node, int] = {}
+        self.count = 0
         self.subs: list[tuple[str, object]] = []  # (global name, step function)
         self.sources: list[tuple[str, str]] = []  # what each piece of the array is
 
@@ -157,38 +165,105 @@ class _Writer:
     def emit(self, line: str, indent: int = 1) -> None:
         self.lines.append("    " * indent + line)
 
-    def new(self, nd: fx.Node, width: int) -> str:
-        name = f"v{len(self.names)}"
-        self.names[nd] = name
-        self.widths[nd] = width
+    def fresh(self) -> str:
+        self.count += 1
+        return f"v{self.count}"
+
+    def narrow(self, nd: fx.Node, exprs: list[str]) -> None:
+        """``nd`` as scalar locals assigned ``exprs``."""
+        name = self.fresh()
+        for j, e in enumerate(exprs):
+            self.emit(f"{name}_{j} = {e}")
+        self.values[nd] = [f"{name}_{j}" for j in range(len(exprs))]
+        self.widths[nd] = len(exprs)
+
+    def wide(self, nd: fx.Node, width: int) -> str:
+        """``nd`` as a new array; its name."""
+        name = self.fresh()
         self.emit(f"{name} = np.empty({width})")
+        self.values[nd] = name
+        self.widths[nd] = width
         return name
 
-    def operand(self, a, width: int, env: dict, root: nn.Module) -> Callable[[str], str]:
-        """``i -> the text of operand a at entry i`` of an elementwise node ``width``
+    def entry(self, nd: fx.Node, j) -> str:
+        """Entry ``j`` (a number, or the loop variable's name for a wide node)."""
+        v = self.values[nd]
+        return v[j] if isinstance(v, list) else f"{v}[{j}]"
+
+    def array(self, nd: fx.Node) -> str:
+        """``nd`` as an array (a narrow node's locals copied into a new one)."""
+        v = self.values[nd]
+        if not isinstance(v, list):
+            return v
+        name = self.fresh()
+        self.emit(f"{name} = np.empty({len(v)})")
+        for j, e in enumerate(v):
+            self.emit(f"{name}[{j}] = {e}")
+        return name
+
+    def operand(self, a, width: int, env: dict, root: nn.Module) -> Callable:
+        """``j -> the text of operand a at entry j`` of an elementwise node ``width``
         wide: a node as wide, a number, or a constant of one or ``width`` entries."""
         if _var(a):
-            name = self.names[a]
             if self.widths[a] != width:  # (the graph path declines these too)
                 raise _Unsupported("nodes of different widths")
-            return lambda i: f"{name}[{i}]"
+            return lambda j: self.entry(a, j)
         value = env[a] if isinstance(a, fx.Node) else a
         if torch.is_tensor(value) and not isinstance(a, fx.Node):
             raise _Unsupported("a tensor constant that is not an attribute")
         if _is_number(value):
             text = repr(float(value))
-            return lambda i: text
+            return lambda j: text
         if torch.is_tensor(value) and value.ndim <= 1 and value.numel() in (1, width):
             off = self.param(root, ("attribute", a.target))
             if value.numel() == 1:
-                return lambda i: f"p[{off}]"
-            return lambda i: f"p[{off} + {i}]"
+                return lambda j: f"p[{off}]"
+            return lambda j: f"p[{off} + {j}]"
         raise _Unsupported("a constant that is not a number or a vector")
 
-    def elementwise(self, nd: fx.Node, width: int, text: Callable[[str], str]) -> None:
-        name = self.new(nd, width)
+    def elementwise(self, nd: fx.Node, width: int, text: Callable) -> None:
+        """``nd[j] = text(j)`` for every entry: straight-line for a narrow node, a loop
+        for a wide one."""
+        if width <= NARROW:
+            self.narrow(nd, [text(j) for j in range(width)])
+            return
+        name = self.wide(nd, width)
         self.emit(f"for i in range({width}):")
         self.emit(f"{name}[i] = {text('i')}", 2)
+
+    def linear(self, nd: fx.Node, a: fx.Node, width: int, k: int, woff: int, boff) -> None:
+        """``nd = b + sum_i W[:, i] a_i`` (``W`` stored transposed at ``woff``, ``(k,
+        width)``; ``b`` at ``boff``, or none)."""
+        bias = (lambda o: f"p[{boff} + {o}]") if boff is not None else (lambda o: "0.0")
+        narrow_in = k <= NARROW and isinstance(self.values[a], list)
+        if width <= NARROW:
+            name = self.fresh()
+            for o in range(width):
+                self.emit(f"{name}_{o} = {bias(o)}")
+            if narrow_in:
+                for i in range(k):
+                    for o in range(width):
+                        self.emit(f"{name}_{o} += p[{woff + i * width + o}] * {self.entry(a, i)}")
+            else:
+                self.emit(f"for i in range({k}):")
+                self.emit(f"a = {self.entry(a, 'i')}", 2)
+                for o in range(width):
+                    self.emit(f"{name}_{o} += p[{woff + o} + i * {width}] * a", 2)
+            self.values[nd] = [f"{name}_{o}" for o in range(width)]
+            self.widths[nd] = width
+            return
+        name = self.wide(nd, width)
+        if narrow_in:
+            terms = "".join(f" + p[{woff + i * width} + o] * {self.entry(a, i)}" for i in range(k))
+            self.emit(f"for o in range({width}):")
+            self.emit(f"{name}[o] = {bias('o')}{terms}", 2)
+            return
+        self.emit(f"for o in range({width}):")
+        self.emit(f"{name}[o] = {bias('o')}", 2)
+        self.emit(f"for i in range({k}):")
+        self.emit(f"a = {self.entry(a, 'i')}", 2)
+        self.emit(f"for o in range({width}):", 2)
+        self.emit(f"{name}[o] += p[{woff} + i * {width} + o] * a", 3)
 
 
 def _parameter(root: nn.Module, source: tuple[str, str]) -> np.ndarray:
@@ -236,16 +311,15 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
     u1 = torch.zeros(1, m, dtype=dtype)
     with torch.no_grad():
         env, _ = _forward(program, root, x1, u1)
-    w = _Writer(n, m)
+    w = _Writer()
     xin, uin = program.inputs
-    w.names[xin], w.widths[xin] = "xd", n
-    w.names[uin], w.widths[uin] = "ud", m
-    w.emit(f"xd = np.empty({n})")
-    w.emit(f"for i in range({n}):")
-    w.emit("xd[i] = x[i]", 2)
-    w.emit(f"ud = np.empty({m})")
-    w.emit(f"for i in range({m}):")
-    w.emit("ud[i] = u[i]", 2)
+    for node, name, width in ((xin, "x", n), (uin, "u", m)):
+        if width <= NARROW:  # float64 locals whatever the model's dtype
+            w.narrow(node, [f"np.float64({name}[{j}])" for j in range(width)])
+        else:
+            v = w.wide(node, width)
+            w.emit(f"for i in range({width}):")
+            w.emit(f"{v}[i] = {name}[i]", 2)
     imports: list[str] = []
     for nd in program.nodes:
         if nd.op in ("placeholder", "output", "get_attr"):
@@ -266,80 +340,92 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                     imports.append(f"{g} = _import_source(_Path({str(path)!r}), {modname!r}).step")
                 else:
                     imports.append(None)  # in memory: the text cannot be cached
-                name = w.new(nd, width)
+                # the step's own inputs as they are (no copies), other nodes as arrays
+                arrays = ["x" if q is xin else "u" if q is uin else w.array(q) for q in (a, b)]
+                out = w.fresh()
+                w.emit(f"{out} = np.empty({width})")
+                scratch = "work" if width == n else f"np.empty((8, {width}))"
                 w.emit(
-                    f"{g}({w.names[a]}, {w.names[b]}, p[{off}:{off + params.size}], {name}, "
-                    f"np.empty((8, {width})))"
+                    f"{g}({arrays[0]}, {arrays[1]}, p[{off}:{off + params.size}], {out}, {scratch})"
                 )
+                if width <= NARROW:
+                    w.values[nd] = [f"{out}[{j}]" for j in range(width)]
+                else:
+                    w.values[nd] = out
+                w.widths[nd] = width
             elif type(mod) is nn.Linear:
                 (a,) = args
                 if not _var(a) or w.widths[a] != mod.in_features:
                     raise _Unsupported("a layer on a constant")
                 woff = w.param(root, ("weight", nd.target))
-                name = w.new(nd, width)
-                w.emit(f"for o in range({width}):")
-                if mod.bias is not None:
-                    boff = w.param(root, ("bias", nd.target))
-                    w.emit(f"{name}[o] = p[{boff} + o]", 2)
-                else:
-                    w.emit(f"{name}[o] = 0.0", 2)
-                w.emit(f"for i in range({mod.in_features}):")
-                w.emit(f"a = {w.names[a]}[i]", 2)
-                w.emit(f"for o in range({width}):", 2)
-                w.emit(f"{name}[o] += p[{woff} + i * {width} + o] * a", 3)
+                boff = None if mod.bias is None else w.param(root, ("bias", nd.target))
+                w.linear(nd, a, width, mod.in_features, woff, boff)
             else:
                 template = _activation_module(mod)
                 if template is None or len(args) != 1:
                     raise _Unsupported(type(mod).__name__)
                 a = w.operand(args[0], width, env, root)
-                w.elementwise(nd, width, lambda i, t=template, a=a: t.format(a(i)))
+                w.elementwise(nd, width, lambda j, t=template, a=a: t.format(a(j)))
         elif (p := _power_exponent(nd)) is not None:
             a = w.operand(args[0], width, env, root)
             if p == 2:
-                w.elementwise(nd, width, lambda i, a=a: f"({a(i)} * {a(i)})")
+                w.elementwise(nd, width, lambda j, a=a: f"({a(j)} * {a(j)})")
             else:
-                w.elementwise(nd, width, lambda i, a=a, p=p: f"({a(i)} ** {float(p)!r})")
+                w.elementwise(nd, width, lambda j, a=a, p=p: f"({a(j)} ** {float(p)!r})")
         elif nd.target is operator.getitem:
-            s = _last_dim_part(args[1])[0]
-            start, stop, _ = s.indices(w.widths[args[0]])
-            name = w.new(nd, stop - start)
-            w.emit(f"{name}[:] = {w.names[args[0]]}[{start}:{stop}]")
+            src = args[0]
+            start, stop, _ = _last_dim_part(args[1])[0].indices(w.widths[src])
+            if stop - start <= NARROW:  # entries of the source, no code
+                w.values[nd] = [w.entry(src, j) for j in range(start, stop)]
+                w.widths[nd] = stop - start
+            else:
+                name = w.wide(nd, stop - start)
+                w.emit(f"{name}[:] = {w.values[src]}[{start}:{stop}]")
         elif nd.target in (torch.cat, torch.stack):
             pieces = args[0]
-            if not all(_var(q) for q in pieces):
-                raise _Unsupported("a concatenation with a constant")
-            name = w.new(nd, width)
-            start = 0
-            for q in pieces:
-                k = w.widths[q]
-                w.emit(f"{name}[{start}:{start + k}] = {w.names[q]}")
-                start += k
-            if start != width:
-                raise _Unsupported("a concatenation that is not along the last dim")
+            if not all(_var(q) for q in pieces) or sum(w.widths[q] for q in pieces) != width:
+                raise _Unsupported("a concatenation along the last dim of nodes")
+            if width <= NARROW:  # the pieces' entries, no code
+                w.values[nd] = [w.entry(q, j) for q in pieces for j in range(w.widths[q])]
+                w.widths[nd] = width
+            else:
+                name = w.wide(nd, width)
+                start = 0
+                for q in pieces:
+                    k = w.widths[q]
+                    if isinstance(w.values[q], list):
+                        for j in range(k):
+                            w.emit(f"{name}[{start + j}] = {w.entry(q, j)}")
+                    else:
+                        w.emit(f"{name}[{start}:{start + k}] = {w.values[q]}")
+                    start += k
         elif nd.target == "unsqueeze":
-            w.names[nd], w.widths[nd] = w.names[args[0]], w.widths[args[0]]
+            w.values[nd], w.widths[nd] = w.values[args[0]], w.widths[args[0]]
         elif nd.op == "call_method" and nd.target in _METHOD_ELEMENTWISE:
             a = w.operand(args[0], width, env, root)
             t = _METHOD_ELEMENTWISE[nd.target]
-            w.elementwise(nd, width, lambda i, t=t, a=a: t.format(a(i)))
+            w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
         elif nd.op == "call_function" and nd.target in _ELEMENTWISE:
             a = w.operand(args[0], width, env, root)
             t = _ELEMENTWISE[nd.target]
-            w.elementwise(nd, width, lambda i, t=t, a=a: t.format(a(i)))
+            w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
         elif nd.target is operator.neg:
             a = w.operand(args[0], width, env, root)
-            w.elementwise(nd, width, lambda i, a=a: f"(-{a(i)})")
+            w.elementwise(nd, width, lambda j, a=a: f"(-{a(j)})")
         elif nd.target in _OPERATORS:
             a, b = (w.operand(q, width, env, root) for q in args)
             op = _OPERATORS[nd.target]
-            w.elementwise(nd, width, lambda i, a=a, b=b, op=op: f"({a(i)} {op} {b(i)})")
+            w.elementwise(nd, width, lambda j, a=a, b=b, op=op: f"({a(j)} {op} {b(j)})")
         else:
             raise _Unsupported(f"{nd.op} {nd.target}")
     if not _var(program.output) or w.widths[program.output] != n:
         raise _Unsupported("the output is not a state")
-    out = w.names[program.output]
-    w.emit(f"for i in range({n}):")
-    w.emit(f"out[i] = {out}[i]", 2)
+    if isinstance(w.values[program.output], list):
+        for j in range(n):
+            w.emit(f"out[{j}] = {w.entry(program.output, j)}")
+    else:
+        w.emit(f"for i in range({n}):")
+        w.emit(f"out[i] = {w.values[program.output]}[i]", 2)
     head = []
     if any(line is None for line in imports):
         imports = []  # compiled in memory, the submodules' steps given as globals
