@@ -11,13 +11,10 @@ import pytest
 import torch
 from test_graph_jacobian import (
     ACTIVATIONS,
-    BroadcastAtTheOutput,
-    Broadcasting,
+    NOT_TAKEN,
     Entries,
     Features,
     GrayBox,
-    Indexing,
-    PerElement,
     PhysicsResidual,
     Scaled,
     data,
@@ -102,24 +99,7 @@ def test_compiled_step_equals_forward(name):
 
 @pytest.mark.parametrize(
     "make, m",
-    [
-        (Indexing, 2),
-        (lambda: Indexing(rows=True), 2),
-        (lambda: PerElement(6), 2),
-        (Broadcasting, 1),
-        (lambda: BroadcastAtTheOutput(2), 2),
-        (lambda: BroadcastAtTheOutput(1), 1),
-        (lambda: torch_path(LearnedPhysics()), 1),
-    ],
-    ids=[
-        "indexing",
-        "indexing-rows",
-        "per-element",
-        "broadcasting",
-        "broadcast-feature",
-        "broadcast-control",
-        "switched-off",
-    ],
+    [*NOT_TAKEN, pytest.param(lambda: torch_path(LearnedPhysics()), 1, id="switched-off")],
 )
 def test_what_the_step_declines(make, m):
     assert network_codegen.network_step(make()) is None
