@@ -25,3 +25,24 @@ def load() -> list[float]:
         return [round(v, 2) for v in os.getloadavg()]
     except OSError:  # pragma: no cover
         return []
+
+
+def run_meta(command: str, argv: list[str] | None, load_start: list[float]) -> dict:
+    """What a benchmark run records: its command line (``command`` with the arguments it
+    was given), date, machine, the load average at its start and end, and the versions
+    of torch and numba."""
+    import datetime
+    import platform
+    import sys
+
+    import torch
+
+    given = argv if argv is not None else sys.argv[1:]
+    return {
+        "command": command + ("" if not given else " " + " ".join(given)),
+        "date": datetime.datetime.now().isoformat(timespec="seconds"),
+        "machine": f"{platform.processor() or platform.machine()}, "
+        f"{torch.get_num_threads()} thread",
+        "load_average": {"start": load_start, "end": load()},
+        "versions": package_versions("torch", "numba"),
+    }

@@ -34,10 +34,8 @@ Results go to ``--out`` (``learned_derivatives.{json,md}``).
 from __future__ import annotations
 
 import argparse
-import datetime
 import importlib
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -47,7 +45,7 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _env import load, package_versions  # noqa: E402
+from _env import load, run_meta  # noqa: E402
 from user_models import LearnedCartPole  # noqa: E402
 
 import torchslq as ts  # noqa: E402
@@ -186,16 +184,8 @@ def main(argv: list[str] | None = None) -> int:
                 row = measure(name, kind, batch, args.rounds)
                 print(json.dumps(row), flush=True)
                 rows.append(row)
-    command = COMMAND + (
-        "" if argv is None and len(sys.argv) == 1 else " " + " ".join(sys.argv[1:])
-    )
-    meta = {
-        "command": command,
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": f"{platform.machine()}, {torch.get_num_threads()} thread",
-        "load_average": {"start": load0, "end": load()},
-        "versions": package_versions("torch", "numba"),
-    }
+    meta = run_meta(COMMAND, argv, load0)
+    command = meta["command"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "learned_derivatives.json").write_text(

@@ -24,9 +24,7 @@ from __future__ import annotations
 
 import argparse
 import copy
-import datetime
 import json
-import platform
 import sys
 import time
 from pathlib import Path
@@ -35,7 +33,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _env import load, package_versions  # noqa: E402
+from _env import load, run_meta  # noqa: E402
 from learned_derivatives import MODELS  # noqa: E402
 
 from torchslq._pinned import solve_scope  # noqa: E402
@@ -108,16 +106,8 @@ def main(argv: list[str] | None = None) -> int:
             row = measure(name, r, args.rounds)
             print(json.dumps(row), flush=True)
             rows.append(row)
-    command = COMMAND + (
-        "" if argv is None and len(sys.argv) == 1 else " " + " ".join(sys.argv[1:])
-    )
-    meta = {
-        "command": command,
-        "date": datetime.datetime.now().isoformat(timespec="seconds"),
-        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} thread",
-        "load_average": {"start": load0, "end": load()},
-        "versions": package_versions("torch", "numba"),
-    }
+    meta = run_meta(COMMAND, argv, load0)
+    command = meta["command"]
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     (out / "learned_rollouts.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
