@@ -6,9 +6,10 @@ step however few the rows, 16 ms a rollout of 50 steps), which a line search pay
 every trial. :meth:`torchslq.Dynamics.compiled_step` of a model that code generation
 from its operations declines (:mod:`torchslq.dynamics.codegen`: networks) is written
 here from the graph :mod:`torchslq.dynamics.graph_jacobian` traces, node by node, as a
-per-row function ``step(x, u, p, out, work)``; the rollouts, the fused line search and
-``forward`` from Python then run it in one kernel call for all rows and steps
-(:func:`torchslq.dynamics.rollout_closed_loop`).
+per-row function ``step(x, u, p, out, work)``; the rollouts and the fused line search
+then run it in one kernel call for all rows and steps
+(:func:`torchslq.dynamics.rollout_closed_loop`). Nodes at most :data:`NARROW` wide are
+scalar locals (straight-line code), wider ones arrays.
 
 * ``nn.Linear``: ``y = b + sum_i W[:, i] a_i`` over the columns of ``W`` (the inner
   loop over the outputs is contiguous and independent: SIMD, without reassociating a
@@ -452,6 +453,9 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
 
 
 def _load(text: str, digest: str, subs: list, in_memory: bool) -> Callable:
+    """The ``step`` of the generated ``text``: from its file in codegen's cache directory
+    (written if absent; numba caches the compilation beside it), else compiled in memory
+    with the submodules' steps ``subs`` as globals (once per process)."""
     from .._backend.source_modules import import_source, write_atomic
     from .codegen import _cache_dir
 
