@@ -46,6 +46,7 @@ from torch import fx, nn
 
 from .base import Dynamics
 from .graph_jacobian import (
+    _METHOD_DERIVATIVES,
     _PROGRAMS,
     _forward,
     _is_number,
@@ -77,15 +78,8 @@ _ELEMENTWISE = {
     torch.exp: "math.exp({})",
     torch.square: "({0} * {0})",
 }
-_METHOD_ELEMENTWISE = {
-    "tanh": "_tanh({})",
-    "sigmoid": "_sigmoid({})",
-    "relu": "_relu({})",
-    "sin": "math.sin({})",
-    "cos": "math.cos({})",
-    "exp": "math.exp({})",
-    "square": "({0} * {0})",
-}
+# the same functions called as tensor methods (``z.tanh()``), as the graph path takes them
+_METHOD_ELEMENTWISE = {name: _ELEMENTWISE[getattr(torch, name)] for name in _METHOD_DERIVATIVES}
 _OPERATORS = {operator.add: "+", operator.sub: "-", operator.mul: "*", operator.truediv: "/"}
 
 _HEADER = """\
@@ -287,23 +281,23 @@ def _parameter(root: nn.Module, source: tuple[str, str]) -> np.ndarray:
     return np.ascontiguousarray(value, dtype=np.float64).reshape(-1)
 
 
-def _sub_step(mod: Dynamics) -> tuple[object, np.ndarray, Path | None, str | None]:
-    """``(step, params, path, module name)`` of a Dynamics submodule's compiled step;
-    the path and name of the generated module that defines it (None where it is not a
-    generated model's)."""
+def _sub_step(mod: Dynamics) -> tuple[object, Path | None, str | None]:
+    """``(step, path, module name)`` of a Dynamics submodule's compiled step: the path
+    and name of the generated module that defines it (None where it is not a generated
+    model's)."""
     from .._backend.bound import generated_module
     from .._backend.model_fns import step_source
 
     got = mod.compiled_step()
     if got is None:
         raise _Unsupported(f"{type(mod).__name__} has no compiled step")
-    step, params = got
+    step = got[0]
     source = step_source(step)
     module = None if source is None else generated_module(source[0])
     path = getattr(module, "__file__", None)
     if module is not None and path is not None and hasattr(module, "step"):
-        return module.step, np.asarray(params, np.float64), Path(path), module.__name__
-    return step, np.asarray(params, np.float64), None, None
+        return module.step, Path(path), module.__name__
+    return step, None, None
 
 
 def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tuple[str, _Writer]:
@@ -330,11 +324,12 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
         if nd.op == "call_module":
             mod = root.get_submodule(nd.target)
             if isinstance(mod, Dynamics):
-                step, params, path, modname = _sub_step(mod)
+                step, path, modname = _sub_step(mod)
                 a, b = args
                 if not (_var(a) and _var(b)):
                     raise _Unsupported("a Dynamics submodule on constants")
                 off = w.param(root, ("step", nd.target))
+                size = w.params[-1].size
                 g = f"_sub{len(w.subs)}"
                 w.subs.append((g, step))
                 if path is not None:
@@ -346,9 +341,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 out = w.fresh()
                 w.emit(f"{out} = np.empty({width})")
                 scratch = "work" if width == n else f"np.empty((8, {width}))"
-                w.emit(
-                    f"{g}({arrays[0]}, {arrays[1]}, p[{off}:{off + params.size}], {out}, {scratch})"
-                )
+                w.emit(f"{g}({arrays[0]}, {arrays[1]}, p[{off}:{off + size}], {out}, {scratch})")
                 if width <= NARROW:
                     w.values[nd] = [f"{out}[{j}]" for j in range(width)]
                 else:
@@ -558,15 +551,10 @@ _BUILT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 def _structure_key(model: nn.Module) -> tuple:
     """codegen's structure key (tensor names and shapes, plain attributes) with the
     values of float attributes, which a trace holds as numbers."""
+    from .codegen import _float_attrs, _get_attr
     from .codegen import _structure_key as structure
 
-    floats = tuple(
-        (name, k, v)
-        for name, mod in model.named_modules()
-        for k, v in vars(mod).items()
-        if type(v) is float and not k.startswith("_")
-    )
-    return structure(model), floats
+    return structure(model), tuple((a, _get_attr(model, a)) for a in _float_attrs(model))
 
 
 def _concatenated(pieces: list[np.ndarray]) -> np.ndarray:
@@ -577,9 +565,8 @@ _STALE = object()
 
 
 def _build(model: nn.Module, n: int, m: int, dtype: torch.dtype):
-    """:func:`network_step` from the model's current trace: ``(step, params,
-    sources)``, None
-    where it cannot be written or compiled, or ``_STALE`` where it differs from
+    """:func:`network_step` from the model's current trace: ``(step, params, sources)``;
+    None where it cannot be written or compiled; ``_STALE`` where it differs from
     ``forward``."""
     program = _program(model)
     if program is None:

@@ -130,18 +130,19 @@ def _rollout_closed_loop_compiled(f, x0, x_nom, u_nom, K, k, alpha, u_min, u_max
     lead = broadcast_shapes(alpha.shape, x0.shape[:-1], (B,))
     u = (u_nom + alpha[..., None, None] * k).expand(*lead, T, m).contiguous()
     xn, KB = x_nom[..., :T, :].expand(B, T, n), K.expand(B, T, m, n)
+    # a NaN step is a line-search trial no element needs (armijo_search's skip_settled):
+    # not rolled out, its states are NaN as on the torch path
+    skip = torch.isnan(alpha)
+    skipping = bool(skip.any())
     compiled = compiled_step_of(f)
     if compiled is not None:  # the model's own compiled step: one kernel call in all
-        # a NaN step is a line-search trial no element needs (armijo_search's
-        # skip_settled): not rolled out, its states are NaN as on the torch path
-        skip = torch.isnan(alpha)
-        skip = skip if bool(skip.any()) else None
-        x = closed_loop_rollout_compiled(*compiled, x0, xn, KB, u, u_min, u_max, skip)
+        x = closed_loop_rollout_compiled(
+            *compiled, x0, xn, KB, u, u_min, u_max, skip if skipping else None
+        )
         return x, u
     x0 = x0.expand(*lead, n)
-    skip = torch.isnan(alpha).expand(lead)
-    if len(lead) > 1 and _rows_separable(f, B) and bool(skip.any()):
-        return _rollout_needed_rows(f, x0, xn, KB, u, u_min, u_max, ~skip)
+    if skipping and len(lead) > 1 and _rows_separable(f, B):
+        return _rollout_needed_rows(f, x0, xn, KB, u, u_min, u_max, ~skip.expand(lead))
     x = _feedback_loop(f, x0, xn, KB, u, u_min, u_max)
     return None if x is None else (x, u)
 
