@@ -27,6 +27,33 @@ def _generated_code_for_the_zoo(request, monkeypatch):
         monkeypatch.setattr(cls, "generate_compiled_code", True, raising=False)
 
 
+#: the sizes that keep LQ kernels compiled for their own (n, m) in the suite: the
+#: cart-pole's, the pendulum's and the unicycle's, which most solver tests use
+SPECIALISED_SIZES = ((4, 1), (2, 1), (3, 2))
+
+
+@pytest.fixture(autouse=True)
+def _specialised_sizes_of_the_zoo(request):
+    """Size-specialised LQ kernels (:mod:`torchslq._backend.specialisation`, on by
+    default for every size up to 7 x 4) for :data:`SPECIALISED_SIZES` only, unless a
+    test checks them (``pytest.mark.all_sizes``): each size is compiled once, 5-20 s
+    with a cold cache, and the suite's random problems draw dozens of sizes. Every
+    other size runs the kernels that read their sizes at run time, which
+    ``tests/test_lq_kernel.py`` and ``tests/test_gain_codegen.py`` check the
+    specialised ones against. ``TORCHSLQ_TEST_ALL_SIZES=1`` runs every test with all
+    sizes specialised."""
+    if request.node.get_closest_marker("all_sizes") or os.environ.get("TORCHSLQ_TEST_ALL_SIZES"):
+        yield
+        return
+    from torchslq._backend.specialisation import limit_specialised_sizes
+
+    old = limit_specialised_sizes(SPECIALISED_SIZES)
+    try:
+        yield
+    finally:
+        limit_specialised_sizes(old)
+
+
 @pytest.fixture
 def single_thread():
     """One intra-op thread for the test: the problems are tiny, threading only adds

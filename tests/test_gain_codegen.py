@@ -16,6 +16,8 @@ from torchslq.lq import riccati_backward
 from torchslq.lq.regularization import RegularizationSchedule
 from torchslq.lq.solve import lqr_solve
 
+pytestmark = pytest.mark.all_sizes  # the generated passes of several sizes
+
 F64 = torch.float64
 
 

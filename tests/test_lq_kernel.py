@@ -671,6 +671,7 @@ def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad,
     torch.testing.assert_close(first(fast.cost).detach(), cost, rtol=1e-9, atol=1e-10)
 
 
+@pytest.mark.all_sizes
 @pytest.mark.parametrize("n, m", [(3, 1), (7, 4), (8, 2)])
 def test_size_specialised_gain_kernels_equal_the_general_ones(n, m, monkeypatch):
     """Up to ``FIXED_MAX_N`` states and ``FIXED_MAX_M`` controls the gain-form kernels
@@ -740,3 +741,36 @@ def test_gain_form_gradient_of_a_non_finite_element_is_zero():
     for name, ref in g_ref.items():
         got = g[name] if name == "Q" else g[name][[0, 2]]
         torch.testing.assert_close(got, ref, rtol=1e-12, atol=1e-12, msg=name)
+
+
+@pytest.mark.all_sizes
+def test_limited_specialisations_run_the_general_kernels_with_the_same_results():
+    """``limit_specialised_sizes`` keeps size-specialised kernels (fixed trip counts,
+    generated passes) for the sizes it names; another size runs the kernels that read
+    their sizes at run time: the same solution as with its own kernels, and the dense
+    KKT one. Bad pairs are a ValueError naming them; the previous setting comes back."""
+    from torchslq._backend import _numba_kernels as nk
+    from torchslq._backend import gain_codegen
+    from torchslq._backend.specialisation import limit_specialised_sizes
+
+    args = random_problem(seed=12, bsz=3, T=7, n=3, m=1)
+    own = lqr_solve(**args)
+    old = limit_specialised_sizes([(4, 1)])
+    try:
+        assert nk.size_witness(3, 1) == ((), ())
+        assert gain_codegen.gain_kernels(3, 1) is None
+        assert len(nk.size_witness(4, 1)[0]) == 4
+        general = lqr_solve(**args)
+        with pytest.raises(ValueError, match="pairs"):
+            limit_specialised_sizes([(3, 0)])
+    finally:
+        assert limit_specialised_sizes(old) == frozenset({(4, 1)})
+    assert len(nk.size_witness(3, 1)[0]) == 3
+    for name in ("x", "u", "lam", "cost"):
+        torch.testing.assert_close(
+            getattr(general, name), getattr(own, name), rtol=1e-12, atol=1e-12
+        )
+    for b in range(3):
+        x, u, lam, cost = dense_kkt(**{k: v[b] for k, v in args.items()})
+        assert_rel(general.x[b], x, 1e-9, "x")
+        assert_rel(general.u[b], u, 1e-9, "u")

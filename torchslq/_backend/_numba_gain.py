@@ -396,10 +396,13 @@ def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finit
     costs 5-10 us of numba's argument typing, as much as the whole (4, 1) pass at
     ``T = 100``."""
     scratch = _gain_scratch(Kk.shape[3] - 1, Kk.shape[2], P.dtype)
-    _riccati_gain_rows(0, Kk.shape[0], pieces, Kk, P, p, L, s, failed, scratch, nt, mt)
+    # a literal 0 would type the callees for Literal[int](0): a second compilation of
+    # each beside the launchers' int64 one
+    first = np.intp(0)
+    _riccati_gain_rows(first, Kk.shape[0], pieces, Kk, P, p, L, s, failed, scratch, nt, mt)
     nb = x.shape[0]
-    lq_rollout_kernel(0, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u, nt, mt)
-    value_kernel(0, nb, P, p, s, x, u, lam, cost, finite, nt, mt)
+    lq_rollout_kernel(first, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u, nt, mt)
+    value_kernel(first, nb, P, p, s, x, u, lam, cost, finite, nt, mt)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)

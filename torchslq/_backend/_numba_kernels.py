@@ -22,6 +22,7 @@ import numba
 import numpy as np
 
 from ._numba_gemm import acc_tn
+from .specialisation import specialised
 
 # Up to these sizes the gain-form LQ kernels (:mod:`._numba_gain`, :func:`lq_rollout_kernel`)
 # are compiled for the problem's own (n, m): their loops then have constant trip counts,
@@ -34,12 +35,20 @@ FIXED_MAX_N = 7
 FIXED_MAX_M = 4
 
 
+def small_size(n: int, m: int) -> bool:
+    """Whether ``n`` states and ``m`` controls are within the sizes the kernels may be
+    compiled for (:func:`size_witness`); the solvers' unconstrained pass of such a
+    problem runs in gain form, specialised or not."""
+    return n <= FIXED_MAX_N and m <= FIXED_MAX_M
+
+
 def size_witness(n: int, m: int) -> tuple[tuple, tuple]:
     """``(nt, mt)``, the kernels' size arguments: tuples of ``n`` and ``m`` zeros for a
     problem small enough to get a pass compiled for its sizes (numba types a tuple by
     its length, so ``len(nt)`` is a compile-time constant there), else two empty tuples
-    (the sizes are read from the arrays)."""
-    if n <= FIXED_MAX_N and m <= FIXED_MAX_M:
+    (the sizes are read from the arrays). Sizes left out by
+    :func:`.specialisation.limit_specialised_sizes` get the empty tuples too."""
+    if small_size(n, m) and specialised(n, m):
         return (0,) * n, (0,) * m
     return (), ()
 

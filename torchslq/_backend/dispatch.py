@@ -303,7 +303,8 @@ def riccati_compiled(
     from ._numba_gemm import with_slp
 
     witness = _kernels().size_witness(n1 - 1, m)
-    if pieces is not None and not boxed and witness[0] and (hessians is None or npd == np.float64):
+    small = _kernels().small_size(n1 - 1, m)
+    if pieces is not None and not boxed and small and (hessians is None or npd == np.float64):
         # the unconstrained pass of a small problem (iLQR's, DDP's with its Hessians): in
         # gain form, its sizes fixed when compiled (riccati_gain_reg_kernel), into the
         # blocks of Vh. (DDP's pass in float32 keeps the homogeneous kernel: in gain form

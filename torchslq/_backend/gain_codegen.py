@@ -33,6 +33,7 @@ from pathlib import Path
 from types import ModuleType
 
 from .source_modules import import_source, write_atomic
+from .specialisation import specialised
 
 #: the largest ``n (n + m)`` generated
 MAX_ENTRIES = 48
@@ -262,10 +263,11 @@ def _gain_rows(b0, b1, pieces, Kk, P, p, L, s, failed, no_s2):
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
 def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finite, nt, mt):
     \"\"\"_numba_gain.gain_solve_kernel on the generated element pass.\"\"\"
-    _gain_rows(0, Kk.shape[0], pieces, Kk, P, p, L, s, failed, np.zeros((0, 0), dtype=P.dtype))
+    first = np.intp(0)  # not a literal 0: the launchers' signature, compiled once
+    _gain_rows(first, Kk.shape[0], pieces, Kk, P, p, L, s, failed, np.zeros((0, 0), dtype=P.dtype))
     nb = x.shape[0]
-    lq_rollout_kernel(0, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u, nt, mt)
-    value_kernel(0, nb, P, p, s, x, u, lam, cost, finite, nt, mt)
+    lq_rollout_kernel(first, nb, pieces[0], pieces[1], pieces[2], Kk, x0, x, u, nt, mt)
+    value_kernel(first, nb, P, p, s, x, u, lam, cost, finite, nt, mt)
 
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
@@ -331,8 +333,9 @@ def _directories() -> list[Path]:
 
 def gain_kernels(n: int, m: int) -> ModuleType | None:
     """The generated kernels for ``n`` states and ``m`` controls, or None where the size
-    is not generated (``n (n + m) > MAX_ENTRIES``) or no directory is writable."""
-    if not _enabled:
+    is not generated (``n (n + m) > MAX_ENTRIES``, or left out by
+    :func:`.specialisation.limit_specialised_sizes`) or no directory is writable."""
+    if not _enabled or not specialised(n, m):
         return None
     key = (n, m)
     if key in _MODULES:

@@ -1,0 +1,45 @@
+"""Which LQ problem sizes get kernels compiled for their own ``(n, m)``.
+
+Small problems run on kernels compiled for their sizes: the gain-form passes with
+constant trip counts (:func:`._numba_kernels.size_witness`, up to
+:data:`~._numba_kernels.FIXED_MAX_N` states and :data:`~._numba_kernels.FIXED_MAX_M`
+controls) and the pass written out as straight-line code (:mod:`.gain_codegen`). Each
+new size is compiled once, 5-20 s on one core, then cached on disk. A program that
+meets many sizes, and cares more for its first calls than for the last factor of two
+on them, names the sizes that are worth it with :func:`limit_specialised_sizes`; every
+other size then runs the kernels that read their sizes at run time (the same results
+to rounding, compiled once for all sizes).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable
+
+_only: frozenset[tuple[int, int]] | None = None
+
+
+def specialised(n: int, m: int) -> bool:
+    """Whether ``n`` states and ``m`` controls may get kernels of their own (the size
+    limits of each kind of kernel apply on top of this)."""
+    return _only is None or (n, m) in _only
+
+
+def limit_specialised_sizes(
+    sizes: Iterable[tuple[int, int]] | None,
+) -> frozenset[tuple[int, int]] | None:
+    """Compile size-specialised LQ kernels only for ``sizes`` (pairs ``(n, m)``); None
+    (the default) lets every size small enough have them. Returns the previous setting
+    (pass it back to restore). Process-wide; kernels already compiled stay in use for
+    the sizes still named."""
+    global _only
+    old = _only
+    if sizes is None:
+        _only = None
+    else:
+        pairs = []
+        for pair in sizes:
+            if len(pair) != 2 or not all(isinstance(v, int) and v >= 1 for v in pair):
+                raise ValueError(f"sizes must be pairs (n, m) of positive ints, got {pair!r}")
+            pairs.append((int(pair[0]), int(pair[1])))
+        _only = frozenset(pairs)
+    return old
