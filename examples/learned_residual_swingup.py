@@ -98,8 +98,10 @@ def main(argv: list[str] | None = None) -> dict:
     out = {"fit_mse": mse, "B": B}
     results = {}
     for shooting in ("single", "multiple"):
-        solver = ts.ILQR(max_iter=1000, tol=1e-6, compact=True, progress=False, shooting=shooting)
-        solver.solve(problem, x0[:2])  # first call: generated code, caches
+        options = dict(tol=1e-6, compact=True, progress=False, shooting=shooting)
+        # first call (generated code, caches): two iterations build and compile it all
+        ts.ILQR(max_iter=2, **options).solve(problem, x0[:2])
+        solver = ts.ILQR(max_iter=1000, **options)
         t0 = time.perf_counter()
         res = solver.solve(problem, x0)
         elapsed = time.perf_counter() - t0

@@ -5,10 +5,12 @@ associative scans: :mod:`.scan`), the box QP and the DARE, with the
 Levenberg-Marquardt regularisation schedule and its restarts (:mod:`.regularization`).
 Each runs on the CPU as a compiled kernel or as batched torch ops
 (:mod:`torchslq._backend`), with the same meaning; :func:`set_compiled` switches the
-compiled form off (e.g. to compare the two).
+compiled form off (e.g. to compare the two); :func:`limit_specialised_sizes` names the
+problem sizes that get kernels compiled for their own ``(n, m)``.
 """
 
 from .._backend import compiled_available, set_compiled
+from .._backend.specialisation import limit_specialised_sizes
 from .boxqp import BoxQPResult, box_qp
 from .dare import dare, dare_gain, dare_residual
 from .regularization import RegularizationSchedule, Restarts
@@ -54,6 +56,7 @@ __all__ = [
     "dare_residual",
     "homogeneous_cost",
     "homogeneous_dynamics",
+    "limit_specialised_sizes",
     "lq_adjoint_scan",
     "lq_adjoint_solve",
     "lq_objective",
