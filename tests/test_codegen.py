@@ -776,9 +776,12 @@ class WrappedStep(ts.Dynamics):
         return self.inner(x, u) + 0.01 * torch.tanh(x)
 
 
-def test_a_model_wrapping_a_generated_model_is_generated_too():
+def test_a_model_wrapping_a_generated_model_is_generated_too(monkeypatch):
     import threading
 
+    # its symbolic second derivatives take 15-35 s on a busy 2-core machine, around the
+    # default budget (a time-out kept on disk holds for that budget only)
+    monkeypatch.setenv("TORCHSLQ_CODEGEN_BUDGET", "600")
     model = WrappedStep()
     result = {}
     worker = threading.Thread(target=lambda: result.update(why=codegen.explain(model)))
@@ -862,6 +865,24 @@ def test_a_cached_file_from_another_library_version_is_generated_again(tmp_path,
     monkeypatch.setattr(codegen, "_SOURCES_DIGEST", [b"another generator"])
     other = codegen.generated_hooks(CachedElsewhere())
     assert other.source_path != path
+
+
+def test_a_time_out_is_kept_for_its_budget_only(tmp_path, monkeypatch):
+    """A model whose symbolic derivatives ran out of the budget is declined, and the
+    verdict kept on disk answers later processes with that budget without trying again;
+    a larger budget (a quieter machine, a patient user) tries again and generates it."""
+    monkeypatch.setenv("TORCHSLQ_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("TORCHSLQ_CODEGEN_BUDGET", "0")
+    assert codegen.explain(CachedElsewhere()).startswith("its symbolic second derivatives took")
+    assert list(tmp_path.rglob("*.unsupported"))
+    tries = []
+    generate = codegen._generate
+    monkeypatch.setattr(codegen, "_generate", lambda *a: tries.append(1) or generate(*a))
+    assert "took over 0 s" in codegen.explain(CachedElsewhere())  # a new instance: from disk
+    assert tries == []
+    monkeypatch.setenv("TORCHSLQ_CODEGEN_BUDGET", "600")
+    assert codegen.explain(CachedElsewhere()) == "compiled"
+    assert tries == [1]
 
 
 def _helper_module(tmp_path, name: str, body: str):

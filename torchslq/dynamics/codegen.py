@@ -91,7 +91,8 @@ MAX_EXPRESSION_OPS = 4000
 MAX_STATE_PLUS_CONTROL = 20
 MAX_GENERATED_LINES = 2500
 #: seconds of symbolic differentiation before a model is left on the torch path (the
-#: verdict is kept on disk beside the cache, so no later process tries again)
+#: verdict is kept on disk beside the cache, so no later process with this budget or a
+#: smaller one tries again)
 DEFAULT_BUDGET_S = 20.0
 
 
@@ -301,7 +302,12 @@ def _build(model: nn.Module, lift_floats: bool) -> GeneratedHooks:
     if module is None:
         refused = None if path is None else path.with_suffix(".unsupported")
         if refused is not None and refused.exists():
-            raise _Unsupported(refused.read_text())
+            reason = refused.read_text()
+            # a time-out holds for budgets up to the one it ran out of: a larger budget
+            # (TORCHSLQ_CODEGEN_BUDGET) tries again
+            ran_out = _budget_of(reason)
+            if ran_out is None or _budget() <= ran_out:
+                raise _Unsupported(reason)
         try:
             source = _generate(gm, n, m, named, type(model).__name__, kind)
         except _Unsupported as e:
@@ -628,6 +634,23 @@ def _printer():
     return printer
 
 
+_BUDGET_REASON = "its symbolic second derivatives took over {:g} s (TORCHSLQ_CODEGEN_BUDGET)"
+
+
+def _budget() -> float:
+    """Seconds of symbolic differentiation allowed (``TORCHSLQ_CODEGEN_BUDGET``)."""
+    return float(os.environ.get("TORCHSLQ_CODEGEN_BUDGET", DEFAULT_BUDGET_S))
+
+
+def _budget_of(reason: str) -> float | None:
+    """The budget a kept verdict ran out of, or None where it is another reason."""
+    head, _, tail = _BUDGET_REASON.partition("{:g}")
+    if reason.startswith(head) and reason.endswith(tail):
+        with contextlib.suppress(ValueError):
+            return float(reason[len(head) : len(reason) - len(tail)])
+    return None
+
+
 def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
     import sympy
 
@@ -636,13 +659,11 @@ def _generate(gm, n: int, m: int, named, model_name: str, kind: str) -> str:
     nz = n + m
     J = [[sympy.diff(fi, zc) for zc in z] for fi in f]
     H = {}
-    budget = float(os.environ.get("TORCHSLQ_CODEGEN_BUDGET", DEFAULT_BUDGET_S))
+    budget = _budget()
     start = time.perf_counter()
     for i in range(n):
         if time.perf_counter() - start > budget:
-            raise _Unsupported(
-                f"its symbolic second derivatives took over {budget:g} s (TORCHSLQ_CODEGEN_BUDGET)"
-            )
+            raise _Unsupported(_BUDGET_REASON.format(budget))
         for a in range(nz):
             for b in range(a, nz):
                 h = sympy.diff(J[i][a], z[b])
