@@ -46,3 +46,40 @@ def run_meta(command: str, argv: list[str] | None, load_start: list[float]) -> d
         "load_average": {"start": load_start, "end": load()},
         "versions": package_versions("torch", "numba"),
     }
+
+
+def write_report(
+    out: str,
+    stem: str,
+    title: str,
+    meta: dict,
+    rows: list[dict],
+    description: str,
+    header: list[str],
+    cells,
+) -> None:
+    """``<stem>.json`` (``meta`` and ``rows``) and ``<stem>.md`` in the directory ``out``:
+    ``title``, the command in a code block, a line of ``meta`` (date, machine, load,
+    versions) followed by ``description``, then a table of ``cells(row)`` (a list of
+    strings per row) under ``header``."""
+    import json
+    from pathlib import Path
+
+    path = Path(out)
+    path.mkdir(parents=True, exist_ok=True)
+    (path / f"{stem}.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    load_avg = meta["load_average"]
+    lines = [
+        f"# {title}",
+        "",
+        f"```\n{meta['command']}\n```",
+        "",
+        f"{meta['date']}, {meta['machine']}, float64; load average at start "
+        f"{load_avg['start']}, at end {load_avg['end']}; {meta['versions']}. " + description,
+        "",
+        "| " + " | ".join(header) + " |",
+        "|" + "---|" * len(header),
+    ]
+    lines += ["| " + " | ".join(cells(r)) + " |" for r in rows]
+    (path / f"{stem}.md").write_text("\n".join(lines) + "\n")
+    print(f"wrote {path / (stem + '.json')} and {path / (stem + '.md')}")

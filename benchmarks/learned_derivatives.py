@@ -45,7 +45,7 @@ from torch import nn
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _env import load, run_meta  # noqa: E402
+from _env import load, run_meta, write_report  # noqa: E402
 from user_models import LearnedCartPole  # noqa: E402
 
 import torchslq as ts  # noqa: E402
@@ -184,38 +184,27 @@ def main(argv: list[str] | None = None) -> int:
                 row = measure(name, kind, batch, args.rounds)
                 print(json.dumps(row), flush=True)
                 rows.append(row)
-    meta = run_meta(COMMAND, argv, load0)
-    command = meta["command"]
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "learned_derivatives.json").write_text(
-        json.dumps({"meta": meta, "rows": rows}, indent=1)
-    )
-    lines = [
-        "# A learned model's derivatives: traced graph vs autograd (`benchmarks/learned_derivatives.py`)",
-        "",
-        f"```\n{command}\n```",
-        "",
-        f"{meta['date']}, {meta['machine']}, float64; load average at start {load0}, at end "
-        f"{meta['load_average']['end']}; {meta['versions']}. `learned`: the cart-pole RK4 step "
-        "plus a 5-64-64-4 tanh residual MLP; `features`: a 6-64-64-4 tanh MLP on slices of "
-        "the state and sin/cos of its angle (`FeatureCartPole`); `graybox`: the cart-pole's "
-        "equations inline in torch ops, one RK4 step, plus a 5-64-64-4 tanh residual MLP "
-        "(`GrayBoxCartPole`). `B x 50` random rows; the "
-        "two ways alternate in one "
-        f"process, {args.rounds} rounds, minimum of 3 calls each. `max |diff|`: the largest "
-        "difference between the two ways' Jacobians (and Hessians).",
-        "",
-        "| model | pass | rows | graph [ms] | autograd [ms] | autograd / graph | max abs diff |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['model']} | {r['pass']} | {r['rows']} | {r['graph_ms']} | {r['autograd_ms']} | "
-            f"{r['speedup']}x | {r['max_abs_diff']:.1e} |"
-        )
-    (out / "learned_derivatives.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {out / 'learned_derivatives.json'} and {out / 'learned_derivatives.md'}")
+    write_report(
+        args.out,
+        "learned_derivatives",
+        "A learned model's derivatives: traced graph vs autograd "
+        "(`benchmarks/learned_derivatives.py`)",
+        run_meta(COMMAND, argv, load0),
+        rows,
+        "`learned`: the cart-pole RK4 step plus a 5-64-64-4 tanh residual MLP; `features`: a "
+        "6-64-64-4 tanh MLP on slices of the state and sin/cos of its angle "
+        "(`FeatureCartPole`); `graybox`: the cart-pole's equations inline in torch ops, one "
+        "RK4 step, plus a 5-64-64-4 tanh residual MLP (`GrayBoxCartPole`). `B x 50` random "
+        f"rows; the two ways alternate in one process, {args.rounds} rounds, minimum of 3 "
+        "calls each. `max |diff|`: the largest difference between the two ways' Jacobians "
+        "(and Hessians).",
+        ["model", "pass", "rows", "graph [ms]", "autograd [ms]", "autograd / graph",
+         "max abs diff"],
+        lambda r: [
+            r["model"], r["pass"], str(r["rows"]), str(r["graph_ms"]), str(r["autograd_ms"]),
+            f"{r['speedup']}x", f"{r['max_abs_diff']:.1e}",
+        ],
+    )  # fmt: skip
     return 0
 
 

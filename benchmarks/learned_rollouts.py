@@ -33,7 +33,7 @@ import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from _env import load, run_meta  # noqa: E402
+from _env import load, run_meta, write_report  # noqa: E402
 from learned_derivatives import MODELS  # noqa: E402
 
 from torchslq._pinned import solve_scope  # noqa: E402
@@ -106,34 +106,24 @@ def main(argv: list[str] | None = None) -> int:
             row = measure(name, r, args.rounds)
             print(json.dumps(row), flush=True)
             rows.append(row)
-    meta = run_meta(COMMAND, argv, load0)
-    command = meta["command"]
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "learned_rollouts.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    lines = [
-        "# A learned model's rollouts: compiled step vs torch ops (`benchmarks/learned_rollouts.py`)",
-        "",
-        f"```\n{command}\n```",
-        "",
-        f"{meta['date']}, {meta['machine']}, float64; load average at start {load0}, at end "
-        f"{meta['load_average']['end']}; {meta['versions']}. One closed-loop rollout of T = "
-        f"{T} steps over `rows` rows; the two ways alternate in one process, {args.rounds} "
-        "rounds, minimum of 3 calls each. `max abs diff`: the largest difference between the "
-        "two ways' states. `step taken`: the model has its compiled step (else both ways "
-        "are torch ops). Models as in `learned_derivatives.md`.",
-        "",
-        "| model | rows | step taken | compiled step [ms] | torch ops [ms] | torch / compiled | max abs diff |",
-        "|---|---|---|---|---|---|---|",
-    ]
-    for r in rows:
-        lines.append(
-            f"| {r['model']} | {r['rows']} | {'yes' if r['compiled_step'] else 'no'} | "
-            f"{r['compiled_ms']} | {r['torch_ms']} | "
-            f"{r['speedup']}x | {r['max_abs_diff']:.1e} |"
-        )
-    (out / "learned_rollouts.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {out / 'learned_rollouts.json'} and {out / 'learned_rollouts.md'}")
+    write_report(
+        args.out,
+        "learned_rollouts",
+        "A learned model's rollouts: compiled step vs torch ops (`benchmarks/learned_rollouts.py`)",
+        run_meta(COMMAND, argv, load0),
+        rows,
+        f"One closed-loop rollout of T = {T} steps over `rows` rows; the two ways alternate in "
+        f"one process, {args.rounds} rounds, minimum of 3 calls each. `max abs diff`: the "
+        "largest difference between the two ways' states. `step taken`: the model has its "
+        "compiled step (else both ways are torch ops). Models as in `learned_derivatives.md`.",
+        ["model", "rows", "step taken", "compiled step [ms]", "torch ops [ms]",
+         "torch / compiled", "max abs diff"],
+        lambda r: [
+            r["model"], str(r["rows"]), "yes" if r["compiled_step"] else "no",
+            str(r["compiled_ms"]), str(r["torch_ms"]), f"{r['speedup']}x",
+            f"{r['max_abs_diff']:.1e}",
+        ],
+    )  # fmt: skip
     return 0
 
 
