@@ -114,14 +114,34 @@ def test_cli_solve_writes_logs_and_plots(tmp_path, capsys):
         (["solve", "pendulum", "--logdir", "/dev/null/runs"], "--logdir"),
     ],
 )
-def test_cli_errors_are_one_line_exit_2(args, needle):
+def test_cli_errors_are_one_line_exit_2(args, needle, capsys):
+    """In process (``main`` returns 2 or argparse exits with 2); the exit status of a
+    real process is checked once, below."""
+    threads = torch.get_num_threads()
+    try:
+        rc = main(args)
+    except SystemExit as exc:
+        rc = exc.code
+    finally:
+        torch.set_num_threads(threads)
+    assert rc == 2
+    err = capsys.readouterr().err
+    lines = [line for line in err.strip().splitlines() if line]
+    assert len(lines) == 1, err
+    assert needle in lines[0]
+
+
+def test_cli_error_of_a_process_is_one_line_exit_2():
     proc = subprocess.run(
-        [sys.executable, "-m", "torchslq.cli", *args], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "torchslq.cli", "solve", "no-such-system"],
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 2
     lines = [line for line in proc.stderr.strip().splitlines() if line]
     assert len(lines) == 1, proc.stderr
-    assert needle in lines[0]
+    assert "unknown system" in lines[0]
 
 
 def test_cli_reproduce_without_reproductions_says_where_they_are(monkeypatch, capsys):

@@ -672,7 +672,7 @@ def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad,
 
 
 @pytest.mark.all_sizes
-@pytest.mark.parametrize("n, m", [(3, 1), (7, 4), (8, 2)])
+@pytest.mark.parametrize("n, m", [(4, 1), (7, 4), (8, 2)])
 def test_size_specialised_gain_kernels_equal_the_general_ones(n, m, monkeypatch):
     """Up to ``FIXED_MAX_N`` states and ``FIXED_MAX_M`` controls the gain-form kernels
     are compiled for the problem's own sizes (``size_witness``); the same problem solved
