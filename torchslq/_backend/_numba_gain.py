@@ -330,8 +330,10 @@ def riccati_gain_reg_kernel(
     problems (no ``(n+1) x (m+n+1)`` blocks assembled, sizes fixed by ``nt, mt``)."""
     n = Kk.shape[3] - 1
     scratch = _gain_scratch(n, Kk.shape[2], Kk.dtype)
+    # Hz as a view (layout "A" whether DDP's strided Hessians or iLQR's empty array):
+    # one compilation of the callees for both solvers instead of two
     _gain_reg_rows(
-        b0, b1, pieces, reg, Hz, Hb, Kk, Vh[:, :, :n, :n], Vh[:, :, :n, n], L,
+        b0, b1, pieces, reg, Hz[:, :, :, :, :], Hb, Kk, Vh[:, :, :n, :n], Vh[:, :, :n, n], L,
         Vh[:, :, n, n], Vh, failed, mu_io, delta_io, may_restart, restart_opts, scratch, nt, mt,
     )  # fmt: skip
 

@@ -595,6 +595,9 @@ def riccati_kernel(
     Fs[n, mn1 - 1] = 1.0  # the homogeneous row [0 ... 0 1]
     Hs = np.zeros((mn1, mn1), dtype=Vh.dtype)
     restarting = mu_io.shape[0] > 0
+    # Hz as a view (layout "A" whether DDP's strided Hessians or iLQR's empty array):
+    # one compilation of the element pass for both solvers instead of two
+    Hz_view = Hz[:, :, :, :, :]
     for b in range(b0, b1):
         bf = b if F.shape[0] > 1 else 0
         bh = b if H.shape[0] > 1 else 0
@@ -608,7 +611,7 @@ def riccati_kernel(
         restarts = 0
         while True:
             ok, slope, curv = _element_pass(
-                b, bf, bh, bv, bb, r, F, H, VhT, Hz, Hb, short_form, lower, upper, tol_base,
+                b, bf, bh, bv, bb, r, F, H, VhT, Hz_view, Hb, short_form, lower, upper, tol_base,
                 box_opts, Kk, Vh, L, clamped, pieces, assembled, boxed, VF, M, Lb, Quu_r,
                 qu, k, cl, work, W, Fs, Hs,
             )  # fmt: skip
