@@ -4,14 +4,17 @@ Not part of the test suite. Each measurement is a new Python process that import
 and torchslq, builds the user-models benchmark's problem (``UserCartPole`` of
 ``examples/constrained_cartpole.py`` under ``torchslq.discretize(..., 0.05, "rk4")``,
 T = 50, B = 1) and solves it twice with ``ILQR`` (``max_iter = 500``, ``tol = 1e-6``);
-it reports the import times, the first solve (generated code found or made, kernels
-loaded), the second (the steady state) and whether the process imported torch's
+then with ``DDP``; it reports the import times, the first solve (generated code found or
+made, kernels loaded or compiled), the second (the steady state), the DDP solve after
+them (the kernels DDP needs beyond iLQR's) and whether the process imported torch's
 compiler stack (``torch._dynamo``: a second of imports, which code generation avoids).
-``cold``: an empty generated-code cache (``TORCHSLQ_CACHE_DIR``), as on a machine right
-after installing; ``warm``: the next process with that cache. numba's cache of the
-library's own kernels is warm in both (it lives beside the installed package).
+``install``: numba's cache of the library's own kernels empty too (``NUMBA_CACHE_DIR``
+a new directory): the first use after installing, every kernel compiled. ``cold``: an
+empty generated-code cache (``TORCHSLQ_CACHE_DIR``) with the library's kernels cached
+(beside the installed package, where an earlier run left them); ``warm``: the next
+process with that cache.
 
-    .venv/bin/python benchmarks/first_call.py              # 3 cold and 3 warm processes
+    .venv/bin/python benchmarks/first_call.py     # 3 install, 3 cold and 3 warm processes
 """
 
 from __future__ import annotations
@@ -53,15 +56,19 @@ r1 = ts.ILQR(max_iter=500, tol=1e-6, progress=False).solve(problem, x0)
 t4 = time.perf_counter()
 r2 = ts.ILQR(max_iter=500, tol=1e-6, progress=False).solve(problem, x0)
 t5 = time.perf_counter()
-assert bool(r1.converged.all()) and torch.equal(r1.u, r2.u)
+r3 = ts.DDP(max_iter=500, tol=1e-6, progress=False).solve(problem, x0)
+t6 = time.perf_counter()
+assert bool(r1.converged.all()) and torch.equal(r1.u, r2.u) and bool(r3.converged.all())
 print(json.dumps(dict(import_torch=t1 - t0, import_torchslq=t2 - t1, first_solve=t4 - t3,
-                      second_solve=t5 - t4, iterations=int(r1.iterations[0]),
+                      second_solve=t5 - t4, ddp_after=t6 - t5, iterations=int(r1.iterations[0]),
                       compiler_stack="torch._dynamo" in sys.modules)))
 """
 
 
-def run(cache: str) -> dict:
+def run(cache: str, numba_cache: str | None = None) -> dict:
     env = dict(os.environ, TORCHSLQ_CACHE_DIR=cache, OMP_NUM_THREADS="1")
+    if numba_cache is not None:
+        env["NUMBA_CACHE_DIR"] = numba_cache
     out = subprocess.run(
         [sys.executable, "-c", CHILD, str(ROOT / "examples")],
         env=env, capture_output=True, text=True, check=True, cwd=ROOT,
@@ -71,20 +78,22 @@ def run(cache: str) -> dict:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--repeats", type=int, default=3, help="cold and warm processes each")
+    ap.add_argument("--repeats", type=int, default=3, help="processes of each kind")
     ap.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "first_call"))
     args = ap.parse_args(argv)
     load0 = load()
     rows = []
     for rep in range(args.repeats):
+        with tempfile.TemporaryDirectory() as cache, tempfile.TemporaryDirectory() as nb:
+            rows.append(dict(cache="install", repeat=rep, **run(cache, nb)))
         with tempfile.TemporaryDirectory() as cache:
             rows.append(dict(cache="cold", repeat=rep, **run(cache)))
             rows.append(dict(cache="warm", repeat=rep, **run(cache)))
-        print(rows[-2], rows[-1], flush=True)
-    keys = ("import_torch", "import_torchslq", "first_solve", "second_solve")
+        print(*rows[-3:], sep="\n", flush=True)
+    keys = ("import_torch", "import_torchslq", "first_solve", "second_solve", "ddp_after")
     summary = {
         kind: {k: statistics.median(r[k] for r in rows if r["cache"] == kind) for k in keys}
-        for kind in ("cold", "warm")
+        for kind in ("install", "cold", "warm")
     }
     cmd = "python benchmarks/first_call.py " + " ".join(argv or sys.argv[1:])
     meta = dict(
@@ -109,17 +118,19 @@ def main(argv: list[str] | None = None) -> int:
         f"{meta['load_average_end']}. {meta['versions']}.",
         "",
         "A new process per row: imports, then the user's cart-pole swing-up (B = 1, T = 50, "
-        "ILQR, tol 1e-6) solved twice. `cold`: an empty generated-code cache; `warm`: the "
-        "next process with that cache. Medians of "
+        "ILQR, tol 1e-6) solved twice, then by DDP. `install`: numba's cache of the "
+        "library's kernels empty as well (every kernel compiled, as on the first use after "
+        "installing); `cold`: an empty generated-code cache, the library's kernels cached; "
+        "`warm`: the next process with that cache. Medians of "
         f"{args.repeats} processes each, seconds:",
         "",
-        "| cache | import torch | import torchslq | first solve | second solve |",
-        "|---|---|---|---|---|",
+        "| cache | import torch | import torchslq | first solve | second solve | DDP after |",
+        "|---|---|---|---|---|---|",
     ]
     for kind, s in summary.items():
         lines.append(
             f"| {kind} | {s['import_torch']:.2f} | {s['import_torchslq']:.2f} | "
-            f"{s['first_solve']:.2f} | {s['second_solve']:.2f} |"
+            f"{s['first_solve']:.2f} | {s['second_solve']:.2f} | {s['ddp_after']:.2f} |"
         )
     lines += ["", "Every process:", "",
               "| cache | repeat | " + " | ".join(keys) + " | torch._dynamo imported |",
