@@ -109,9 +109,76 @@ def test_implicit_gradients_against_finite_differences():
     assert torch.autograd.gradcheck(fn, ins, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_float32_works():
-    H, f, A, b, G, h, z_star, *_ = known_qp(seed=2, dtype=torch.float32)
+@pytest.mark.parametrize("bounds", [False, True])
+def test_reduced_newton_system_matches_the_known_solution_and_the_full_one(bounds):
+    """The null-space (variable reduction) interior point: the same solution and
+    multipliers as the known ones and as the full-KKT method, with active general
+    inequalities and (``bounds``) an active simple bound."""
+    qp = known_qp(B=4, n=9, me=5, mi=4, n_act=2, seed=11, bounds=bounds)
+    H, f, A, b, G, h, z_star, lam_star, mu_star = qp[:9]
+    lbub = qp[9:] if bounds else []
+    out = {k: qp_solve(H, f, A, b, G, h, *lbub, kkt=k) for k in ("reduced", "full")}
+    for z, lam, mu, st in out.values():
+        assert (st == 0).all()
+        torch.testing.assert_close(z, z_star, rtol=1e-8, atol=1e-8)
+        torch.testing.assert_close(lam, lam_star, rtol=1e-7, atol=1e-7)
+        torch.testing.assert_close(mu, mu_star, rtol=1e-7, atol=1e-7)
+
+
+def test_reduced_newton_system_gradients_against_finite_differences():
+    H, f, A, b, G, h, z_star, _, _, lb, ub = known_qp(
+        B=2, n=5, me=2, mi=3, n_act=2, seed=7, bounds=True
+    )
+    ins = [t.clone().requires_grad_(True) for t in (H, f, A, b, G, h, lb, ub)]
+
+    def fn(H, f, A, b, G, h, lb, ub):
+        z, lam, mu, _ = qp_solve(H, f, A, b, G, h, lb, ub, tol=1e-13, max_iter=100, kkt="reduced")
+        return z, lam, mu
+
+    assert torch.autograd.gradcheck(fn, ins, eps=1e-6, atol=1e-6, rtol=1e-4)
+
+
+def test_reduced_newton_system_on_a_transcription_with_active_bounds():
+    """A TR transcription (defects and boundary rows leave 10 degrees of freedom of 36)
+    with active control and state bounds: the reduced and full methods reach the sparse
+    solver's optimum, and ``auto`` picks the reduced one there."""
+    from torchslq.lqdo import kkt
+
+    tr = transcribe(lq_problem(bounded=True), "TR", nodes=12)
+    qp = tr.qp(tr.initial_guess(B=2))
+    ref = solve_sparse(qp, solver="clarabel", tol=1e-10)
+    d = qp.dense(bounds=False)
+    ineq = kkt.Inequalities(d.G, torch.isfinite(qp.ub).double(), torch.isfinite(qp.lb).double())
+    assert isinstance(kkt.newton_system(d.H, d.f, d.A, d.b, ineq), kkt.ReducedKKT)
+    for method in ("reduced", "full"):
+        sol = solve_dense(qp, kkt=method)
+        assert (sol.status == 0).all()
+        torch.testing.assert_close(sol.value, ref.value, rtol=1e-8, atol=0)
+        torch.testing.assert_close(sol.z, ref.z, rtol=0, atol=1e-6)
+        torch.testing.assert_close(sol.lam, ref.lam, rtol=0, atol=1e-5)
+        assert float(sol.z[0, tr.idx_x[:, 1]].min()) <= -0.45 + 1e-6  # the bound is active
+
+
+def test_reduced_newton_system_needs_full_row_rank():
+    H, f, A, b, G, h, *_ = known_qp(B=2, n=6, me=3, mi=2, seed=3)
+    A = A.clone()
+    A[1, 2] = 2.0 * A[1, 0]  # a dependent row in element 1
+    b = b.clone()
+    b[1, 2] = 2.0 * b[1, 0]
+    with pytest.raises(ValueError, match="full row rank"):
+        qp_solve(H, f, A, b, G, h, kkt="reduced")
+    with pytest.raises(ValueError, match="kkt must be one of"):
+        qp_solve(H, f, A, b, G, h, kkt="lu")
+    # "auto" falls back to the full KKT matrix, whose dual regularisation copes
     z, _, _, st = qp_solve(H, f, A, b, G, h)
+    z0, *_ = qp_solve(*(t[:1] for t in (H, f, A, b, G, h)), kkt="full")
+    torch.testing.assert_close(z[:1], z0, rtol=1e-9, atol=1e-9)
+
+
+@pytest.mark.parametrize("kkt", ["full", "reduced"])
+def test_float32_works(kkt):
+    H, f, A, b, G, h, z_star, *_ = known_qp(seed=2, dtype=torch.float32)
+    z, _, _, st = qp_solve(H, f, A, b, G, h, kkt=kkt)
     assert z.dtype == torch.float32 and (st == 0).all()
     torch.testing.assert_close(z, z_star, rtol=1e-3, atol=1e-3)
 

@@ -29,6 +29,7 @@ import torch
 from torch import Tensor
 
 from ..status import Status
+from .kkt import KKT_METHODS, Inequalities, newton_system
 from .qp import DenseQP, SparseQP, TensorKeyedCache, few_inequalities
 
 __all__ = ["QPSolution", "qp_solve", "solve", "solve_dense", "solve_sparse", "SPARSE_SOLVERS"]
@@ -149,53 +150,12 @@ def _default_tol(dtype: torch.dtype) -> float:
     return 1e-10 if dtype == torch.float64 else 1e-5
 
 
-class _Ineq:
-    """The inequality rows ``[G; I_ub; -I_lb] z <= [h; ub; -lb]`` of the interior point
-    with the simple bounds kept diagonal: ``eu``/``el`` (B, n) are 1 where a bound is
-    finite (0 rows, ``0 z <= 1``, elsewhere), so a bound costs a diagonal term in the KKT
-    matrix instead of a row of a dense ``G``."""
-
-    def __init__(self, G: Tensor, eu: Tensor, el: Tensor) -> None:
-        self.G, self.eu, self.el = G, eu, el
-        self.mg, self.n = G.shape[1], G.shape[2]
-        self.bounded = bool(eu.any() or el.any())
-        self.m = self.mg + (2 * self.n if self.bounded else 0)
-
-    def mv(self, z: Tensor) -> Tensor:
-        parts = [(self.G @ z.unsqueeze(-1)).squeeze(-1)]
-        if self.bounded:
-            parts += [self.eu * z, -self.el * z]
-        return torch.cat(parts, -1)
-
-    def tmv(self, v: Tensor) -> Tensor:
-        out = (self.G.mT @ v[:, : self.mg].unsqueeze(-1)).squeeze(-1)
-        if self.bounded:
-            n, mg = self.n, self.mg
-            out = out + self.eu * v[:, mg : mg + n] - self.el * v[:, mg + n :]
-        return out
-
-    def gwg(self, W: Tensor) -> Tensor:
-        out = self.G.mT @ (W[:, : self.mg].unsqueeze(-1) * self.G)
-        if self.bounded:
-            n, mg = self.n, self.mg
-            d = self.eu * W[:, mg : mg + n] + self.el * W[:, mg + n :]
-            out = out + torch.diag_embed(d)
-        return out
-
-    def dense(self) -> Tensor:
-        if not self.bounded:
-            return self.G
-        return torch.cat([self.G, torch.diag_embed(self.eu), -torch.diag_embed(self.el)], 1)
-
-
-def _direction(rc, rd, re, ri, s, mu, LU, piv, ineq, n, mi):
+def _direction(rc, rd, re, ri, s, mu, kkt, ineq, mi):
     """One Newton direction of the interior point for complementarity target ``rc``."""
     rhs1 = -rd - ineq.tmv((rc + mu * ri) / s) if mi else -rd
-    rhs = torch.cat([rhs1, -re], -1).unsqueeze(-1)
-    sol = torch.linalg.ldl_solve(LU, piv, rhs).squeeze(-1)
-    dz, dl = sol[:, :n], sol[:, n:]
+    dz, dl, Gdz = kkt.solve(rhs1, -re)
     if mi:
-        ds = -ri - ineq.mv(dz)
+        ds = -ri - ineq.mv(dz, Gdz)
         dm = (rc - mu * ds) / s
     else:
         ds = dm = rd.new_zeros(rd.shape[0], 0)
@@ -414,13 +374,14 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
     return x, y[: B * me], y[B * me : B * (me + mi)], ok, int(res.iterations)
 
 
-def _ip(H, f, A, b, ineq, h, tol, max_iter):
-    """Batched Mehrotra predictor-corrector. Returns z, lam, mu, s, status, iterations."""
+def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto"):
+    """Batched Mehrotra predictor-corrector on the Newton system ``method`` of
+    :func:`kkt.newton_system`. Returns z, lam, mu, s, status, iterations."""
     B, n = f.shape
     me, mi = A.shape[1], ineq.m
     dt, dev = f.dtype, f.device
-    At = A.mT
-    z = f.new_zeros(B, n)
+    kkt = newton_system(H, f, A, b, ineq, method)
+    z = kkt.start()
     lam = f.new_zeros(B, me)
     s = f.new_ones(B, mi)
     mu = f.new_ones(B, mi)
@@ -430,25 +391,10 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
     scale_e = 1 + b.abs().amax(-1) if me else f.new_ones(B)
     scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
-    eye_reg = torch.eye(n + me, dtype=dt, device=dev)
-    # the KKT matrix [[K11, A'], [A, 0]] in one buffer: the constraint blocks written once,
-    # K11 each iteration (building it with cat took 15% of a batched QLIN solve). A tiny
-    # regularisation of the diagonal (primal +, dual -) keeps LDL' stable when H is
-    # singular on the constraints' null space only up to rounding.
-    KKT = f.new_zeros(B, n + me, n + me)
-    KKT[:, :n, n:] = At
-    KKT[:, n:, :n] = A
-    KKT[:, n:, n:].diagonal(dim1=-2, dim2=-1).fill_(-1e-13)
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
-        rd = (H @ z.unsqueeze(-1)).squeeze(-1) + f
-        if me:
-            rd = rd + (At @ lam.unsqueeze(-1)).squeeze(-1)
-            re = (A @ z.unsqueeze(-1)).squeeze(-1) - b
-        else:
-            re = f.new_zeros(B, 0)
+        rd, re = kkt.residuals(z, lam, ineq.tmv(mu) if mi else None)
         if mi:
-            rd = rd + ineq.tmv(mu)
             ri = ineq.mv(z) + s - h
             gap = (s * mu).mean(-1)
         else:
@@ -463,19 +409,10 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
         done = done | conv | bad
         if bool(done.all()):
             break
-        W = mu / s if mi else None
-        K11 = H + ineq.gwg(W) if mi else H
-        KKT[:, :n, :n] = K11
-        KKT[:, :n, :n].diagonal(dim1=-2, dim2=-1).add_(1e-13)
-        # a finished element factors the identity (its step is 0)
-        K = torch.where(done[:, None, None], eye_reg, KKT) if bool(done.any()) else KKT
-        # the KKT matrix is symmetric (indefinite): Bunch-Kaufman LDL'. (Batched LU of
-        # larger matrices after torch.set_num_threads has returned invalid pivots with
-        # this torch/MKL build; LDL' is also half the work.)
-        LU, piv, _ = torch.linalg.ldl_factor_ex(K)
+        kkt.factor(mu / s if mi else None, done)
 
-        def direction(rc, rd=rd, re=re, ri=ri, s=s, mu=mu, LU=LU, piv=piv):
-            return _direction(rc, rd, re, ri, s, mu, LU, piv, ineq, n, mi)
+        def direction(rc, rd=rd, re=re, ri=ri, s=s, mu=mu):
+            return _direction(rc, rd, re, ri, s, mu, kkt, ineq, mi)
 
         if mi:
             dz, dl, ds, dm = direction(-s * mu)
@@ -492,9 +429,11 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
         a = alpha[:, None]
         z = z + a * dz
         lam = lam + a * dl
+        kkt.advance(a)
         if mi:
             s = s + a * ds
             mu = mu + a * dm
+    lam = kkt.multipliers(z, lam, ineq.tmv(mu) if mi else None)
     status = torch.full((B,), int(Status.MAX_ITER), dtype=torch.int64, device=dev)
     status = status.masked_fill(done, int(Status.CONVERGED))
     finite = torch.isfinite(z).all(-1)
@@ -504,15 +443,15 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter):
 
 class _QPFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, H, f, A, b, G, h, lb, ub, tol, max_iter):
+    def forward(ctx, H, f, A, b, G, h, lb, ub, tol, max_iter, kkt):
         Hs = 0.5 * (H + H.mT)
         eu, el = torch.isfinite(ub), torch.isfinite(lb)
-        ineq = _Ineq(G, eu.to(f.dtype), el.to(f.dtype))
+        ineq = Inequalities(G, eu.to(f.dtype), el.to(f.dtype))
         h_all = h
         if ineq.bounded:
             one = torch.ones_like(f)
             h_all = torch.cat([h, torch.where(eu, ub, one), torch.where(el, -lb, one)], 1)
-        z, lam, mu, s, status, it = _ip(Hs, f, A, b, ineq, h_all, tol, max_iter)
+        z, lam, mu, s, status, it = _ip(Hs, f, A, b, ineq, h_all, tol, max_iter, kkt)
         ctx.save_for_backward(Hs, A, ineq.dense(), z, lam, mu, s, eu, el)
         ctx.mg = G.shape[1]
         iters = torch.tensor(it)
@@ -560,7 +499,7 @@ class _QPFunction(torch.autograd.Function):
         if mi > mg:  # the simple bounds' rows: h_u = ub, h_l = -lb
             g_ub = torch.where(eu, -zm[:, mg : mg + n], torch.zeros_like(z))
             g_lb = torch.where(el, zm[:, mg + n :], torch.zeros_like(z))
-        return gH, zz, gA, -zl, gG, -zm[:, :mg], g_lb, g_ub, None, None
+        return gH, zz, gA, -zl, gG, -zm[:, :mg], g_lb, g_ub, None, None, None
 
 
 def qp_solve(
@@ -574,6 +513,7 @@ def qp_solve(
     ub: Tensor | None = None,
     tol: float | None = None,
     max_iter: int = 60,
+    kkt: str = "auto",
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
     """Solve ``min 1/2 z'Hz + f'z s.t. A z = b, G z <= h, lb <= z <= ub`` for a batch,
     differentiably.
@@ -585,6 +525,10 @@ def qp_solve(
             kept diagonal in the KKT matrix.
         tol: residual and complementarity tolerance (1e-10 in float64, 1e-5 in float32).
         max_iter: interior-point iteration limit.
+        kkt: how each iteration's Newton system is solved (:mod:`torchslq.lqdo.kkt`):
+            ``"full"`` (LDL' of the KKT matrix), ``"reduced"`` (one LU of ``A'`` per
+            call, then the iterates stay on ``A z = b`` and only the reduced matrix on
+            ``A``'s null space is factored) or ``"auto"`` (reduced where it is cheaper).
 
     Returns:
         ``z (B, n)``, ``lam (B, me)``, ``mu (B, mi)`` (``Hz + f + A'lam + G'mu = 0``) and
@@ -613,26 +557,32 @@ def qp_solve(
         raise ValueError(f"b must be ({B}, {A.shape[1]}); got {tuple(b.shape)}")
     if h.shape != (B, G.shape[1]):
         raise ValueError(f"h must be ({B}, {G.shape[1]}); got {tuple(h.shape)}")
-    z, lam, mu, status, _ = _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter)
+    z, lam, mu, status, _ = _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter, kkt)
     return z, lam, mu, status
 
 
-def _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter):
+def _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter, kkt="auto"):
+    if kkt not in KKT_METHODS:
+        raise ValueError(f"kkt must be one of {KKT_METHODS}; got {kkt!r}")
     tol = _default_tol(f.dtype) if tol is None else tol
     lb = torch.full_like(f, -float("inf")) if lb is None else lb.to(f).expand_as(f)
     ub = torch.full_like(f, float("inf")) if ub is None else ub.to(f).expand_as(f)
-    return _QPFunction.apply(H, f, A, b, G, h, lb, ub, tol, max_iter)
+    return _QPFunction.apply(H, f, A, b, G, h, lb, ub, tol, max_iter, kkt)
 
 
-def solve_dense(qp: SparseQP | DenseQP, tol: float | None = None, max_iter: int = 60) -> QPSolution:
+def solve_dense(
+    qp: SparseQP | DenseQP, tol: float | None = None, max_iter: int = 60, kkt: str = "auto"
+) -> QPSolution:
     """Solve a batch with the dense interior-point method (:func:`qp_solve`; the simple
-    bounds stay diagonal, their multipliers are not returned)."""
+    bounds stay diagonal, their multipliers are not returned; ``kkt`` as there)."""
     t0 = time.perf_counter()
     sparse = isinstance(qp, SparseQP)
     mi = qp.mi if sparse else qp.G.shape[1]
     d = qp.dense(bounds=False) if sparse else qp
     lb, ub = (qp.lb, qp.ub) if sparse else (None, None)
-    z, lam, mu, status, iters = _qp_solve_iters(d.H, d.f, d.A, d.b, d.G, d.h, lb, ub, tol, max_iter)
+    z, lam, mu, status, iters = _qp_solve_iters(
+        d.H, d.f, d.A, d.b, d.G, d.h, lb, ub, tol, max_iter, kkt
+    )
     Hs = 0.5 * (d.H + d.H.mT)
     value = 0.5 * (z * (Hs @ z.unsqueeze(-1)).squeeze(-1)).sum(-1) + (d.f * z).sum(-1) + d.c
     return QPSolution(

@@ -1,0 +1,318 @@
+"""The Newton systems of the batched interior point (:func:`backends.qp_solve`).
+
+Every iteration of the interior point solves, for each element of the batch,
+
+    [[K, A'], [A, 0]] [dz; dl] = [r1; r2],     K = H + G_all' W G_all,        (*)
+
+where ``G_all = [G; I; -I]`` stacks the general inequalities and the simple bounds and
+``W = diag(mu / s)`` changes every iteration while ``H`` and ``A`` do not. Two
+formulations, which converge to the same solution:
+
+* :class:`FullKKT`: a Bunch-Kaufman LDL' factorisation of the ``(n + me)``-square matrix
+  every iteration; the iterates need not satisfy ``A z = b`` until convergence.
+* :class:`ReducedKKT`, the null-space method with variable reduction (Nocedal & Wright,
+  *Numerical Optimization*, 2nd ed., Secs. 15.3 and 16.2): one LU factorisation with
+  partial pivoting of ``A'`` per QP gives a basis ``Z`` of ``A``'s null space and a
+  point with ``A z0 = b``; the iterates stay on ``z0 + range(Z)`` and an iteration
+  factors a system of size ``r + mg + n_b`` (``r = n - me`` degrees of freedom, the
+  general inequalities and the bounded variables) and takes ``(n, r)`` products only.
+  A transcription's defects and boundary conditions leave few degrees of freedom (the
+  container crane PS10: ``n = 88``, ``me = 78``, ``r = 10``, ``n_b = 44``: 54 against
+  166), and for a batch the ``(n, n)`` matrices' memory traffic is what an iteration of
+  the full method costs beyond its factorisation.
+
+:func:`newton_system` picks one by the systems' sizes, the reduced one only where ``A``
+has full row rank in every element. Both factor with Bunch-Kaufman LDL', so a nonconvex
+QP gets the same kind of (saddle-point) step from either.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor
+
+__all__ = ["KKT_METHODS", "Inequalities", "FullKKT", "ReducedKKT", "newton_system"]
+
+KKT_METHODS = ("auto", "full", "reduced")
+
+# primal (+) and dual (-) regularisation of the KKT diagonal: keeps LDL' stable when H is
+# singular on the constraints' null space only up to rounding
+_REG = 1e-13
+
+
+class Inequalities:
+    """The inequality rows ``[G; I_ub; -I_lb] z <= [h; ub; -lb]`` of the interior point
+    with the simple bounds kept diagonal: ``eu``/``el`` (B, n) are 1 where a bound is
+    finite (0 rows, ``0 z <= 1``, elsewhere), so a bound costs a diagonal term in the KKT
+    matrix instead of a row of a dense ``G``."""
+
+    def __init__(self, G: Tensor, eu: Tensor, el: Tensor) -> None:
+        self.G, self.eu, self.el = G, eu, el
+        self.mg, self.n = G.shape[1], G.shape[2]
+        self.bounded = bool(eu.any() or el.any())
+        self.m = self.mg + (2 * self.n if self.bounded else 0)
+
+    def mv(self, z: Tensor, Gz: Tensor | None = None) -> Tensor:
+        """``G_all z``; ``Gz``: its first ``mg`` rows when already known."""
+        parts = [(self.G @ z.unsqueeze(-1)).squeeze(-1) if Gz is None else Gz]
+        if self.bounded:
+            parts += [self.eu * z, -self.el * z]
+        return torch.cat(parts, -1)
+
+    def tmv(self, v: Tensor) -> Tensor:
+        out = (self.G.mT @ v[:, : self.mg].unsqueeze(-1)).squeeze(-1)
+        if self.bounded:
+            n, mg = self.n, self.mg
+            out = out + self.eu * v[:, mg : mg + n] - self.el * v[:, mg + n :]
+        return out
+
+    def bound_diagonal(self, W: Tensor) -> Tensor | None:
+        """The simple bounds' part of ``G_all' W G_all``: a diagonal ``(B, n)``."""
+        if not self.bounded:
+            return None
+        n, mg = self.n, self.mg
+        return self.eu * W[:, mg : mg + n] + self.el * W[:, mg + n :]
+
+    def gwg(self, W: Tensor) -> Tensor:
+        out = self.G.mT @ (W[:, : self.mg].unsqueeze(-1) * self.G)
+        d = self.bound_diagonal(W)
+        return out if d is None else out + torch.diag_embed(d)
+
+    def dense(self) -> Tensor:
+        if not self.bounded:
+            return self.G
+        return torch.cat([self.G, torch.diag_embed(self.eu), -torch.diag_embed(self.el)], 1)
+
+
+class FullKKT:
+    """(*) by an LDL' factorisation of the whole KKT matrix each iteration.
+
+    The matrix ``[[K, A'], [A, 0]]`` lives in one buffer: the constraint blocks are
+    written once, ``K`` each iteration (building it with ``cat`` took 15% of a batched
+    quasilinearization solve)."""
+
+    def __init__(self, H: Tensor, f: Tensor, A: Tensor, b: Tensor, ineq: Inequalities) -> None:
+        B, me, n = A.shape
+        self.H, self.f, self.A, self.b, self.ineq, self.n = H, f, A, b, ineq, n
+        self.buf = H.new_zeros(B, n + me, n + me)
+        self.buf[:, :n, n:] = A.mT
+        self.buf[:, n:, :n] = A
+        self.buf[:, n:, n:].diagonal(dim1=-2, dim2=-1).fill_(-_REG)
+        self.eye = torch.eye(n + me, dtype=H.dtype, device=H.device)
+
+    def start(self) -> Tensor:
+        """The first iterate ``z (B, n)``."""
+        return torch.zeros_like(self.f)
+
+    def residuals(self, z: Tensor, lam: Tensor, t: Tensor | None) -> tuple[Tensor, Tensor]:
+        """``rd = Hz + f + A'lam + t`` (``t = G_all' mu``, None: 0) and ``re = Az - b``."""
+        rd = (self.H @ z.unsqueeze(-1)).squeeze(-1) + self.f
+        rd = rd + (self.A.mT @ lam.unsqueeze(-1)).squeeze(-1)
+        if t is not None:
+            rd = rd + t
+        return rd, (self.A @ z.unsqueeze(-1)).squeeze(-1) - self.b
+
+    def advance(self, alpha: Tensor) -> None:
+        """The loop moved along the last direction by ``alpha (B, 1)`` (nothing kept)."""
+
+    def multipliers(self, z: Tensor, lam: Tensor, t: Tensor | None) -> Tensor:
+        """The equality multipliers at the end (the iterated ones)."""
+        return lam
+
+    def factor(self, W: Tensor | None, done: Tensor) -> None:
+        """Factor for the weights ``W (B, mi)`` (None: no inequalities). An element that
+        is ``done`` factors the identity (its step is discarded)."""
+        n = self.n
+        self.buf[:, :n, :n] = self.H + self.ineq.gwg(W) if W is not None else self.H
+        self.buf[:, :n, :n].diagonal(dim1=-2, dim2=-1).add_(_REG)
+        K = torch.where(done[:, None, None], self.eye, self.buf) if bool(done.any()) else self.buf
+        # the KKT matrix is symmetric (indefinite): Bunch-Kaufman LDL'. (Batched LU of
+        # larger matrices after torch.set_num_threads has returned invalid pivots with
+        # this torch/MKL build; LDL' is also half the work.)
+        self.LD, self.piv, _ = torch.linalg.ldl_factor_ex(K)
+
+    def solve(self, r1: Tensor, r2: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """``(dz (B, n), dl (B, me), Gdz)`` of (*) for ``r1 (B, n)``, ``r2 (B, me)``;
+        ``Gdz``, the general inequalities' rows of the step, None: ``G dz``."""
+        rhs = torch.cat([r1, r2], -1).unsqueeze(-1)
+        sol = torch.linalg.ldl_solve(self.LD, self.piv, rhs).squeeze(-1)
+        return sol[:, : self.n], sol[:, self.n :], None
+
+
+class ReducedKKT:
+    """(*) on the affine subspace ``A z = b``, by variable reduction.
+
+    ``A' = P L U`` (partial pivoting; ``L = [L1; L2]``, ``L1`` unit lower triangular
+    ``me``-square, ``U`` upper triangular): in the permuted variables ``y = P'z`` the
+    first ``me`` are basic, and ``A z = 0`` iff ``y1 = -L1^{-T} L2' y2``, so
+    ``Z = P [-L1^{-T} L2'; I]`` spans the null space and ``P [L1^{-T} U^{-T} b; 0]`` is
+    feasible; the iterates start at the feasible point of least norm (as the full method
+    starts at 0) and move by ``dz = Z dw``, so they stay feasible (``r2 = 0``) and
+
+        (Z'KZ) dw = Z' r1,     Z'KZ = Z'HZ + C' diag(w) C,     C = [G Z; Z_b],
+
+    with ``Z_b`` the rows of ``Z`` of the variables with a bound and ``w`` the
+    inequalities' weights (a variable's two bounds summed). Near the solution an active
+    row's weight grows without bound, and folded into ``Z'KZ`` it would swamp the other
+    directions in rounding, so rows with ``w > 1`` are kept as the augmented system
+
+        [[Z'HZ + C_s' diag(w_s) C_s, C_l'], [C_l, -diag(1 / w_l)]] [dw; v] = [Z' r1; 0]
+
+    (``s``/``l``: small/large weights), factored by LDL' like the full KKT matrix but of
+    size ``r + mg + n_b`` instead of ``n + me``. ``Z'HZ``, ``C`` and ``HZ`` are formed once
+    per QP; ``Hz`` is carried along (``H dz = (HZ) dw``), so an iteration takes no
+    ``(n, n)`` product.
+
+    The stationarity residual is reported with the multipliers that zero its basic part,
+    ``lam = -U^{-1} L1^{-1} (P'g)_1`` for ``g = Hz + f + G_all' mu``: then
+    ``P'rd = [0; Z'g]``, so ``Z'g`` is its whole size."""
+
+    def __init__(self, H: Tensor, f: Tensor, A: Tensor, b: Tensor, ineq: Inequalities, lu) -> None:
+        B, me, n = A.shape
+        r = n - me
+        LU, perm = lu
+        self.f, self.ineq = f, ineq
+        self.basic, self.free = perm[:, :me], perm[:, me:]
+        self.L1, self.U = LU[:, :me, :], LU[:, :me, :].triu()
+        # Z in the permuted rows, [-L1^{-T} L2'; I], scattered back to z's order
+        top = -torch.linalg.solve_triangular(
+            self.L1.mT, LU[:, me:, :].mT, upper=True, unitriangular=True
+        )
+        eye = torch.eye(r, dtype=H.dtype, device=H.device)
+        Zy = torch.cat([top, eye.expand(B, r, r)], 1)
+        self.Z = torch.empty_like(Zy).scatter_(1, perm.unsqueeze(-1).expand(B, n, r), Zy)
+        c = torch.linalg.solve_triangular(self.U.mT, b.unsqueeze(-1), upper=False)
+        y1 = torch.linalg.solve_triangular(self.L1.mT, c, upper=True, unitriangular=True)
+        z0 = torch.zeros_like(f).scatter_(1, self.basic, y1.squeeze(-1))
+        # least norm on z0 + range(Z): z0 - Z (Z'Z)^{-1} Z'z0
+        ZtZ = self.Z.mT @ self.Z
+        w0 = torch.linalg.solve(ZtZ, self.Z.mT @ z0.unsqueeze(-1))
+        self.z0 = z0 - (self.Z @ w0).squeeze(-1)
+        self.HZ = H @ self.Z
+        self.ZHZ = self.Z.mT @ self.HZ
+        self.Hz = (H @ self.z0.unsqueeze(-1)).squeeze(-1)
+        self.mg = ineq.mg
+        # the variables with a bound in some element (unbounded ones get weight 0)
+        self.bidx = (
+            torch.nonzero((ineq.eu + ineq.el).amax(0) > 0).squeeze(-1)
+            if ineq.bounded
+            else torch.zeros(0, dtype=torch.long, device=H.device)
+        )
+        parts = [ineq.G @ self.Z] if ineq.mg else []
+        if self.bidx.numel():
+            parts.append(self.Z[:, self.bidx, :])
+        self.C = torch.cat(parts, 1) if parts else H.new_zeros(B, 0, r)
+        mc = self.C.shape[1]
+        self.r, self.mc = r, mc
+        self.buf = H.new_zeros(B, r + mc, r + mc)
+        self.eye = torch.eye(r + mc, dtype=H.dtype, device=H.device)
+        self.re = f.new_zeros(B, me)
+
+    def start(self) -> Tensor:
+        return self.z0
+
+    def residuals(self, z: Tensor, lam: Tensor, t: Tensor | None) -> tuple[Tensor, Tensor]:
+        g = self.Hz + self.f if t is None else self.Hz + self.f + t
+        gr = (self.Z.mT @ g.unsqueeze(-1)).squeeze(-1)
+        # rd with the basic multipliers: zero on the basic variables, Z'g on the others
+        rd = torch.zeros_like(g).scatter_(1, self.free, gr)
+        return rd, self.re
+
+    def factor(self, W: Tensor | None, done: Tensor) -> None:
+        r = self.r
+        M = self.ZHZ
+        if self.mc:
+            parts = [W[:, : self.mg]] if self.mg else []
+            if self.bidx.numel():
+                parts.append(self.ineq.bound_diagonal(W)[:, self.bidx])
+            w = torch.cat(parts, 1) if len(parts) > 1 else parts[0]
+            large = w > 1.0
+            self.w, self.large = w, large
+            ws = torch.where(large, 0.0, w)
+            M = M + self.C.mT @ (ws.unsqueeze(-1) * self.C)
+            self.buf[:, r:, :r] = torch.where(large.unsqueeze(-1), self.C, 0.0)
+            self.buf[:, :r, r:] = self.buf[:, r:, :r].mT
+            d = torch.where(large, -1.0 / w, -1.0)
+            self.buf[:, r:, r:].diagonal(dim1=-2, dim2=-1).copy_(d)
+        self.buf[:, :r, :r] = M
+        self.buf[:, :r, :r].diagonal(dim1=-2, dim2=-1).add_(_REG)
+        K = self.buf
+        if bool(done.any()):
+            K = torch.where(done[:, None, None], self.eye, K)
+        self.LD, self.piv, _ = torch.linalg.ldl_factor_ex(K)
+
+    def solve(self, r1: Tensor, r2: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
+        """``dz`` for ``r2 = 0`` (the iterates are feasible); the multipliers' step is
+        not needed (they are recovered at the end), so ``dl`` is returned as 0.
+
+        A row with a large weight takes its step from the augmented solution ``v``
+        (``(C dz)_l = v_l / w_l``), not from ``C Z dw``: that difference of ``O(|dw|)``
+        terms has an absolute error ``eps |dw|``, which the weight, up to ``1 / tol``,
+        would turn into an ``O(1)`` error in the multipliers' step."""
+        B, r = r1.shape[0], self.r
+        g = self.Z.mT @ r1.unsqueeze(-1)
+        if self.mc:
+            g = torch.cat([g, g.new_zeros(B, self.mc, 1)], 1)
+        sol = torch.linalg.ldl_solve(self.LD, self.piv, g).squeeze(-1)
+        dw = sol[:, :r]
+        self.Hdz = (self.HZ @ dw.unsqueeze(-1)).squeeze(-1)
+        dz = (self.Z @ dw.unsqueeze(-1)).squeeze(-1)
+        Gdz = None
+        if self.mc:
+            cdz = torch.where(self.large, sol[:, r:] / self.w, 0.0)
+            mg = self.mg
+            if mg:
+                Gdz = (self.C[:, :mg] @ dw.unsqueeze(-1)).squeeze(-1)
+                Gdz = torch.where(self.large[:, :mg], cdz[:, :mg], Gdz)
+            if self.bidx.numel():
+                idx = self.bidx.expand(B, -1)
+                zb = torch.where(self.large[:, mg:], cdz[:, mg:], dz.gather(1, idx))
+                dz = dz.scatter(1, idx, zb)
+        return dz, self.re, Gdz
+
+    def advance(self, alpha: Tensor) -> None:
+        self.Hz = self.Hz + alpha * self.Hdz
+
+    def multipliers(self, z: Tensor, lam: Tensor, t: Tensor | None) -> Tensor:
+        g = self.Hz + self.f if t is None else self.Hz + self.f + t
+        gb = torch.gather(g, 1, self.basic).unsqueeze(-1)
+        v = torch.linalg.solve_triangular(self.L1, gb, upper=False, unitriangular=True)
+        return -torch.linalg.solve_triangular(self.U, v, upper=True).squeeze(-1)
+
+
+def newton_system(
+    H: Tensor, f: Tensor, A: Tensor, b: Tensor, ineq: Inequalities, method: str = "auto"
+) -> FullKKT | ReducedKKT:
+    """The solver of (*) for ``H (B, n, n)``, ``f (B, n)``, ``A (B, me, n)``,
+    ``b (B, me)``.
+
+    ``method``: ``"full"``, ``"reduced"`` or ``"auto"`` (reduced where ``0 < me < n``,
+    ``A`` has full row rank in every element and the reduced system, of size
+    ``r + mg + n_b`` (``n_b`` the variables with a bound), is at most 0.6 times the
+    size of (*), a fifth of its factorisation's flops; float64 only). ``"reduced"``
+    where it does not apply is a ``ValueError``."""
+    if method not in KKT_METHODS:
+        raise ValueError(f"method must be one of {KKT_METHODS}; got {method!r}")
+    B, me, n = A.shape
+    r = n - me
+    if method == "full" or me == 0 or r <= 0:
+        if method == "reduced":
+            raise ValueError(f"the reduced method needs 0 < me < n; got me={me}, n={n}")
+        return FullKKT(H, f, A, b, ineq)
+    nb = int(((ineq.eu + ineq.el).amax(0) > 0).sum()) if ineq.bounded else 0
+    # float32: on the container crane PS10 (more bounds active than degrees of freedom)
+    # the reduced method stalled with non-finite weights where the full one converged
+    if method == "auto" and (r + ineq.mg + nb > 0.6 * (n + me) or A.dtype != torch.float64):
+        return FullKKT(H, f, A, b, ineq)
+    LU, piv, info = torch.linalg.lu_factor_ex(A.mT)
+    P = torch.lu_unpack(LU, piv, unpack_data=False)[0]
+    perm = P.argmax(-2)  # A' = P L U: row i of L U is row perm[i] of A'
+    diag = LU.diagonal(dim1=-2, dim2=-1).abs()
+    scale = A.abs().amax((-2, -1)).clamp_min(torch.finfo(A.dtype).tiny)
+    # a tiny pivot flags a (nearly) dependent row of A
+    deficient = bool((diag.amin(-1) <= 10 * n * torch.finfo(A.dtype).eps * scale).any())
+    if deficient or bool((info != 0).any()):
+        if method == "reduced":
+            raise ValueError("the reduced method needs A of full row rank in every element")
+        return FullKKT(H, f, A, b, ineq)
+    return ReducedKKT(H, f, A, b, ineq, (LU, perm))
