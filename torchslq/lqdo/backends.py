@@ -452,7 +452,7 @@ class _QPFunction(torch.autograd.Function):
             one = torch.ones_like(f)
             h_all = torch.cat([h, torch.where(eu, ub, one), torch.where(el, -lb, one)], 1)
         z, lam, mu, s, status, it = _ip(Hs, f, A, b, ineq, h_all, tol, max_iter, kkt)
-        ctx.save_for_backward(Hs, A, ineq.dense(), z, lam, mu, s, eu, el)
+        ctx.save_for_backward(Hs, A, G, z, lam, mu, s, eu, el)
         ctx.mg = G.shape[1]
         iters = torch.tensor(it)
         ctx.mark_non_differentiable(status, iters)
@@ -461,6 +461,7 @@ class _QPFunction(torch.autograd.Function):
     @staticmethod
     def backward(ctx, gz, glam, gmu, _gst, _git):
         Hs, A, G, z, lam, mu, s, eu, el = ctx.saved_tensors
+        G = Inequalities(G, eu.to(z.dtype), el.to(z.dtype)).dense()  # with the bounds' rows
         B, n = z.shape
         me, mi, mg = A.shape[1], G.shape[1], ctx.mg
         act = mu > s  # strict complementarity: active rows have mu > 0 = slack
@@ -583,8 +584,7 @@ def solve_dense(
     z, lam, mu, status, iters = _qp_solve_iters(
         d.H, d.f, d.A, d.b, d.G, d.h, lb, ub, tol, max_iter, kkt
     )
-    Hs = 0.5 * (d.H + d.H.mT)
-    value = 0.5 * (z * (Hs @ z.unsqueeze(-1)).squeeze(-1)).sum(-1) + (d.f * z).sum(-1) + d.c
+    value = 0.5 * (z * (d.H @ z.unsqueeze(-1)).squeeze(-1)).sum(-1) + (d.f * z).sum(-1) + d.c
     return QPSolution(
         z=z,
         lam=lam,

@@ -159,7 +159,8 @@ class ReducedKKT:
         [[Z'HZ + C_s' diag(w_s) C_s, C_l'], [C_l, -diag(1 / w_l)]] [dw; v] = [Z' r1; 0]
 
     (``s``/``l``: small/large weights), factored by LDL' like the full KKT matrix but of
-    size ``r + mg + n_b`` instead of ``n + me``. ``Z'HZ``, ``C`` and ``HZ`` are formed once
+    size ``r + k`` instead of ``n + me`` (``k <= mg + n_b`` the most large rows of an
+    element: those of the active set near the solution). ``Z'HZ``, ``C`` and ``HZ`` are formed once
     per QP; ``Hz`` is carried along (``H dz = (HZ) dw``), so an iteration takes no
     ``(n, n)`` product.
 
@@ -173,17 +174,19 @@ class ReducedKKT:
         LU, perm = lu
         self.f, self.ineq = f, ineq
         self.basic, self.free = perm[:, :me], perm[:, me:]
-        self.L1, self.U = LU[:, :me, :], LU[:, :me, :].triu()
-        # Z in the permuted rows, [-L1^{-T} L2'; I], scattered back to z's order
-        top = -torch.linalg.solve_triangular(
-            self.L1.mT, LU[:, me:, :].mT, upper=True, unitriangular=True
-        )
+        # the square LU of the basic rows, L1 U, with its pivoting already applied
+        self.LU1 = LU[:, :me, :]
+        self.ident = torch.arange(1, me + 1, dtype=torch.int32, device=H.device).expand(B, me)
+        # Z in the permuted rows, [-L1^{-T} L2'; I], scattered back to z's order, and the
+        # basic solution y1 = L1^{-T} U^{-T} b, from one triangular solve
+        # (trsm reads only the triangle named: no triu copy)
+        c = torch.linalg.solve_triangular(self.LU1.mT, b.unsqueeze(-1), upper=False)
+        rhs = torch.cat([LU[:, me:, :].mT, c], -1)
+        sol = torch.linalg.solve_triangular(self.LU1.mT, rhs, upper=True, unitriangular=True)
         eye = torch.eye(r, dtype=H.dtype, device=H.device)
-        Zy = torch.cat([top, eye.expand(B, r, r)], 1)
+        Zy = torch.cat([-sol[:, :, :r], eye.expand(B, r, r)], 1)
         self.Z = torch.empty_like(Zy).scatter_(1, perm.unsqueeze(-1).expand(B, n, r), Zy)
-        c = torch.linalg.solve_triangular(self.U.mT, b.unsqueeze(-1), upper=False)
-        y1 = torch.linalg.solve_triangular(self.L1.mT, c, upper=True, unitriangular=True)
-        z0 = torch.zeros_like(f).scatter_(1, self.basic, y1.squeeze(-1))
+        z0 = torch.zeros_like(f).scatter_(1, self.basic, sol[:, :, r])
         # least norm on z0 + range(Z): z0 - Z (Z'Z)^{-1} Z'z0
         ZtZ = self.Z.mT @ self.Z
         w0 = torch.linalg.solve(ZtZ, self.Z.mT @ z0.unsqueeze(-1))
@@ -204,7 +207,6 @@ class ReducedKKT:
         self.C = torch.cat(parts, 1) if parts else H.new_zeros(B, 0, r)
         mc = self.C.shape[1]
         self.r, self.mc = r, mc
-        self.buf = H.new_zeros(B, r + mc, r + mc)
         self.eye = torch.eye(r + mc, dtype=H.dtype, device=H.device)
         self.re = f.new_zeros(B, me)
 
@@ -221,24 +223,31 @@ class ReducedKKT:
     def factor(self, W: Tensor | None, done: Tensor) -> None:
         r = self.r
         M = self.ZHZ
+        self.k = 0
         if self.mc:
             parts = [W[:, : self.mg]] if self.mg else []
             if self.bidx.numel():
                 parts.append(self.ineq.bound_diagonal(W)[:, self.bidx])
             w = torch.cat(parts, 1) if len(parts) > 1 else parts[0]
             large = w > 1.0
-            self.w, self.large = w, large
-            ws = torch.where(large, 0.0, w)
-            M = M + self.C.mT @ (ws.unsqueeze(-1) * self.C)
-            self.buf[:, r:, :r] = torch.where(large.unsqueeze(-1), self.C, 0.0)
-            self.buf[:, :r, r:] = self.buf[:, r:, :r].mT
-            d = torch.where(large, -1.0 / w, -1.0)
-            self.buf[:, r:, r:].diagonal(dim1=-2, dim2=-1).copy_(d)
-        self.buf[:, :r, :r] = M
-        self.buf[:, :r, :r].diagonal(dim1=-2, dim2=-1).add_(_REG)
-        K = self.buf
+            M = M + self.C.mT @ (torch.where(large, 0.0, w).unsqueeze(-1) * self.C)
+            # only the rows with large weights are augmented: the k largest per element,
+            # k the most any element has (an element's surplus rows are decoupled)
+            self.k = k = int(large.sum(-1).max())
+            if k:
+                wl, self.sel = w.topk(k, dim=-1)
+                self.on = wl > 1.0
+                self.wl = torch.where(self.on, wl, 1.0)
+                Cl = self.C.gather(1, self.sel.unsqueeze(-1).expand(-1, -1, r))
+                Cl = torch.where(self.on.unsqueeze(-1), Cl, 0.0)
+                d = torch.where(self.on, -1.0 / self.wl, -1.0)
+        M = M + _REG * self.eye[:r, :r]
+        if self.k:
+            K = torch.cat([torch.cat([M, Cl.mT], -1), torch.cat([Cl, torch.diag_embed(d)], -1)], -2)
+        else:
+            K = M
         if bool(done.any()):
-            K = torch.where(done[:, None, None], self.eye, K)
+            K = torch.where(done[:, None, None], self.eye[: r + self.k, : r + self.k], K)
         self.LD, self.piv, _ = torch.linalg.ldl_factor_ex(K)
 
     def solve(self, r1: Tensor, r2: Tensor) -> tuple[Tensor, Tensor, Tensor | None]:
@@ -249,25 +258,26 @@ class ReducedKKT:
         (``(C dz)_l = v_l / w_l``), not from ``C Z dw``: that difference of ``O(|dw|)``
         terms has an absolute error ``eps |dw|``, which the weight, up to ``1 / tol``,
         would turn into an ``O(1)`` error in the multipliers' step."""
-        B, r = r1.shape[0], self.r
+        B, r, k = r1.shape[0], self.r, self.k
         g = self.Z.mT @ r1.unsqueeze(-1)
-        if self.mc:
-            g = torch.cat([g, g.new_zeros(B, self.mc, 1)], 1)
+        if k:
+            g = torch.cat([g, g.new_zeros(B, k, 1)], 1)
         sol = torch.linalg.ldl_solve(self.LD, self.piv, g).squeeze(-1)
         dw = sol[:, :r]
         self.Hdz = (self.HZ @ dw.unsqueeze(-1)).squeeze(-1)
         dz = (self.Z @ dw.unsqueeze(-1)).squeeze(-1)
-        Gdz = None
-        if self.mc:
-            cdz = torch.where(self.large, sol[:, r:] / self.w, 0.0)
-            mg = self.mg
-            if mg:
-                Gdz = (self.C[:, :mg] @ dw.unsqueeze(-1)).squeeze(-1)
-                Gdz = torch.where(self.large[:, :mg], cdz[:, :mg], Gdz)
+        Gdz = (self.C[:, : self.mg] @ dw.unsqueeze(-1)).squeeze(-1) if self.mg else None
+        if k:
+            # (C dz) of the augmented rows, NaN elsewhere (kept from C Z dw)
+            cl = torch.where(self.on, sol[:, r:] / self.wl, float("nan"))
+            cdz = torch.full((B, self.mc), float("nan"), dtype=dz.dtype, device=dz.device)
+            cdz = cdz.scatter(1, self.sel, cl)
+            if self.mg:
+                Gdz = torch.where(cdz[:, : self.mg].isnan(), Gdz, cdz[:, : self.mg])
             if self.bidx.numel():
                 idx = self.bidx.expand(B, -1)
-                zb = torch.where(self.large[:, mg:], cdz[:, mg:], dz.gather(1, idx))
-                dz = dz.scatter(1, idx, zb)
+                cb = cdz[:, self.mg :]
+                dz = dz.scatter(1, idx, torch.where(cb.isnan(), dz.gather(1, idx), cb))
         return dz, self.re, Gdz
 
     def advance(self, alpha: Tensor) -> None:
@@ -276,8 +286,22 @@ class ReducedKKT:
     def multipliers(self, z: Tensor, lam: Tensor, t: Tensor | None) -> Tensor:
         g = self.Hz + self.f if t is None else self.Hz + self.f + t
         gb = torch.gather(g, 1, self.basic).unsqueeze(-1)
-        v = torch.linalg.solve_triangular(self.L1, gb, upper=False, unitriangular=True)
-        return -torch.linalg.solve_triangular(self.U, v, upper=True).squeeze(-1)
+        return -torch.linalg.lu_solve(self.LU1, self.ident, gb).squeeze(-1)
+
+
+def _permutation(piv: Tensor, n: int) -> Tensor:
+    """``perm (B, n)`` with row ``i`` of ``L U`` = row ``perm[i]`` of the factored matrix,
+    from LAPACK's sequential row interchanges ``piv (B, k)`` (1-based): ``k`` steps of
+    batched swaps instead of building the ``(B, n, n)`` permutation matrix."""
+    B, k = piv.shape
+    perm = torch.arange(n, device=piv.device).repeat(B, 1)
+    rows = torch.arange(B, device=piv.device)
+    j = (piv - 1).long()
+    for i in range(k):
+        pi = perm[:, i].clone()
+        perm[:, i] = perm[rows, j[:, i]]
+        perm[rows, j[:, i]] = pi
+    return perm
 
 
 def newton_system(
@@ -305,8 +329,7 @@ def newton_system(
     if method == "auto" and (r + ineq.mg + nb > 0.6 * (n + me) or A.dtype != torch.float64):
         return FullKKT(H, f, A, b, ineq)
     LU, piv, info = torch.linalg.lu_factor_ex(A.mT)
-    P = torch.lu_unpack(LU, piv, unpack_data=False)[0]
-    perm = P.argmax(-2)  # A' = P L U: row i of L U is row perm[i] of A'
+    perm = _permutation(piv, n)
     diag = LU.diagonal(dim1=-2, dim2=-1).abs()
     scale = A.abs().amax((-2, -1)).clamp_min(torch.finfo(A.dtype).tiny)
     # a tiny pivot flags a (nearly) dependent row of A
