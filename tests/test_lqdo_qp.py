@@ -148,7 +148,7 @@ def test_reduced_newton_system_on_a_transcription_with_active_bounds():
     qp = tr.qp(tr.initial_guess(B=2))
     ref = solve_sparse(qp, solver="clarabel", tol=1e-10)
     d = qp.dense(bounds=False)
-    ineq = kkt.Inequalities(d.G, torch.isfinite(qp.ub).double(), torch.isfinite(qp.lb).double())
+    ineq = kkt.Inequalities(d.G, qp.lb, qp.ub)
     assert isinstance(kkt.newton_system(d.H, d.f, d.A, d.b, ineq), kkt.ReducedKKT)
     for method in ("reduced", "full"):
         sol = solve_dense(qp, kkt=method)

@@ -376,7 +376,9 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
 
 def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto"):
     """Batched Mehrotra predictor-corrector on the Newton system ``method`` of
-    :func:`kkt.newton_system`. Returns z, lam, mu, s, status, iterations."""
+    :func:`kkt.newton_system`; elements that the reduced system cannot finish (see
+    :meth:`kkt.ReducedKKT.stalled`) are solved again with the full one. Returns z, lam,
+    mu, s, status, iterations (of both runs)."""
     B, n = f.shape
     me, mi = A.shape[1], ineq.m
     dt, dev = f.dtype, f.device
@@ -391,6 +393,7 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto"):
     scale_e = 1 + b.abs().amax(-1) if me else f.new_ones(B)
     scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
+    handoff = torch.zeros(B, dtype=torch.bool, device=dev)  # to finish with FullKKT
     it = 0
     for it in range(1, max_iter + 1):  # noqa: B007 (the count is returned)
         rd, re = kkt.residuals(z, lam, ineq.tmv(mu) if mi else None)
@@ -407,6 +410,11 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto"):
             conv &= ri.abs().amax(-1) <= tol * scale_i
         bad = ~torch.isfinite(rd).all(-1)
         done = done | conv | bad
+        stalled = kkt.stalled(s, h) if mi else None
+        if stalled is not None:
+            stalled &= ~done
+            handoff |= stalled
+            done |= stalled
         if bool(done.all()):
             break
         kkt.factor(mu / s if mi else None, done)
@@ -438,21 +446,23 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto"):
     status = status.masked_fill(done, int(Status.CONVERGED))
     finite = torch.isfinite(z).all(-1)
     status = status.masked_fill(~finite, int(Status.NON_FINITE))
+    if bool(handoff.any()):
+        idx = handoff.nonzero().squeeze(1)
+        sub = _ip(H[idx], f[idx], A[idx], b[idx], ineq.subset(idx), h[idx], tol, max_iter, "full")
+        z, lam, mu, s, status = (
+            t.index_copy(0, idx, u) for t, u in zip((z, lam, mu, s, status), sub[:5], strict=True)
+        )
+        it += sub[5]
     return z, lam, mu, s, status, it
 
 
 class _QPFunction(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, H, f, A, b, G, h, lb, ub, tol, max_iter, kkt):
-        Hs = 0.5 * (H + H.mT)
-        eu, el = torch.isfinite(ub), torch.isfinite(lb)
-        ineq = Inequalities(G, eu.to(f.dtype), el.to(f.dtype))
-        h_all = h
-        if ineq.bounded:
-            one = torch.ones_like(f)
-            h_all = torch.cat([h, torch.where(eu, ub, one), torch.where(el, -lb, one)], 1)
-        z, lam, mu, s, status, it = _ip(Hs, f, A, b, ineq, h_all, tol, max_iter, kkt)
-        ctx.save_for_backward(Hs, A, G, z, lam, mu, s, eu, el)
+    def forward(ctx, H, f, A, b, G, h, lb, ub, tol, max_iter, kkt, symmetric):
+        Hs = H if symmetric else 0.5 * (H + H.mT)
+        ineq = Inequalities(G, lb, ub)
+        z, lam, mu, s, status, it = _ip(Hs, f, A, b, ineq, ineq.h_all(h), tol, max_iter, kkt)
+        ctx.save_for_backward(Hs, A, G, z, lam, mu, s, lb, ub)
         ctx.mg = G.shape[1]
         iters = torch.tensor(it)
         ctx.mark_non_differentiable(status, iters)
@@ -460,8 +470,9 @@ class _QPFunction(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, gz, glam, gmu, _gst, _git):
-        Hs, A, G, z, lam, mu, s, eu, el = ctx.saved_tensors
-        G = Inequalities(G, eu.to(z.dtype), el.to(z.dtype)).dense()  # with the bounds' rows
+        Hs, A, G, z, lam, mu, s, lb, ub = ctx.saved_tensors
+        ineq = Inequalities(G, lb, ub)
+        G = ineq.dense()  # with the bounds' rows
         B, n = z.shape
         me, mi, mg = A.shape[1], G.shape[1], ctx.mg
         act = mu > s  # strict complementarity: active rows have mu > 0 = slack
@@ -496,11 +507,8 @@ class _QPFunction(torch.autograd.Function):
         gG = mu[:, :mg].unsqueeze(-1) * zz.unsqueeze(-2) + zm[:, :mg].unsqueeze(-1) * z.unsqueeze(
             -2
         )
-        g_ub = g_lb = None
-        if mi > mg:  # the simple bounds' rows: h_u = ub, h_l = -lb
-            g_ub = torch.where(eu, -zm[:, mg : mg + n], torch.zeros_like(z))
-            g_lb = torch.where(el, zm[:, mg + n :], torch.zeros_like(z))
-        return gH, zz, gA, -zl, gG, -zm[:, :mg], g_lb, g_ub, None, None, None
+        g_lb, g_ub = ineq.bound_gradients(zm)
+        return gH, zz, gA, -zl, gG, -zm[:, :mg], g_lb, g_ub, None, None, None, None
 
 
 def qp_solve(
@@ -562,13 +570,13 @@ def qp_solve(
     return z, lam, mu, status
 
 
-def _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter, kkt="auto"):
+def _qp_solve_iters(H, f, A, b, G, h, lb, ub, tol, max_iter, kkt="auto", symmetric=False):
     if kkt not in KKT_METHODS:
         raise ValueError(f"kkt must be one of {KKT_METHODS}; got {kkt!r}")
     tol = _default_tol(f.dtype) if tol is None else tol
     lb = torch.full_like(f, -float("inf")) if lb is None else lb.to(f).expand_as(f)
     ub = torch.full_like(f, float("inf")) if ub is None else ub.to(f).expand_as(f)
-    return _QPFunction.apply(H, f, A, b, G, h, lb, ub, tol, max_iter, kkt)
+    return _QPFunction.apply(H, f, A, b, G, h, lb, ub, tol, max_iter, kkt, symmetric)
 
 
 def solve_dense(
@@ -581,10 +589,14 @@ def solve_dense(
     mi = qp.mi if sparse else qp.G.shape[1]
     d = qp.dense(bounds=False) if sparse else qp
     lb, ub = (qp.lb, qp.ub) if sparse else (None, None)
+    # a SparseQP holds the full symmetric Hessian: no symmetrisation of the dense one
     z, lam, mu, status, iters = _qp_solve_iters(
-        d.H, d.f, d.A, d.b, d.G, d.h, lb, ub, tol, max_iter, kkt
+        d.H, d.f, d.A, d.b, d.G, d.h, lb, ub, tol, max_iter, kkt, symmetric=sparse
     )
-    value = 0.5 * (z * (d.H @ z.unsqueeze(-1)).squeeze(-1)).sum(-1) + (d.f * z).sum(-1) + d.c
+    if sparse:
+        value = qp.objective(z)
+    else:
+        value = 0.5 * (z * (d.H @ z.unsqueeze(-1)).squeeze(-1)).sum(-1) + (d.f * z).sum(-1) + d.c
     return QPSolution(
         z=z,
         lam=lam,
