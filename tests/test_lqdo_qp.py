@@ -262,3 +262,50 @@ def test_convex_qp_with_an_inactive_bound_is_its_equality_part():
     assert float(sa.z[0, tr.idx_p]) == pytest.approx(0.5 * p_free, abs=1e-7)
     torch.testing.assert_close(sa.z, da.z, rtol=0, atol=1e-6)
     assert float(sa.value) > float(s.value) + 1e-6
+
+
+def test_stalled_elements_finish_with_the_full_newton_system(monkeypatch):
+    """An element that the reduced system hands over (here: element 1, forced) is solved
+    again by the full one; the batch then equals the full method's solution."""
+    from torchslq.lqdo import kkt
+
+    H, f, A, b, G, h, z_star, lam_star, mu_star, lb, ub = known_qp(
+        B=3, n=9, me=5, mi=4, n_act=2, seed=5, bounds=True
+    )
+    calls = []
+
+    def stalled(self, s, h):
+        calls.append(s.shape[0])
+        out = torch.zeros(s.shape[0], dtype=torch.bool)
+        out[1] = True
+        return out
+
+    monkeypatch.setattr(kkt.ReducedKKT, "stalled", stalled)
+    z, lam, mu, st = qp_solve(H, f, A, b, G, h, lb, ub, kkt="reduced")
+    assert calls and (st == 0).all()
+    torch.testing.assert_close(z, z_star, rtol=1e-8, atol=1e-8)
+    torch.testing.assert_close(lam, lam_star, rtol=1e-7, atol=1e-7)
+    torch.testing.assert_close(mu, mu_star, rtol=1e-7, atol=1e-7)
+
+
+def test_batched_crane_qlin_on_the_reduced_system_equals_per_problem_clarabel():
+    """Quasilinearization on a batch of container-crane PS10 problems (other initial
+    states) with the dense backend (the reduced Newton system: n = 80, me = 72) reaches
+    the objective of each problem solved alone with Clarabel."""
+    from torchslq.lqdo import Quasilinearization, cases
+
+    B = 6
+    g = torch.Generator().manual_seed(0)
+    x0 = torch.tensor([0.0, 22.0, 0.0, 0.0, -1.0, 0.0]).repeat(B, 1)
+    x0[:, 0] += 0.5 * (2 * torch.rand(B, generator=g) - 1)
+    x0[:, 4] += 0.3 * torch.rand(B, generator=g)
+    crane = cases.container_crane()
+    crane.initial = x0.clone()
+    tr = transcribe(crane, "PS", nodes=10)
+    res = Quasilinearization(backend="dense").solve(tr, cases.crane_initial_guess(tr, B))
+    assert (res.status == 0).all()
+    for i in (0, 3, 5):
+        crane.initial = x0[i : i + 1].clone()
+        tri = transcribe(crane, "PS", nodes=10)
+        ri = Quasilinearization(backend="clarabel").solve(tri, cases.crane_initial_guess(tri))
+        assert float(res.objective[i]) == pytest.approx(float(ri.objective[0]), rel=1e-6)
