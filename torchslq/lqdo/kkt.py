@@ -236,7 +236,9 @@ class ReducedKKT:
         self.f, self.ineq = f, ineq
         self.basic, self.free = perm[:, :me], perm[:, me:]
         # the square LU of the basic rows, L1 U, with its pivoting already applied
-        self.LU1 = LU[:, :me, :]
+        # (column-major, as LAPACK takes it: the slice of LU is not, and each solve with
+        # it copied it, 6 ms a time at (256, 72, 72))
+        self.LU1 = LU[:, :me, :].mT.contiguous().mT
         self.ident = torch.arange(1, me + 1, dtype=torch.int32, device=H.device).expand(B, me)
         # Z in the permuted rows, [-L1^{-T} L2'; I], scattered back to z's order, and the
         # basic solution y1 = L1^{-T} U^{-T} b, from one triangular solve
@@ -401,7 +403,8 @@ def newton_system(
     LU, piv, info = torch.linalg.lu_factor_ex(A.mT)
     perm = _permutation(piv, n)
     diag = LU.diagonal(dim1=-2, dim2=-1).abs()
-    scale = A.abs().amax((-2, -1)).clamp_min(torch.finfo(A.dtype).tiny)
+    lo, hi = torch.aminmax(A.reshape(B, -1), dim=-1)
+    scale = torch.maximum(hi, -lo).clamp_min(torch.finfo(A.dtype).tiny)
     # a tiny pivot flags a (nearly) dependent row of A
     deficient = bool((diag.amin(-1) <= 10 * n * torch.finfo(A.dtype).eps * scale).any())
     if deficient or bool((info != 0).any()):

@@ -29,7 +29,10 @@ def _scatter(idx: Tensor, val: Tensor, m: int, n: int) -> Tensor:
     """Dense ``(B, m, n)`` from a shared pattern ``idx (2, nnz)`` and values ``(B, nnz)``."""
     B = val.shape[0]
     out = val.new_zeros(B, m * n)
-    out = out.index_add(1, idx[0] * n + idx[1], val)
+    if val.requires_grad:
+        out = out.index_add(1, idx[0] * n + idx[1], val)
+    else:  # in place: the out-of-place add copies the (B, m n) zeros once more
+        out.index_add_(1, idx[0] * n + idx[1], val)
     return out.reshape(B, m, n)
 
 
