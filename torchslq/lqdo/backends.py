@@ -374,21 +374,25 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
     return x, y[: B * me], y[B * me : B * (me + mi)], ok, int(res.iterations)
 
 
-def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto"):
+def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None):
     """Batched Mehrotra predictor-corrector on the Newton system ``method`` of
-    :func:`kkt.newton_system`; elements that the reduced system cannot finish (see
-    :meth:`kkt.ReducedKKT.stalled`) are solved again with the full one. Returns z, lam,
-    mu, s, status, iterations (of both runs)."""
+    :func:`kkt.newton_system`, from ``start = (z, lam, s, mu)`` if given; elements that
+    the reduced system cannot finish (see :meth:`kkt.ReducedKKT.stalled`) continue from
+    where they are with the full one. Returns z, lam, mu, s, status, iterations (of both
+    runs)."""
     B, n = f.shape
     me, mi = A.shape[1], ineq.m
     dt, dev = f.dtype, f.device
     kkt = newton_system(H, f, A, b, ineq, method)
-    z = kkt.start()
-    lam = f.new_zeros(B, me)
-    s = f.new_ones(B, mi)
-    mu = f.new_ones(B, mi)
-    if mi:
-        s = (h - ineq.mv(z)).clamp_min(1.0)
+    if start is not None:
+        z, lam, s, mu = start
+    else:
+        z = kkt.start()
+        lam = f.new_zeros(B, me)
+        s = f.new_ones(B, mi)
+        mu = f.new_ones(B, mi)
+        if mi:
+            s = (h - ineq.mv(z)).clamp_min(1.0)
     scale_d = 1 + f.abs().amax(-1)
     scale_e = 1 + b.abs().amax(-1) if me else f.new_ones(B)
     scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
@@ -448,7 +452,10 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto"):
     status = status.masked_fill(~finite, int(Status.NON_FINITE))
     if bool(handoff.any()):
         idx = handoff.nonzero().squeeze(1)
-        sub = _ip(H[idx], f[idx], A[idx], b[idx], ineq.subset(idx), h[idx], tol, max_iter, "full")
+        warm = (z[idx], lam[idx], s[idx], mu[idx])
+        sub = _ip(
+            H[idx], f[idx], A[idx], b[idx], ineq.subset(idx), h[idx], tol, max_iter, "full", warm
+        )
         z, lam, mu, s, status = (
             t.index_copy(0, idx, u) for t, u in zip((z, lam, mu, s, status), sub[:5], strict=True)
         )
