@@ -129,7 +129,11 @@ def main(argv: list[str] | None = None) -> int:
         "## Batched against one-by-one",
         "",
         "Per-problem wall time of one batched call (dense torch interior point) and of solving "
-        "the same problems one at a time (first problems of the batch), same run.",
+        "the same problems one at a time (first problems of the batch), same run. The crane's "
+        "batch runs on the reduced Newton system (`kkt='auto'`); "
+        "`per_problem_batched_full_kkt_ms` is the same batch on the full KKT matrix "
+        "(`qp_options={'kkt': 'full'}`, one run) and `full_kkt_equal` whether its objectives "
+        "agree to 1e-6.",
         "",
         R.format_rows(batch_rows),
         "",
