@@ -17,9 +17,9 @@ formulations, which converge to the same solution:
   factors a system of size ``r + mg + n_b`` (``r = n - me`` degrees of freedom, the
   general inequalities and the bounded variables) and takes ``(n, r)`` products only.
   A transcription's defects and boundary conditions leave few degrees of freedom (the
-  container crane PS10: ``n = 88``, ``me = 78``, ``r = 10``, ``n_b = 44``: 54 against
-  166), and for a batch the ``(n, n)`` matrices' memory traffic is what an iteration of
-  the full method costs beyond its factorisation.
+  container crane PS10: ``n = 80``, ``me = 72``, ``r = 8``, ``n_b = 40``: at most 48
+  against 152), and for a batch the ``(n, n)`` matrices' memory traffic is what an
+  iteration of the full method costs beyond its factorisation.
 
 :func:`newton_system` picks one by the systems' sizes, the reduced one only where ``A``
 has full row rank in every element. Both factor with Bunch-Kaufman LDL', so a nonconvex
