@@ -414,7 +414,7 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None):
             conv &= ri.abs().amax(-1) <= tol * scale_i
         bad = ~torch.isfinite(rd).all(-1)
         done = done | conv | bad
-        stalled = kkt.stalled(s, h) if mi else None
+        stalled = kkt.stalled(s, h)
         if stalled is not None:
             stalled &= ~done
             handoff |= stalled

@@ -221,9 +221,9 @@ class ReducedKKT:
 
     (``s``/``l``: small/large weights), factored by LDL' like the full KKT matrix but of
     size ``r + k`` instead of ``n + me`` (``k <= mg + n_b`` the most large rows of an
-    element: those of the active set near the solution). ``Z'HZ``, ``C`` and ``HZ`` are formed once
-    per QP; ``Hz`` is carried along (``H dz = (HZ) dw``), so an iteration takes no
-    ``(n, n)`` product.
+    element: those of the active set near the solution). ``Z'HZ``, ``C`` and ``HZ`` are
+    formed once per QP; ``Hz`` is carried along (``H dz = (HZ) dw``), so an iteration
+    takes no ``(n, n)`` product.
 
     The stationarity residual is reported with the multipliers that zero its basic part,
     ``lam = -U^{-1} L1^{-1} (P'g)_1`` for ``g = Hz + f + G_all' mu``: then

@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .kkt import Inequalities
+
 __all__ = ["SparseQP", "DenseQP"]
 
 
@@ -29,10 +31,8 @@ def _scatter(idx: Tensor, val: Tensor, m: int, n: int) -> Tensor:
     """Dense ``(B, m, n)`` from a shared pattern ``idx (2, nnz)`` and values ``(B, nnz)``."""
     B = val.shape[0]
     out = val.new_zeros(B, m * n)
-    if val.requires_grad:
-        out = out.index_add(1, idx[0] * n + idx[1], val)
-    else:  # in place: the out-of-place add copies the (B, m n) zeros once more
-        out.index_add_(1, idx[0] * n + idx[1], val)
+    # in place (autograd records it too): the out-of-place add copied the zeros once more
+    out.index_add_(1, idx[0] * n + idx[1], val)
     return out.reshape(B, m, n)
 
 
@@ -121,19 +121,9 @@ class SparseQP:
         A = _scatter(self.A_idx, self.A_val, self.me, n)
         G = _scatter(self.G_idx, self.G_val, self.mi, n)
         h = self.h
-        if bounds:
-            eye = torch.eye(n, dtype=self.f.dtype, device=self.f.device)
-            rows_G, rows_h = [G], [h]
-            for sign, bnd in ((1.0, self.ub), (-1.0, -self.lb)):
-                fin = torch.isfinite(bnd)
-                cols = fin.any(0).nonzero().squeeze(1)
-                if cols.numel():
-                    Gb = sign * eye[cols].expand(self.batch, -1, -1)
-                    finc = fin[:, cols]
-                    Gb = Gb * finc.unsqueeze(-1).to(Gb.dtype)
-                    rows_G.append(Gb)
-                    rows_h.append(torch.where(finc, bnd[:, cols], torch.ones_like(bnd[:, cols])))
-            G, h = torch.cat(rows_G, 1), torch.cat(rows_h, 1)
+        if bounds:  # the interior point's own rows
+            rows = Inequalities(G, self.lb, self.ub)
+            G, h = rows.dense(), rows.h_all(h)
         return DenseQP(H=H, f=self.f, A=A, b=self.b, G=G, h=h, c=self.c)
 
     def scipy(self):
