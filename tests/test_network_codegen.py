@@ -77,6 +77,17 @@ MODELS = {
         lambda: ts.LearnedDynamics(mlp(nn.Tanh()), 4, 2, residual=False),
         2,
     ),
+    # widths that are not multiples of the four columns a layer's pass takes
+    "learned-odd-widths": (
+        lambda: ts.LearnedDynamics(
+            nn.Sequential(
+                nn.Linear(6, 10), nn.Tanh(), nn.Linear(10, 13), nn.Tanh(), nn.Linear(13, 4)
+            ).to(F64),
+            4,
+            2,
+        ),
+        2,
+    ),
     "physics-residual": (PhysicsResidual, 1),
     "learned-physics": (LearnedPhysics, 1),
     "features": (Features, 2),

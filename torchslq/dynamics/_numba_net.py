@@ -7,23 +7,105 @@ from __future__ import annotations
 import math
 
 import numba
+from llvmlite import ir
+from numba.core import cgutils, types
+from numba.extending import intrinsic
 
 
-@numba.njit(inline="always", error_model="numpy", _nrt=False)
+@intrinsic
+def _as_float64(typingctx, i):
+    """The float64 whose bits are the int64 ``i`` (a register move; SIMD in a loop)."""
+    if not isinstance(i, types.Integer):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.DoubleType())
+
+    return types.float64(types.int64), codegen
+
+
+@intrinsic
+def _as_int64(typingctx, x):
+    """The int64 whose bits are the float64 ``x``."""
+    if not isinstance(x, types.Float):
+        return None
+
+    def codegen(context, builder, signature, args):
+        return builder.bitcast(args[0], ir.IntType(64))
+
+    return types.int64(types.float64), codegen
+
+
+@intrinsic
+def stack_array(typingctx, size):
+    """A 1-d float64 array of ``size`` (an integer literal) entries on the calling
+    function's stack: no allocation and no reference count, unlike ``np.empty`` (about
+    0.2 of the 1 us a 5-64-64-4 network step took with four of them). It lives until
+    that function returns; the generated steps use it for the nodes of one call only
+    and never return it."""
+    if not isinstance(size, types.IntegerLiteral) or size.literal_value < 1:
+        return None
+    n = size.literal_value
+    array_type = types.Array(types.float64, 1, "C")
+
+    def codegen(context, builder, signature, args):
+        data = cgutils.alloca_once(builder, ir.DoubleType(), size=n)  # (in the entry block)
+        array = context.make_array(array_type)(context, builder)
+        itemsize = context.get_constant(types.intp, 8)
+        context.populate_array(
+            array,
+            data=data,
+            shape=[context.get_constant(types.intp, n)],
+            strides=[itemsize],
+            itemsize=itemsize,
+            meminfo=None,
+        )
+        return array._getvalue()
+
+    return array_type(size), codegen
+
+
+_LN2_HI = 6.93147180369123816490e-01  # ln 2 in two pieces: k ln2_hi is exact for |k| < 2^20
+_LN2_LO = 1.90821492927058770002e-10
+_INV_LN2 = 1.44269504088896338700e00
+_ROUND = 6755399441055744.0  # 1.5 * 2^52: x + _ROUND rounds x to an integer in the low bits
+_ROUND_BITS = 0x4338000000000000  # the bits of _ROUND
+
+
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
 def tanh(a):
-    """``tanh(a)`` within 2 ulp (measured against numpy over N(0, 4) and ``[-1e-3,
-    1e-3]``), 9 ns against libm's 21 ns (the network step's largest cost): ``(1 - e) / (1
-    + e)`` with ``e = exp(-2 |a|)`` where ``|a| > 0.25`` (no cancellation there), else
-    ``-t / (t + 2)`` with ``t = expm1(-2 |a|)``, which is exact to rounding near 0.
-    NaN gives NaN, infinities +-1."""
-    s = abs(a)
-    if s > 0.25:
-        e = math.exp(-2.0 * s)
-        y = (1.0 - e) / (1.0 + e)
-    else:
-        t = math.expm1(-2.0 * s)
-        y = -t / (t + 2.0)
-    return y if a >= 0.0 else -y
+    """``tanh(a)`` within 3 ulp of torch's (measured over N(0, 3^2), tiny inputs and a
+    grid of [-20, 20]), as ``-e / (e + 2)`` with ``e = expm1(-2 |a|)``, the sign of ``a``
+    copied on.
+
+    Branch-free, so that the loop over a layer's entries that inlines it compiles to SIMD
+    code (2.7 ns an entry against 6.8 ns for libm's ``exp`` behind a branch; a 64-wide
+    tanh layer is most of a small network step's time): ``expm1(y) = 2^k expm1(r) + (2^k
+    - 1)`` with ``y = k ln 2 + r``, ``|r| <= ln(2) / 2``, ``k`` rounded by adding 1.5 *
+    2^52, ``2^k`` built from its exponent bits, ``expm1(r)`` by its Taylor series to
+    ``r^14`` (truncation below 1e-19 relative). ``y`` is clamped at -90 (``tanh`` is
+    1 to double precision from ``|a| = 19.1``). NaN gives NaN, infinities +-1, -0 -0."""
+    y = max(-2.0 * abs(a), -90.0)
+    t = y * _INV_LN2 + _ROUND
+    scale = _as_float64(((_as_int64(t) - _ROUND_BITS) + 1023) << 52)  # 2^k
+    k = t - _ROUND
+    r = (y - k * _LN2_HI) - k * _LN2_LO
+    p = 1.0 / 87178291200.0
+    p = p * r + 1.0 / 6227020800.0
+    p = p * r + 1.0 / 479001600.0
+    p = p * r + 1.0 / 39916800.0
+    p = p * r + 1.0 / 3628800.0
+    p = p * r + 1.0 / 362880.0
+    p = p * r + 1.0 / 40320.0
+    p = p * r + 1.0 / 5040.0
+    p = p * r + 1.0 / 720.0
+    p = p * r + 1.0 / 120.0
+    p = p * r + 1.0 / 24.0
+    p = p * r + 1.0 / 6.0
+    p = p * r + 0.5
+    em1 = p * (r * r) + r  # expm1(r)
+    e = scale * em1 + (scale - 1.0)  # expm1(y)
+    return math.copysign(-e / (e + 2.0), a)
 
 
 @numba.njit(inline="always", error_model="numpy", _nrt=False)

@@ -9,11 +9,12 @@ here from the graph :mod:`torchslq.dynamics.graph_jacobian` traces, node by node
 per-row function ``step(x, u, p, out, work)``; the rollouts and the fused line search
 then run it in one kernel call for all rows and steps
 (:func:`torchslq.dynamics.rollout_closed_loop`). Nodes at most :data:`NARROW` wide are
-scalar locals (straight-line code), wider ones arrays.
+scalar locals (straight-line code), wider ones arrays on the step's stack
+(:func:`~torchslq.dynamics._numba_net.stack_array`: no allocation per call).
 
 * ``nn.Linear``: ``y = b + sum_i W[:, i] a_i`` over the columns of ``W`` (the inner
-  loop over the outputs is contiguous and independent: SIMD, without reassociating a
-  sum), weights in ``p`` (float64);
+  loop over the outputs is contiguous and independent: SIMD; a wide input's columns
+  four at a time), weights in ``p`` (float64);
 * activations (layers, functions and methods the graph path takes) by
   :mod:`._numba_net`; sums, differences, products and quotients of nodes, numbers and
   constant vectors; concatenations, slices and entries of the last dim, stacks of
@@ -60,8 +61,10 @@ from .graph_jacobian import (
 
 __all__ = ["network_step"]
 
-#: bumped when the generated text changes meaning (a new file name, a new compilation)
-NETWORK_CODEGEN_VERSION = 1
+#: bumped when the generated text changes meaning (a new file name, a new compilation);
+#: also when an activation it inlines changes (numba's cache does not see the callee's
+#: source: version 2 is the branch-free tanh)
+NETWORK_CODEGEN_VERSION = 2
 
 # functional and method activations: the numba expression of ``a``
 _ELEMENTWISE = {
@@ -97,6 +100,7 @@ from torchslq.dynamics._numba_net import relu as _relu
 from torchslq.dynamics._numba_net import sigmoid as _sigmoid
 from torchslq.dynamics._numba_net import silu as _silu
 from torchslq.dynamics._numba_net import softplus as _softplus
+from torchslq.dynamics._numba_net import stack_array as _stack
 from torchslq.dynamics._numba_net import tanh as _tanh
 """
 
@@ -175,7 +179,7 @@ class _Writer:
     def wide(self, nd: fx.Node, width: int) -> str:
         """``nd`` as a new array; its name."""
         name = self.fresh()
-        self.emit(f"{name} = np.empty({width})")
+        self.emit(f"{name} = _stack({width})")
         self.values[nd] = name
         self.widths[nd] = width
         return name
@@ -191,7 +195,7 @@ class _Writer:
         if not isinstance(v, list):
             return v
         name = self.fresh()
-        self.emit(f"{name} = np.empty({len(v)})")
+        self.emit(f"{name} = _stack({len(v)})")
         for j, e in enumerate(v):
             self.emit(f"{name}[{j}] = {e}")
         return name
@@ -255,10 +259,21 @@ class _Writer:
             return
         self.emit(f"for o in range({width}):")
         self.emit(f"{name}[o] = {bias('o')}", 2)
-        self.emit(f"for i in range({k}):")
-        self.emit(f"a = {self.entry(a, 'i')}", 2)
-        self.emit(f"for o in range({width}):", 2)
-        self.emit(f"{name}[o] += p[{woff} + i * {width} + o] * a", 3)
+        # four inputs a pass: the output is read and written a quarter as often (the
+        # pass's four products are summed first)
+        blocked = k - k % 4
+        if blocked:
+            self.emit(f"for i in range(0, {blocked}, 4):")
+            for j in range(4):
+                self.emit(f"a{j} = {self.entry(a, f'i + {j}')}", 2)
+            terms = " + ".join(f"p[{woff + j * width} + i * {width} + o] * a{j}" for j in range(4))
+            self.emit(f"for o in range({width}):", 2)
+            self.emit(f"{name}[o] += {terms}", 3)
+        if blocked < k:
+            self.emit(f"for i in range({blocked}, {k}):")
+            self.emit(f"a = {self.entry(a, 'i')}", 2)
+            self.emit(f"for o in range({width}):", 2)
+            self.emit(f"{name}[o] += p[{woff} + i * {width} + o] * a", 3)
 
 
 def _parameter(root: nn.Module, source: tuple[str, str]) -> np.ndarray:
@@ -339,7 +354,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 # the step's own inputs as they are (no copies), other nodes as arrays
                 arrays = ["x" if q is xin else "u" if q is uin else w.array(q) for q in (a, b)]
                 out = w.fresh()
-                w.emit(f"{out} = np.empty({width})")
+                w.emit(f"{out} = _stack({width})")
                 scratch = "work" if width == n else f"np.empty((8, {width}))"
                 w.emit(f"{g}({arrays[0]}, {arrays[1]}, p[{off}:{off + size}], {out}, {scratch})")
                 if width <= NARROW:
