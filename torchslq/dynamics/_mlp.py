@@ -55,6 +55,12 @@ def _identity(a: Tensor, h: Tensor) -> tuple[Tensor, Tensor]:
     return torch.ones_like(a), torch.zeros_like(a)
 
 
+# s' alone, for the Jacobian passes, where the pair computes s'' at extra cost
+FIRST_ONLY = {
+    _tanh: lambda a, h: 1.0 - h * h,
+    _sigmoid: lambda a, h: h * (1.0 - h),
+}
+
 _INV_SQRT_2PI = 0.3989422804014327  # 1 / sqrt(2 pi)
 _INV_SQRT_2 = 0.7071067811865476
 

@@ -46,6 +46,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, fx, nn
 
+from .._backend import dense_rows
 from .._pinned import pinned
 from . import _mlp
 from .base import Dynamics
@@ -71,7 +72,8 @@ class _Unsupported(Exception):
 def _first(fn) -> Callable[[Tensor, Tensor], Tensor]:
     """``s'(a)`` from :mod:`._mlp`'s ``(a, h) -> (s', s'')`` of an activation (its table
     of activations and their derivatives is the one both passes read)."""
-    return lambda a, h: fn(a, h)[0]
+    only = _mlp.FIRST_ONLY.get(fn)  # (not computing s'' where that is extra work)
+    return only if only is not None else (lambda a, h: fn(a, h)[0])
 
 
 def _second(fn) -> Callable[[Tensor, Tensor], Tensor]:
@@ -495,13 +497,13 @@ def _forward(
                 else:
                     local[nd] = ("jacobians", linearize(mod, *args))
             elif type(mod) is nn.Linear:
-                env[nd] = F.linear(args[0], mod.weight.detach(), _detached(mod.bias))
+                env[nd] = dense_rows.linear(args[0], mod.weight.detach(), _detached(mod.bias))
                 local[nd] = ("linear", mod.weight.detach())
             else:
                 slope = _module_slope(mod)
                 if slope is None:  # replaced since the trace
                     raise _Unsupported(type(mod).__name__)
-                env[nd] = h = mod(args[0])
+                env[nd] = h = dense_rows.tanh(args[0]) if type(mod) is nn.Tanh else mod(args[0])
                 local[nd] = ("slope", (slope, args[0], h, _module_curvature(mod)))
         elif (p := _power_exponent(nd)) is not None:
             env[nd] = h = args[0] ** p
@@ -518,11 +520,14 @@ def _forward(
             env[nd] = args[0]
             local[nd] = ("identity", None)
         elif nd.op == "call_method":
-            env[nd] = h = getattr(args[0], nd.target)()
+            if nd.target == "tanh":
+                env[nd] = h = dense_rows.tanh(args[0])
+            else:
+                env[nd] = h = getattr(args[0], nd.target)()
             local[nd] = ("slope", (_METHODS[nd.target], args[0], h, _CURVATURE[nd.target]))
         elif nd.target in _FUNCTIONS:
             fn, slope = _FUNCTIONS[nd.target]
-            env[nd] = h = fn(args[0])
+            env[nd] = h = dense_rows.tanh(args[0]) if fn in (torch.tanh, F.tanh) else fn(args[0])
             local[nd] = ("slope", (slope, args[0], h, _CURVATURE[nd.target]))
         elif nd.target is torch.cat:
             pieces = args[0]
@@ -640,7 +645,8 @@ def _reverse(
             if g is _IDENTITY:
                 add(args[0], W.unsqueeze(0).expand(val(nd).shape[0], *W.shape))
             else:
-                add(args[0], (g.reshape(-1, W.shape[0]) @ W).view(g.shape[0], -1, W.shape[1]))
+                GW = dense_rows.matmul(g.reshape(-1, W.shape[0]), W)
+                add(args[0], GW.view(g.shape[0], -1, W.shape[1]))
         elif kind == "slope":  # (taken here, on the block's rows, while they are in cache)
             slope = _slope(nd, data, rows, slopes)
             if tangents is not None and _var(args[0]):
@@ -761,7 +767,7 @@ def _tangents(
             if t is not None and t.stride(0) == 0:  # shared by the rows: once
                 out = (t[0] @ data.T).expand(r, k, data.shape[0])
             elif t is not None:
-                out = (t.reshape(-1, t.shape[-1]) @ data.T).view(r, k, -1)
+                out = dense_rows.linear(t.reshape(-1, t.shape[-1]), data, None).view(r, k, -1)
         elif kind == "slope":
             t = tan(args[0])
             if t is not None:

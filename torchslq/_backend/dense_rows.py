@@ -1,0 +1,146 @@
+"""Products and ``tanh`` over many rows (CPU, float64): a learned model's derivatives.
+
+A learned model's Jacobians (:mod:`torchslq.dynamics.graph_jacobian`) spend most of
+their time in two kinds of torch op: a network layer's product over every row of a
+batch of trajectories (``(rows, 64) @ (64, 64)`` and, in the reverse sweep, ``(rows n,
+64) @ (64, 64)``) and its activations. On CPUs other than Intel's, torch's BLAS (MKL)
+takes a slow generic path: measured on the AMD EPYC of the benchmarks (1 thread,
+``(12800, 64) @ (64, 64)``), torch 6.8-7.9 GFMA/s against 14.2 for the register-blocked
+product of the LQ kernels (:func:`~torchslq._backend._numba_gemm.acc_tn`) and 13-16 for
+NumPy's OpenBLAS; torch's float64 ``tanh`` 6.2 ns an entry against 2.7 ns for the
+branch-free one the compiled network steps inline
+(:func:`torchslq.dynamics._numba_net.tanh`).
+
+:func:`matmul` and :func:`linear` therefore run the product in numba where torch's BLAS
+is MKL on a CPU that is not Intel's (:func:`blas_is_slow`); :func:`tanh` runs in numba
+on any CPU. Both only on CPU float64 tensors that need no autograd graph, outside
+``torch.func`` transforms and ``torch.compile`` tracing, and only for at least
+:data:`MIN_WORK` multiply-adds or entries (below that a call's overhead decides);
+anything else is the torch op. The results differ from torch's by rounding (tanh:
+within 3 ulp). The work is split over ``torch.get_num_threads()`` threads by rows.
+"""
+
+from __future__ import annotations
+
+import functools
+import platform
+
+import numba
+import numpy as np
+import torch
+from torch import Tensor
+
+from ..dynamics._numba_net import tanh as _tanh
+from ._numba_gemm import acc_tn, with_slp
+
+__all__ = ["MIN_WORK", "blas_is_slow", "linear", "matmul", "set_forced", "tanh"]
+
+#: below this many multiply-adds (a product) or entries (tanh), the torch op
+MIN_WORK = 1 << 15
+
+# None: decide by the CPU (blas_is_slow); True/False: force the numba product on/off
+# (tests of both ways on one machine)
+_forced: bool | None = None
+
+
+def set_forced(value: bool | None) -> bool | None:
+    """Force the numba product on (True) or off (False) whatever the CPU, or back to the
+    CPU's choice (None); returns the old setting."""
+    global _forced
+    old, _forced = _forced, value
+    return old
+
+
+@functools.cache
+def _cpu_vendor() -> str:
+    """``vendor_id`` of ``/proc/cpuinfo`` (Linux); ``""`` where it cannot be read."""
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("vendor_id"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return ""
+
+
+def blas_is_slow() -> bool:
+    """Whether torch's CPU BLAS is MKL on an x86 CPU that is not Intel's (MKL's generic
+    code path there runs a float64 product at about half the register-blocked kernel's
+    rate); overridden by :func:`set_forced`."""
+    if _forced is not None:
+        return _forced
+    return (
+        platform.machine().lower() in ("x86_64", "amd64")
+        and torch.backends.mkl.is_available()
+        and _cpu_vendor() not in ("", "GenuineIntel")
+    )
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
+def _matmul_rows(r0, r1, C, A, B, bias):
+    """``C[r0:r1] = bias + A[r0:r1] @ B`` (``bias (c,)``: zeros for none; ``C`` is
+    written, not read, so it need not be zeroed first)."""
+    for i in range(r0, r1):
+        for j in range(C.shape[1]):
+            C[i, j] = bias[j]
+    acc_tn(C[r0:r1], A[r0:r1].T, B, 1.0, False)
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
+def _tanh_rows(r0, r1, a, out):
+    """``out[r0:r1] = tanh(a[r0:r1])`` (1-d; the loop compiles to SIMD code)."""
+    for i in range(r0, r1):
+        out[i] = _tanh(a[i])
+
+
+def _eligible(*tensors: Tensor) -> bool:
+    from .dispatch import can_use_compiled
+
+    return all(t.dtype == torch.float64 for t in tensors) and can_use_compiled(*tensors)
+
+
+def _launch(kernel, rows: int, work_per_row: int, *args) -> None:
+    from .dispatch import _launch as launch
+
+    # (_launch splits by element-steps; here a row's multiply-adds stand for its steps)
+    with_slp(launch, kernel, rows, max(1, work_per_row // 64), *args)
+
+
+def matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a (r, k) @ b (k, c)`` (module docstring: numba or torch)."""
+    r, k = a.shape
+    c = b.shape[1]
+    if r * k * c < MIN_WORK or not blas_is_slow() or not _eligible(a, b):
+        return a @ b
+    out = a.new_empty(r, c)
+    _launch(_matmul_rows, r, k * c, out.numpy(), a.contiguous().numpy(), b.numpy(), np.zeros(c))
+    return out
+
+
+def linear(a: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
+    """``a (r, k) @ weight' + bias``, ``weight (c, k)``, ``bias (c,)`` or None: torch's
+    ``F.linear`` (module docstring: numba or torch)."""
+    if a.ndim != 2:
+        return torch.nn.functional.linear(a, weight, bias)
+    r, k = a.shape
+    c = weight.shape[0]
+    if r * k * c < MIN_WORK or not blas_is_slow() or not _eligible(a, weight):
+        return torch.nn.functional.linear(a, weight, bias)
+    out = a.new_empty(r, c)
+    bias = np.zeros(c) if bias is None else bias.contiguous().numpy()
+    # (the weight's transpose copied: the kernel runs along B's rows, contiguous)
+    wt = weight.T.contiguous().numpy()
+    _launch(_matmul_rows, r, k * c, out.numpy(), a.contiguous().numpy(), wt, bias)
+    return out
+
+
+def tanh(a: Tensor) -> Tensor:
+    """``torch.tanh(a)`` (module docstring: numba or torch)."""
+    if a.numel() < MIN_WORK or not _eligible(a):
+        return torch.tanh(a)
+    a = a.contiguous()
+    out = torch.empty_like(a)
+    flat_in, flat_out = a.view(-1).numpy(), out.view(-1).numpy()
+    _launch(_tanh_rows, flat_in.shape[0], 64, flat_in, flat_out)
+    return out
