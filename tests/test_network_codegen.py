@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import pytest
 import torch
 from test_graph_jacobian import (
@@ -246,3 +247,15 @@ def test_activations_equal_torch(name, fn, ref):
             torch.tensor(fn(v), dtype=F64), ref(torch.tensor(v, dtype=F64)), equal_nan=True
         )
     assert math.isnan(fn(math.nan))
+
+
+def test_exp_over_its_whole_range():
+    """The branch-free ``exp`` (sigmoid's, SiLU's) within 2 ulp of libm's from the
+    subnormal results to overflow, its edges as libm's."""
+    grid = np.concatenate([np.linspace(-745.0, 709.78, 20001), [-744.5, -708.4, -1e-300, 1e-17]])
+    got = np.array([_numba_net.exp(float(v)) for v in grid])
+    want = np.exp(grid)
+    assert float((np.abs(got - want) / np.spacing(want)).max()) <= 2.0
+    assert _numba_net.exp(709.8) == math.inf and _numba_net.exp(math.inf) == math.inf
+    assert _numba_net.exp(-746.0) == 0.0 and _numba_net.exp(-math.inf) == 0.0
+    assert math.isnan(_numba_net.exp(math.nan))

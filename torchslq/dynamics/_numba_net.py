@@ -73,23 +73,20 @@ _ROUND_BITS = 0x4338000000000000  # the bits of _ROUND
 
 
 @numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
-def tanh(a):
-    """``tanh(a)`` within 3 ulp of torch's (measured over N(0, 3^2), tiny inputs and a
-    grid of [-20, 20]), as ``-e / (e + 2)`` with ``e = expm1(-2 |a|)``, the sign of ``a``
-    copied on.
-
-    Branch-free, so that the loop over a layer's entries that inlines it compiles to SIMD
-    code (2.7 ns an entry against 6.8 ns for libm's ``exp`` behind a branch; a 64-wide
-    tanh layer is most of a small network step's time): ``expm1(y) = 2^k expm1(r) + (2^k
-    - 1)`` with ``y = k ln 2 + r``, ``|r| <= ln(2) / 2``, ``k`` rounded by adding 1.5 *
-    2^52, ``2^k`` built from its exponent bits, ``expm1(r)`` by its Taylor series to
-    ``r^14`` (truncation below 1e-19 relative). ``y`` is clamped at -90 (``tanh`` is
-    1 to double precision from ``|a| = 19.1``). NaN gives NaN, infinities +-1, -0 -0."""
-    y = max(-2.0 * abs(a), -90.0)
+def _reduced(y):
+    """``(2^h, 2^(k - h), expm1(r))`` for ``y = k ln 2 + r``, ``|r| <= ln(2) / 2``, ``h =
+    k // 2`` (``y`` in ``[-1100, 1100]``): ``k`` rounded by adding 1.5 * 2^52, each
+    power of two built from its exponent bits (normal numbers for every such ``k``, so
+    that their product is ``2^k`` even where that overflows or is subnormal),
+    ``expm1(r)`` by its Taylor series to ``r^14`` (truncation below 1e-19 relative).
+    Branch-free: SIMD in a loop."""
     t = y * _INV_LN2 + _ROUND
-    scale = _as_float64(((_as_int64(t) - _ROUND_BITS) + 1023) << 52)  # 2^k
-    k = t - _ROUND
-    r = (y - k * _LN2_HI) - k * _LN2_LO
+    k = _as_int64(t) - _ROUND_BITS
+    kf = t - _ROUND
+    r = (y - kf * _LN2_HI) - kf * _LN2_LO
+    h = k >> 1
+    s1 = _as_float64((h + 1023) << 52)
+    s2 = _as_float64(((k - h) + 1023) << 52)
     p = 1.0 / 87178291200.0
     p = p * r + 1.0 / 6227020800.0
     p = p * r + 1.0 / 479001600.0
@@ -103,14 +100,46 @@ def tanh(a):
     p = p * r + 1.0 / 24.0
     p = p * r + 1.0 / 6.0
     p = p * r + 0.5
-    em1 = p * (r * r) + r  # expm1(r)
-    e = scale * em1 + (scale - 1.0)  # expm1(y)
+    return s1, s2, p * (r * r) + r
+
+
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
+def exp(a):
+    """``exp(a)`` within 2 ulp, branch-free (:func:`_reduced`); overflows to inf above
+    709.78, underflows to 0 below -745. NaN gives NaN."""
+    s1, s2, em1 = _reduced(min(max(a, -1100.0), 1100.0))
+    return ((1.0 + em1) * s1) * s2
+
+
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
+def _expm1_nonpositive(y):
+    """``expm1(y)`` for ``y <= 0`` (clamped to ``[-90, 0]``: -1 to double precision below
+    -90; a positive ``y``, whose value a caller's select discards, gives 0):
+    ``2^k expm1(r) + (2^k - 1)``, exact in its last step's cancellation."""
+    s1, s2, em1 = _reduced(min(max(y, -90.0), 0.0))
+    scale = s1 * s2  # 2^k (k >= -130: a normal number)
+    return scale * em1 + (scale - 1.0)
+
+
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
+def tanh(a):
+    """``tanh(a)`` within 3 ulp of torch's (measured over N(0, 3^2), tiny inputs and a
+    grid of [-20, 20]), as ``-e / (e + 2)`` with ``e = expm1(-2 |a|)``, the sign of ``a``
+    copied on.
+
+    Branch-free, so that the loop over a layer's entries that inlines it compiles to SIMD
+    code (2.7 ns an entry against 6.8 ns for libm's ``exp`` behind a branch; a 64-wide
+    tanh layer is most of a small network step's time). NaN gives NaN, infinities +-1,
+    -0 -0."""
+    e = _expm1_nonpositive(-2.0 * abs(a))
     return math.copysign(-e / (e + 2.0), a)
 
 
-@numba.njit(inline="always", error_model="numpy", _nrt=False)
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
 def sigmoid(a):
-    return 1.0 / (1.0 + math.exp(-a))
+    """``1 / (1 + exp(-a))`` on the branch-free :func:`exp` (2.1 ns an entry in a loop
+    against 5.5 ns on libm's)."""
+    return 1.0 / (1.0 + exp(-a))
 
 
 @numba.njit(inline="always", error_model="numpy", _nrt=False)
@@ -118,9 +147,9 @@ def relu(a):
     return 0.0 if a <= 0.0 else a  # (NaN stays NaN, as torch's)
 
 
-@numba.njit(inline="always", error_model="numpy", _nrt=False)
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
 def silu(a):
-    return a / (1.0 + math.exp(-a))
+    return a / (1.0 + exp(-a))
 
 
 @numba.njit(inline="always", error_model="numpy", _nrt=False)
@@ -136,9 +165,9 @@ def softplus(a, beta, threshold):
     return a if z > threshold else math.log1p(math.exp(z)) / beta
 
 
-@numba.njit(inline="always", error_model="numpy", _nrt=False)
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
 def elu(a, alpha):
-    return a if a > 0.0 else alpha * math.expm1(a)
+    return a if a > 0.0 else alpha * _expm1_nonpositive(a)
 
 
 @numba.njit(inline="always", error_model="numpy", _nrt=False)

@@ -63,8 +63,8 @@ __all__ = ["network_step"]
 
 #: bumped when the generated text changes meaning (a new file name, a new compilation);
 #: also when an activation it inlines changes (numba's cache does not see the callee's
-#: source: version 2 is the branch-free tanh)
-NETWORK_CODEGEN_VERSION = 2
+#: source: version 2 is the branch-free tanh, 3 the branch-free exp)
+NETWORK_CODEGEN_VERSION = 3
 
 # functional and method activations: the numba expression of ``a``
 _ELEMENTWISE = {
