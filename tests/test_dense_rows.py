@@ -102,3 +102,15 @@ def test_graph_derivatives_through_it_equal_torch_func(forced):
     torch.testing.assert_close(Hxx, H[..., :4, :4], rtol=1e-11, atol=1e-11)
     torch.testing.assert_close(Huu, H[..., 4:, 4:], rtol=1e-11, atol=1e-11)
     torch.testing.assert_close(Hux, H[..., 4:, :4], rtol=1e-11, atol=1e-11)
+
+
+def test_split_over_threads_equals_torch(forced):
+    """Rows split over two threads (``_backend.dispatch._launch``): the same results."""
+    old = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        a, b = _randn(3001, 64), _randn(64, 64, seed=1)
+        torch.testing.assert_close(dense_rows.matmul(a, b), a @ b, rtol=1e-13, atol=1e-13)
+        torch.testing.assert_close(dense_rows.tanh(a), torch.tanh(a), rtol=1e-15, atol=0.0)
+    finally:
+        torch.set_num_threads(old)
