@@ -114,3 +114,13 @@ def test_split_over_threads_equals_torch(forced):
         torch.testing.assert_close(dense_rows.tanh(a), torch.tanh(a), rtol=1e-15, atol=0.0)
     finally:
         torch.set_num_threads(old)
+
+
+def test_importing_the_package_does_not_import_numba():
+    """The kernels' module is imported on first use (numba's import is about half a
+    second of a fresh process's start)."""
+    import subprocess
+    import sys
+
+    code = "import sys, torchslq; sys.exit('numba' in sys.modules)"
+    assert subprocess.run([sys.executable, "-c", code], check=False).returncode == 0

@@ -25,13 +25,9 @@ from __future__ import annotations
 import functools
 import platform
 
-import numba
 import numpy as np
 import torch
 from torch import Tensor
-
-from ..dynamics._numba_net import tanh as _tanh
-from ._numba_gemm import acc_tn, with_slp
 
 __all__ = ["MIN_WORK", "blas_is_slow", "linear", "matmul", "set_forced", "tanh"]
 
@@ -77,34 +73,20 @@ def blas_is_slow() -> bool:
     )
 
 
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
-def _matmul_rows(r0, r1, C, A, B, bias):
-    """``C[r0:r1] = bias + A[r0:r1] @ B`` (``bias (c,)``: zeros for none; ``C`` is
-    written, not read, so it need not be zeroed first)."""
-    for i in range(r0, r1):
-        for j in range(C.shape[1]):
-            C[i, j] = bias[j]
-    acc_tn(C[r0:r1], A[r0:r1].T, B, 1.0, False)
-
-
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
-def _tanh_rows(r0, r1, a, out):
-    """``out[r0:r1] = tanh(a[r0:r1])`` (1-d; the loop compiles to SIMD code)."""
-    for i in range(r0, r1):
-        out[i] = _tanh(a[i])
-
-
 def _eligible(*tensors: Tensor) -> bool:
     from .dispatch import can_use_compiled
 
     return all(t.dtype == torch.float64 for t in tensors) and can_use_compiled(*tensors)
 
 
-def _launch(kernel, rows: int, work_per_row: int, *args) -> None:
+def _launch(name: str, rows: int, work_per_row: int, *args) -> None:
+    # (numba is imported on first use, not with the package)
+    from . import _numba_rows
+    from ._numba_gemm import with_slp
     from .dispatch import _launch as launch
 
     # (_launch splits by element-steps; here a row's multiply-adds stand for its steps)
-    with_slp(launch, kernel, rows, max(1, work_per_row // 64), *args)
+    with_slp(launch, getattr(_numba_rows, name), rows, max(1, work_per_row // 64), *args)
 
 
 def matmul(a: Tensor, b: Tensor) -> Tensor:
@@ -114,7 +96,7 @@ def matmul(a: Tensor, b: Tensor) -> Tensor:
     if r * k * c < MIN_WORK or not blas_is_slow() or not _eligible(a, b):
         return a @ b
     out = a.new_empty(r, c)
-    _launch(_matmul_rows, r, k * c, out.numpy(), a.contiguous().numpy(), b.numpy(), np.zeros(c))
+    _launch("matmul_rows", r, k * c, out.numpy(), a.contiguous().numpy(), b.numpy(), np.zeros(c))
     return out
 
 
@@ -131,7 +113,7 @@ def linear(a: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
     bias = np.zeros(c) if bias is None else bias.contiguous().numpy()
     # (the weight's transpose copied: the kernel runs along B's rows, contiguous)
     wt = weight.T.contiguous().numpy()
-    _launch(_matmul_rows, r, k * c, out.numpy(), a.contiguous().numpy(), wt, bias)
+    _launch("matmul_rows", r, k * c, out.numpy(), a.contiguous().numpy(), wt, bias)
     return out
 
 
@@ -142,5 +124,5 @@ def tanh(a: Tensor) -> Tensor:
     a = a.contiguous()
     out = torch.empty_like(a)
     flat_in, flat_out = a.view(-1).numpy(), out.view(-1).numpy()
-    _launch(_tanh_rows, flat_in.shape[0], 64, flat_in, flat_out)
+    _launch("tanh_rows", flat_in.shape[0], 64, flat_in, flat_out)
     return out
