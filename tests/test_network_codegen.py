@@ -259,3 +259,14 @@ def test_exp_over_its_whole_range():
     assert _numba_net.exp(709.8) == math.inf and _numba_net.exp(math.inf) == math.inf
     assert _numba_net.exp(-746.0) == 0.0 and _numba_net.exp(-math.inf) == 0.0
     assert math.isnan(_numba_net.exp(math.nan))
+
+
+def test_a_node_wider_than_the_stack_takes_is_allocated(monkeypatch):
+    """Nodes wider than ``STACK_MAX`` are arrays of their own: the same step."""
+    monkeypatch.setattr(network_codegen, "STACK_MAX", 8)
+    model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2)
+    x, u = data(m=2, scale=1.0)
+    got = compiled_rows(model, x, u)
+    assert got is not None
+    with torch.no_grad():
+        torch.testing.assert_close(got, model(x, u), rtol=1e-13, atol=1e-13)

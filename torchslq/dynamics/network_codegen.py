@@ -10,7 +10,8 @@ per-row function ``step(x, u, p, out, work)``; the rollouts and the fused line s
 then run it in one kernel call for all rows and steps
 (:func:`torchslq.dynamics.rollout_closed_loop`). Nodes at most :data:`NARROW` wide are
 scalar locals (straight-line code), wider ones arrays on the step's stack
-(:func:`~torchslq.dynamics._numba_net.stack_array`: no allocation per call).
+(:func:`~torchslq.dynamics._numba_net.stack_array`: no allocation per call; up to
+:data:`STACK_MAX` entries).
 
 * ``nn.Linear``: ``y = b + sum_i W[:, i] a_i`` over the columns of ``W`` (the inner
   loop over the outputs is contiguous and independent: SIMD; a wide input's columns
@@ -136,6 +137,16 @@ def _activation_module(mod: nn.Module) -> str | None:
 NARROW = 8
 
 
+#: the widest node held on the step's stack (32 kB); a wider one is allocated per call,
+#: so that a very wide network cannot overflow a thread's stack
+STACK_MAX = 4096
+
+
+def _new_array(width: int) -> str:
+    """The text of a new 1-d float64 array of ``width`` entries."""
+    return f"_stack({width})" if width <= STACK_MAX else f"np.empty({width})"
+
+
 class _Writer:
     """The step's text and its parameter array, built node by node. A node's value is
     a list of scalar expressions (a narrow node: locals, or entries of another node) or
@@ -179,7 +190,7 @@ class _Writer:
     def wide(self, nd: fx.Node, width: int) -> str:
         """``nd`` as a new array; its name."""
         name = self.fresh()
-        self.emit(f"{name} = _stack({width})")
+        self.emit(f"{name} = {_new_array(width)}")
         self.values[nd] = name
         self.widths[nd] = width
         return name
@@ -195,7 +206,7 @@ class _Writer:
         if not isinstance(v, list):
             return v
         name = self.fresh()
-        self.emit(f"{name} = _stack({len(v)})")
+        self.emit(f"{name} = {_new_array(len(v))}")
         for j, e in enumerate(v):
             self.emit(f"{name}[{j}] = {e}")
         return name
@@ -354,7 +365,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 # the step's own inputs as they are (no copies), other nodes as arrays
                 arrays = ["x" if q is xin else "u" if q is uin else w.array(q) for q in (a, b)]
                 out = w.fresh()
-                w.emit(f"{out} = _stack({width})")
+                w.emit(f"{out} = {_new_array(width)}")
                 scratch = "work" if width == n else f"np.empty((8, {width}))"
                 w.emit(f"{g}({arrays[0]}, {arrays[1]}, p[{off}:{off + size}], {out}, {scratch})")
                 if width <= NARROW:
