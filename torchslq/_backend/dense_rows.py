@@ -60,17 +60,21 @@ def _cpu_vendor() -> str:
     return ""
 
 
-def blas_is_slow() -> bool:
-    """Whether torch's CPU BLAS is MKL on an x86 CPU that is not Intel's (MKL's generic
-    code path there runs a float64 product at about half the register-blocked kernel's
-    rate); overridden by :func:`set_forced`."""
-    if _forced is not None:
-        return _forced
+@functools.cache
+def _mkl_off_intel() -> bool:
+    """Whether torch's CPU BLAS is MKL on an x86 CPU that is not Intel's (once a process)."""
     return (
         platform.machine().lower() in ("x86_64", "amd64")
         and torch.backends.mkl.is_available()
         and _cpu_vendor() not in ("", "GenuineIntel")
     )
+
+
+def blas_is_slow() -> bool:
+    """Whether torch's CPU BLAS is MKL on an x86 CPU that is not Intel's (MKL's generic
+    code path there runs a float64 product at about half the register-blocked kernel's
+    rate); overridden by :func:`set_forced`."""
+    return _mkl_off_intel() if _forced is None else _forced
 
 
 def _eligible(*tensors: Tensor) -> bool:
@@ -89,32 +93,35 @@ def _launch(name: str, rows: int, work_per_row: int, *args) -> None:
     with_slp(launch, getattr(_numba_rows, name), rows, max(1, work_per_row // 64), *args)
 
 
-def matmul(a: Tensor, b: Tensor) -> Tensor:
-    """``a (r, k) @ b (k, c)`` (module docstring: numba or torch)."""
+def _takes_product(a: Tensor, b: Tensor, c: int) -> bool:
+    """Whether ``a (r, k)`` times a ``(k, c)`` factor ``b`` runs in numba."""
+    return a.shape[0] * a.shape[1] * c >= MIN_WORK and blas_is_slow() and _eligible(a, b)
+
+
+def _product(a: Tensor, b: Tensor, bias: Tensor | None) -> Tensor:
+    """``bias + a (r, k) @ b (k, c)`` by the numba kernel (``b`` contiguous)."""
     r, k = a.shape
     c = b.shape[1]
-    if r * k * c < MIN_WORK or not blas_is_slow() or not _eligible(a, b):
-        return a @ b
     out = a.new_empty(r, c)
-    _launch("matmul_rows", r, k * c, out.numpy(), a.contiguous().numpy(), b.numpy(), np.zeros(c))
+    bias_rows = np.zeros(c) if bias is None else bias.contiguous().numpy()
+    _launch("matmul_rows", r, k * c, out.numpy(), a.contiguous().numpy(), b.numpy(), bias_rows)
     return out
+
+
+def matmul(a: Tensor, b: Tensor) -> Tensor:
+    """``a (r, k) @ b (k, c)`` (module docstring: numba or torch)."""
+    if not _takes_product(a, b, b.shape[1]):
+        return a @ b
+    return _product(a, b.contiguous(), None)
 
 
 def linear(a: Tensor, weight: Tensor, bias: Tensor | None) -> Tensor:
     """``a (r, k) @ weight' + bias``, ``weight (c, k)``, ``bias (c,)`` or None: torch's
     ``F.linear`` (module docstring: numba or torch)."""
-    if a.ndim != 2:
+    if a.ndim != 2 or not _takes_product(a, weight, weight.shape[0]):
         return torch.nn.functional.linear(a, weight, bias)
-    r, k = a.shape
-    c = weight.shape[0]
-    if r * k * c < MIN_WORK or not blas_is_slow() or not _eligible(a, weight):
-        return torch.nn.functional.linear(a, weight, bias)
-    out = a.new_empty(r, c)
-    bias = np.zeros(c) if bias is None else bias.contiguous().numpy()
-    # (the weight's transpose copied: the kernel runs along B's rows, contiguous)
-    wt = weight.T.contiguous().numpy()
-    _launch("matmul_rows", r, k * c, out.numpy(), a.contiguous().numpy(), wt, bias)
-    return out
+    # (the weight's transpose copied: the kernel runs along its factor's rows, contiguous)
+    return _product(a, weight.T.contiguous(), bias)
 
 
 def tanh(a: Tensor) -> Tensor:

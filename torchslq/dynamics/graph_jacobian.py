@@ -81,11 +81,11 @@ def _second(fn) -> Callable[[Tensor, Tensor], Tensor]:
     return lambda a, h: fn(a, h)[1]
 
 
-# the functional and method activations: the function a call's target names, and the
-# (s', s'') of :mod:`._mlp`
+# the functional and method activations: the function a call's target names (tanh's
+# over many rows by :mod:`torchslq._backend.dense_rows`), and the (s', s'') of :mod:`._mlp`
 _DERIVATIVES = {
-    torch.tanh: (torch.tanh, _mlp._tanh),
-    F.tanh: (torch.tanh, _mlp._tanh),
+    torch.tanh: (dense_rows.tanh, _mlp._tanh),
+    F.tanh: (dense_rows.tanh, _mlp._tanh),
     torch.sigmoid: (torch.sigmoid, _mlp._sigmoid),
     F.sigmoid: (torch.sigmoid, _mlp._sigmoid),
     torch.relu: (torch.relu, _mlp._relu),
@@ -99,11 +99,10 @@ _DERIVATIVES = {
     torch.square: (torch.square, _mlp._square),
 }
 _FUNCTIONS = {k: (f, _first(d)) for k, (f, d) in _DERIVATIVES.items()}
-# the same functions called as tensor methods (``z.tanh()``)
-_METHOD_DERIVATIVES = {
-    name: _DERIVATIVES[getattr(torch, name)][1]
-    for name in ("tanh", "sigmoid", "relu", "sin", "cos", "exp", "square")
-}
+# the same functions called as tensor methods (``z.tanh()``): their values and (s', s'')
+_METHOD_NAMES = ("tanh", "sigmoid", "relu", "sin", "cos", "exp", "square")
+_METHOD_VALUES = {name: _DERIVATIVES[getattr(torch, name)][0] for name in _METHOD_NAMES}
+_METHOD_DERIVATIVES = {name: _DERIVATIVES[getattr(torch, name)][1] for name in _METHOD_NAMES}
 _METHODS = {k: _first(d) for k, d in _METHOD_DERIVATIVES.items()}
 # second derivatives s''(a) of the functional and method activations (the layers':
 # _module_curvature)
@@ -520,14 +519,11 @@ def _forward(
             env[nd] = args[0]
             local[nd] = ("identity", None)
         elif nd.op == "call_method":
-            if nd.target == "tanh":
-                env[nd] = h = dense_rows.tanh(args[0])
-            else:
-                env[nd] = h = getattr(args[0], nd.target)()
+            env[nd] = h = _METHOD_VALUES[nd.target](args[0])
             local[nd] = ("slope", (_METHODS[nd.target], args[0], h, _CURVATURE[nd.target]))
         elif nd.target in _FUNCTIONS:
             fn, slope = _FUNCTIONS[nd.target]
-            env[nd] = h = dense_rows.tanh(args[0]) if fn in (torch.tanh, F.tanh) else fn(args[0])
+            env[nd] = h = fn(args[0])
             local[nd] = ("slope", (slope, args[0], h, _CURVATURE[nd.target]))
         elif nd.target is torch.cat:
             pieces = args[0]
