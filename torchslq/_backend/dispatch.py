@@ -791,12 +791,27 @@ def _np_dtype(dtype: torch.dtype) -> np.dtype:
 # ----------------------------------------------------------------------------- gain form
 
 
+_gain_module: ModuleType | None = None
+
+
 def _gain_kernels() -> ModuleType:
     """The gain-form LQ kernels (:mod:`._numba_gain`); call where :func:`can_use_compiled`
     holds (numba importable)."""
-    from . import _numba_gain
+    global _gain_module
+    if _gain_module is None:
+        from . import _numba_gain
 
-    return _numba_gain
+        _gain_module = _numba_gain
+    return _gain_module
+
+
+def _with_slp(fn, *args):
+    """:func:`._numba_gemm.with_slp` (imported on first use: it imports numba)."""
+    from ._numba_gemm import with_slp
+
+    global _with_slp
+    _with_slp = with_slp
+    return with_slp(fn, *args)
 
 
 def _one_time_step(t: Tensor, tail: int) -> Tensor:
@@ -827,114 +842,132 @@ def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray,
     return tuple(out)
 
 
+_EMPTY_PIECES: dict = {}  # numpy dtype -> the kernels' empty arrays for absent pieces
+
+
 def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, ...], int]:
     """The LQ data ``(A, B, c, Q, R, S, q, r)`` (time dims given, ``with_time``) as the
     gain kernels' ``pieces`` (:func:`_piece_arrays`) and the data's own batch size: 1
     where every piece is shared by the batch (one Riccati pass serves all), else
     ``prod(batch)``; ``batch`` is the full batch shape (x0's included)."""
+    nb = math.prod(batch)
+    npd = _np_dtype(pieces[0].dtype)
+    empty = _EMPTY_PIECES.get(npd)
+    if empty is None:
+        empty = _EMPTY_PIECES[npd] = tuple(np.zeros((0,) * d, dtype=npd) for d in PIECE_NDIMS)
+    # the common case in one pass (each step costs about a microsecond at B = 1): one
+    # batch dim of 1 or B, contiguous, taken as it is
+    arrays = []
+    shared = True
+    for p, d, none in zip(pieces, PIECE_NDIMS, empty, strict=True):
+        if p is None:
+            arrays.append(none)
+            continue
+        b = p.shape[0]
+        if p.ndim != d or not (b == 1 or b == nb) or not p.is_contiguous():
+            break
+        shared = shared and b == 1
+        arrays.append((p.detach() if p.requires_grad else p).numpy())
+    else:
+        return tuple(arrays), 1 if shared else nb
     shared = True
     for p, d in zip(pieces, PIECE_NDIMS, strict=True):
         if p is None:
             continue
-        k = p.ndim - d + 1  # batch dims (the common case: one, no slice to take)
+        k = p.ndim - d + 1  # batch dims
         if (p.shape[0] != 1) if k == 1 else (k > 1 and math.prod(p.shape[:k]) != 1):
             shared = False
             break
     arrays = _piece_arrays(pieces, (1,) if shared else batch, pieces[0].dtype)
-    return arrays, 1 if shared else math.prod(batch)
+    return arrays, 1 if shared else nb
 
 
-def lq_gain_solve(pieces: tuple[np.ndarray, ...], data_batch: int, x0: Tensor, T: int) -> dict:
+_GAIN_OUTPUTS = ("Kk", "P", "p", "L", "s", "failed", "x", "u", "lam", "cost", "finite")
+
+
+def lq_gain_solve(
+    pieces: tuple[np.ndarray, ...], data_batch: int, x0: np.ndarray, T: int
+) -> dict[str, np.ndarray]:
     """:func:`torchslq.lqr_solve` on the gain-form kernels (:mod:`._numba_gain`), without
     autograd: the Riccati pass over the data's batch (``data_batch``, 1 or ``B``), then
     over ``x0 (B, n)``'s batch the rollout (:func:`lq_rollout_kernel`, the one of
     :func:`torchslq.lq.rollout_linear`), costates and optimal cost.
 
-    Returns a dict of tensors: ``Kk (Bd, T, m, n+1)`` (``[K, k]``), ``P (Bd, T+1, n,
-    n)``, ``p (Bd, T+1, n)``, ``L (Bd, T, m, m)`` (``Quu``'s Cholesky factors),
-    ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T, m)``, ``lam (B, T+1, n)``,
-    ``cost (B,)`` (NaN where not finite), ``finite (B,)``. Call only where
-    :func:`can_use_compiled` holds."""
-    from ._numba_gemm import with_slp
-
+    Returns a dict of numpy arrays (the callers make the tensors they return, from
+    numpy's views: cheaper than torch's slicing at B = 1): ``Kk (Bd, T, m, n+1)`` (``[K,
+    k]``), ``P (Bd, T+1, n, n)``, ``p (Bd, T+1, n)``, ``L (Bd, T, m, m)`` (``Quu``'s
+    Cholesky factors), ``s (Bd,)``, ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T,
+    m)``, ``lam (B, T+1, n)``, ``cost (B,)`` (NaN where not finite), ``finite (B,)``.
+    Call only where :func:`can_use_compiled` holds."""
     gain = _gain_kernels()
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     # the element pass written out for (n, m) where it is generated (gain_codegen)
     passes = gain_kernels(n, m) or gain
     nb = x0.shape[0]
-    x0n = _np(x0)
-    # outputs allocated by numpy and shared with torch (a torch allocation and its numpy
-    # view cost several times numpy's, which counts at B = 1)
-    npd = x0n.dtype
-    Kkn = np.empty((data_batch, T, m, n + 1), npd)
-    Pn = np.empty((data_batch, T + 1, n, n), npd)
-    pn = np.empty((data_batch, T + 1, n), npd)
-    Ln = np.empty((data_batch, T, m, m), npd)
-    sn = np.empty(data_batch, npd)
-    failedn = np.empty(data_batch, np.bool_)
-    xn = np.empty((nb, T + 1, n), npd)
-    un = np.empty((nb, T, m), npd)
-    lamn = np.empty((nb, T + 1, n), npd)
-    costn = np.empty(nb, npd)
-    finiten = np.empty(nb, np.bool_)
+    npd = x0.dtype
+    out = (
+        np.empty((data_batch, T, m, n + 1), npd),
+        np.empty((data_batch, T + 1, n, n), npd),
+        np.empty((data_batch, T + 1, n), npd),
+        np.empty((data_batch, T, m, m), npd),
+        np.empty(data_batch, npd),
+        np.empty(data_batch, np.bool_),
+        np.empty((nb, T + 1, n), npd),
+        np.empty((nb, T, m), npd),
+        np.empty((nb, T + 1, n), npd),
+        np.empty(nb, npd),
+        np.empty(nb, np.bool_),
+    )
+    Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten = out
     nt, mt = gain.size_witness(n, m)
     if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
-        args = (
-            pieces, x0n, Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten, nt, mt,
-        )  # fmt: skip
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
-        with_slp(passes.gain_solve_kernel, *args)
+        _with_slp(passes.gain_solve_kernel, pieces, x0, *out, nt, mt)
     else:
-        with_slp(
+        _with_slp(
             _launch, passes.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn,
             failedn, nt, mt,
         )  # fmt: skip
         _launch(
-            _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0n, xn, un,
+            _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0, xn, un,
             nt, mt,
         )  # fmt: skip
         _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lamn, costn, finiten, nt, mt)
-    t = torch.from_numpy
-    return {
-        "Kk": t(Kkn), "P": t(Pn), "p": t(pn), "L": t(Ln), "failed": t(failedn),
-        "x": t(xn), "u": t(un), "lam": t(lamn), "cost": t(costn), "finite": t(finiten),
-    }  # fmt: skip
+    return dict(zip(_GAIN_OUTPUTS, out, strict=True))
 
 
 def lq_gain_gradients(
-    pieces: tuple[np.ndarray, ...], sol: dict, ok: Tensor, gx: Tensor, gu: Tensor,
-    gJ: Tensor, needs: tuple[bool, ...],
+    pieces: tuple[np.ndarray, ...], sol: dict[str, np.ndarray], ok: np.ndarray, gx: Tensor,
+    gu: Tensor, gJ: Tensor, needs: tuple[bool, ...],
 ) -> tuple[Tensor | None, ...]:  # fmt: skip
     """Gradients of :func:`lq_gain_solve`'s ``x, u, cost`` (incoming ``gx (B, T+1,
-    n)``, ``gu (B, T, m)``, ``gJ (B,)``) with respect to ``(A, B, Q, R, x0, q, r, S, c)``, each with full
-    batch and time dims (``(B, T, n, n)``, ...; None where ``needs`` is False); zero for
-    elements where ``ok (B,)`` is False."""
+    n)``, ``gu (B, T, m)``, ``gJ (B,)``) with respect to ``(A, B, Q, R, x0, q, r, S, c)``,
+    each with full batch and time dims (``(B, T, n, n)``, ...; None where ``needs`` is
+    False); zero for elements where ``ok (B,)`` is False. ``sol``: the arrays ``Kk, L,
+    P, lam`` of :func:`lq_gain_solve` and its ``x (B, T+1, n)``, ``u (B, T, m)``."""
     kern = _gain_kernels()
-    x, u, lam = sol["x"], sol["u"], sol["lam"]
+    x, u = sol["x"], sol["u"]
     nb, T1, n = x.shape
     T, m = T1 - 1, u.shape[-1]
-    dtype = x.dtype
+    npd = x.dtype
     shapes = (
         (T, n, n), (T, n, m), (T + 1, n, n), (T, m, m), (n,), (T + 1, n), (T, m), (T, m, n),
         (T, n),
     )  # fmt: skip
     out = [
-        torch.empty(nb, *shape, dtype=dtype) if need else torch.empty(0, *shape, dtype=dtype)
+        np.empty((nb if need else 0, *shape), npd)
         for shape, need in zip(shapes, needs, strict=True)
     ]
     gA, gB, gQ, gR, gx0, gq, gr, gS, gc = out
-    vs = np.empty((nb, T + 1, n), dtype=_np_dtype(dtype))
-    ks = np.empty((nb, T, m), dtype=_np_dtype(dtype))
+    vs = np.empty((nb, T + 1, n), dtype=npd)
+    ks = np.empty((nb, T, m), dtype=npd)
     _launch(
-        kern.adjoint_gain_kernel, nb, T, pieces[0], pieces[1], sol["Kk"].numpy(),
-        sol["L"].numpy(), sol["P"].numpy(), x.numpy(), u.numpy(), lam.numpy(),
-        ok.contiguous().numpy(), gx.contiguous().numpy(), gu.contiguous().numpy(),
-        gJ.contiguous().numpy(), vs, ks,
-        gA.numpy(), gB.numpy(), gc.numpy(), gQ.numpy(), gR.numpy(), gS.numpy(), gq.numpy(),
-        gr.numpy(), gx0.numpy(), *kern.size_witness(n, m),
+        kern.adjoint_gain_kernel, nb, T, pieces[0], pieces[1], sol["Kk"], sol["L"], sol["P"],
+        x, u, sol["lam"], ok, _np(gx), _np(gu), _np(gJ), vs, ks,
+        gA, gB, gc, gQ, gR, gS, gq, gr, gx0, *kern.size_witness(n, m),
     )  # fmt: skip
-    if not bool(ok.all()):  # the kernel skipped these elements
+    if not ok.all():  # the kernel skipped these elements
         for g, need in zip(out, needs, strict=True):
             if need:
                 g[~ok] = 0.0
-    return tuple(g if need else None for g, need in zip(out, needs, strict=True))
+    return tuple(torch.from_numpy(g) if need else None for g, need in zip(out, needs, strict=True))
