@@ -49,7 +49,9 @@ with respect to x0, A and B are compared too.
 
 Timing: ``time.perf_counter``; one warm-up call, then up to ``--repeat`` timed calls (stopping
 early once ``--time-budget`` seconds are spent, at least one timed call); the best time is
-reported, all samples are in the JSON. A warm-up longer than ``--single-above`` seconds is
+reported, all samples are in the JSON. A call shorter than 2 ms (a probe call after the
+warm-up) is timed as the mean of a loop of calls lasting about 20 ms (at most 1000), as
+``timeit`` does: each sample is such a mean. A warm-up longer than ``--single-above`` seconds is
 the only sample (``warmup_only`` in the JSON; one-time costs are negligible against it).
 ``time.process_time`` of the same calls is recorded as ``cpu_s`` (CPU seconds of all
 threads): on a shared machine it is robust to other processes taking the cores, where the
@@ -348,6 +350,11 @@ def _alarm(_signum, _frame):
     raise Watchdog()
 
 
+SHORT_CALL = 2e-3  # seconds: calls shorter than this are timed in loops ...
+LOOP_TIME = 0.02  # ... of about this long (at most MAX_LOOP calls), the mean per call
+MAX_LOOP = 1000
+
+
 def bench(fn, repeat: int, budget: float, single_above: float = math.inf, call_limit=None):
     """One warm-up call, then up to ``repeat`` timed calls (at least one) within ``budget``.
 
@@ -375,13 +382,29 @@ def bench(fn, repeat: int, budget: float, single_above: float = math.inf, call_l
     warm, out = call()
     if warm > single_above:
         return warm, [warm], warm, out, True, cpu[0]
+    # a call shorter than SHORT_CALL is timed as the mean of a loop of calls lasting
+    # about LOOP_TIME (as timeit): one call of ~0.1 ms, timed alone, measures mostly
+    # the timer and the cold caches left by the previous configuration
+    probe = call()[0]
+    loop = 1 if probe >= SHORT_CALL else min(MAX_LOOP, math.ceil(LOOP_TIME / max(probe, 1e-7)))
+    cpu.clear()
+
+    def sample() -> float:
+        if loop == 1:
+            return call()[0]
+        t0, c0 = time.perf_counter(), time.process_time()
+        for _ in range(loop):
+            fn()
+        cpu.append((time.process_time() - c0) / loop)
+        return (time.perf_counter() - t0) / loop
+
     times: list[float] = []
     start = time.perf_counter()
     while len(times) < max(1, repeat):
-        times.append(call()[0])
+        times.append(sample())
         if time.perf_counter() - start + warm > budget:
             break
-    return min(times), times, warm, out, False, min(cpu[1:])
+    return min(times), times, warm, out, False, min(cpu)
 
 
 def rel_err(a, b) -> float:
@@ -1042,7 +1065,8 @@ def markdown(payload) -> str:
         f"{meta['cpu']} ({meta['cpu_count']} cores), torch {meta['torch']}, numpy {meta['numpy']}, "
         f"mpc {meta.get('mpc')}. T={meta['T']}; best of up to {meta['repeat']} timed calls after a "
         f"warm-up (budget {meta['time_budget_s']} s per measurement; a warm-up longer than "
-        f"{meta.get('single_above_s')} s is the only sample). Load average at start "
+        f"{meta.get('single_above_s')} s is the only sample; a call under {SHORT_CALL * 1e3:g} ms is "
+        f"timed as the mean of a loop of about {LOOP_TIME * 1e3:g} ms). Load average at start "
         f"{tuple(round(x, 2) for x in meta['loadavg_start'])}"
         + (
             f", at end {tuple(round(x, 2) for x in meta['loadavg_end'])}"
