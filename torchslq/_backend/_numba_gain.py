@@ -171,18 +171,22 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, Hz, Hb, scratch, nt, mt):
         bb, tb = _idx(Bm, e, t)
         Bt = Bm[bb, tb]
         # w = p' + P'c;  s += p''c + c'P'c / 2
+        # (row operations over contiguous rows here and below: loops whose inner
+        # loop runs down a column, or waits on one running sum, cost several times
+        # the register-blocked products of the step at n >= 8)
+        for i in range(n):
+            wv[i] = pn[i]
         if has_c:
             bc, tc = _idx(c, e, t)
             ct = c[bc, tc]
+            # w += P'c as rows of P' (symmetric), s += c'p' + c'P'c / 2
+            for j in range(n):
+                a = ct[j]
+                Pj = Pn[j]
+                for i in range(n):
+                    wv[i] += a * Pj[i]
             for i in range(n):
-                acc = 0.0
-                for j in range(n):
-                    acc += Pn[i, j] * ct[j]
-                sv += ct[i] * (pn[i] + 0.5 * acc)
-                wv[i] = acc + pn[i]
-        else:
-            for i in range(n):
-                wv[i] = pn[i]
+                sv += ct[i] * (0.5 * (pn[i] + wv[i]))
         # PA = P'A, PB = P'B (P' symmetric), Quu = R + B'PB (its lower triangle
         # is read), Qux = B'PA (+ S below), qu = B'w (+ r below)
         PA[:] = 0.0
@@ -195,10 +199,12 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, Hz, Hb, scratch, nt, mt):
             for j in range(m):
                 Lq[i, j] = 0.5 * (Rt[i, j] + Rt[j, i])
             Lq[i, i] += reg
-            acc = 0.0
-            for kk in range(n):
-                acc += Bt[kk, i] * wv[kk]
-            y[i] = acc
+            y[i] = 0.0
+        for kk in range(n):  # y = B'w
+            a = wv[kk]
+            Bk = Bt[kk]
+            for i in range(m):
+                y[i] += a * Bk[i]
         _acc_tn_sized(Lq, Bt, PB, 1.0, False, fixed, m, m, n)
         Y[:] = 0.0
         _acc_tn_sized(Y, Bt, PA, 1.0, False, fixed, m, n, n)
@@ -237,16 +243,18 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, Hz, Hb, scratch, nt, mt):
                 Lq[i, j] = acc / d
         if not ok:
             break
-        for i in range(m):
-            di = 1.0 / Lq[i, i]
-            for j in range(n):
-                acc = Y[i, j]
-                for kk in range(i):
-                    acc -= Lq[i, kk] * Y[kk, j]
-                Y[i, j] = acc * di
+        for i in range(m):  # forward substitution, a row of Y at a time
+            Yi = Y[i]
             acc = y[i]
             for kk in range(i):
-                acc -= Lq[i, kk] * y[kk]
+                a = Lq[i, kk]
+                Yk = Y[kk]
+                for j in range(n):
+                    Yi[j] -= a * Yk[j]
+                acc -= a * y[kk]
+            di = 1.0 / Lq[i, i]
+            for j in range(n):
+                Yi[j] *= di
             y[i] = acc * di
         # P = Q + A'PA - Y'Y (upper triangle, mirrored), p = q + A'w - Y'y
         Pc = P[e, t]
@@ -263,12 +271,17 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, Hz, Hb, scratch, nt, mt):
                         Pc[i, j] += v * (
                             Hz[t, k, e, m + i, m + j] if joint else Hb[0][k, e, t, i, j]
                         )
-            acc = 0.0
-            for kk in range(n):
-                acc += At[kk, i] * wv[kk]
-            for kk in range(m):
-                acc -= Y[kk, i] * y[kk]
-            pc[i] = acc
+            pc[i] = 0.0
+        for kk in range(n):  # p = A'w - Y'y (+ q below), by rows of A and Y
+            a = wv[kk]
+            Ak = At[kk]
+            for i in range(n):
+                pc[i] += a * Ak[i]
+        for kk in range(m):
+            a = y[kk]
+            Yk = Y[kk]
+            for i in range(n):
+                pc[i] -= a * Yk[i]
         _acc_tn_sized(Pc, At, PA, 1.0, True, fixed, n, n, n)
         _acc_tn_sized(Pc, Y, Y, -1.0, True, fixed, n, n, m)
         for i in range(n):
@@ -283,18 +296,24 @@ def _gain_pass(e, pieces, Kk, P, p, L, s2, reg, Hz, Hb, scratch, nt, mt):
         # [K k] = -Lq'^{-1} [Y y]
         Kt = Kk[e, t]
         Lt = L[e, t]
+        # (back substitution a row of [K k] at a time, the sign carried through:
+        # -(a - b) = -a + b exactly)
         for i in range(m - 1, -1, -1):
+            Ki = Kt[i]
+            Yi = Y[i]
+            for j in range(n):
+                Ki[j] = -Yi[j]
+            Ki[n] = -y[i]
+            for kk in range(i + 1, m):
+                a = Lq[kk, i]
+                Kr = Kt[kk]
+                for j in range(n + 1):
+                    Ki[j] -= a * Kr[j]
             di = 1.0 / Lq[i, i]
             for j in range(n + 1):
-                acc = Y[i, j] if j < n else y[i]
-                for kk in range(i + 1, m):
-                    acc -= Lq[kk, i] * Kt[kk, j]
-                Kt[i, j] = acc * di
+                Ki[j] *= di
             for j in range(m):
                 Lt[i, j] = Lq[i, j] if j <= i else 0.0
-        for i in range(m):
-            for j in range(n + 1):
-                Kt[i, j] = -Kt[i, j]
         if reg != 0.0:  # the value of the regularised gains: - reg [K k]'[K k]
             for kk in range(m):
                 kr = Kt[kk]

@@ -110,9 +110,9 @@ def pass_source(n: int, m: int) -> str:
     emit(3, "bc, tc = _idx(c, e, t)")
     emit(3, "ct = c[bc, tc]")
     for i in rn:
-        emit(3, _chain("acc", [f"{_sym('P', i, j)} * ct[{j}]" for j in rn]))
-        emit(3, f"sv += ct[{i}] * (p{i} + 0.5 * acc)")
-        emit(3, f"w{i} = acc + p{i}")
+        emit(3, _chain(f"w{i}", [f"ct[{j}] * {_sym('P', j, i)}" for j in rn], f"p{i}"))
+    for i in rn:
+        emit(3, f"sv += ct[{i}] * (0.5 * (p{i} + w{i}))")
     emit(2, "else:")
     for i in rn:
         emit(3, f"w{i} = p{i}")
