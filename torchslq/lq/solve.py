@@ -515,7 +515,7 @@ class _GainLQRFunction(torch.autograd.Function):
         grads = lq_gain_gradients(ctx.pieces, sol, sol["finite"], gx, gu, gJ, needs)
         out = []
         for g, shape in zip(grads, ctx.shapes, strict=True):
-            if g is not None:
+            if g is not None and g.shape != shape:  # (two tensor ops a gradient, at B = 1 too)
                 g = g.reshape(tuple(ctx.batch) + tuple(g.shape[1:])).sum_to_size(shape)
             out.append(g)
         return (None, None, None, *out)
