@@ -791,27 +791,12 @@ def _np_dtype(dtype: torch.dtype) -> np.dtype:
 # ----------------------------------------------------------------------------- gain form
 
 
-_gain_module: ModuleType | None = None
-
-
 def _gain_kernels() -> ModuleType:
     """The gain-form LQ kernels (:mod:`._numba_gain`); call where :func:`can_use_compiled`
     holds (numba importable)."""
-    global _gain_module
-    if _gain_module is None:
-        from . import _numba_gain
+    from . import _numba_gain
 
-        _gain_module = _numba_gain
-    return _gain_module
-
-
-def _with_slp(fn, *args):
-    """:func:`._numba_gemm.with_slp` (imported on first use: it imports numba)."""
-    from ._numba_gemm import with_slp
-
-    global _with_slp
-    _with_slp = with_slp
-    return with_slp(fn, *args)
+    return _numba_gain
 
 
 def _one_time_step(t: Tensor, tail: int) -> Tensor:
@@ -824,16 +809,22 @@ def _one_time_step(t: Tensor, tail: int) -> Tensor:
     return t
 
 
+_EMPTY_PIECES: dict = {}  # numpy dtype -> the kernels' (never written) empty pieces
+
+
 def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray, ...]:
     """The LQ data ``(A, B, c, Q, R, S, q, r)`` (each with a time dim; ``c, S, q, r``
     may be None) as the kernels' ``pieces``: arrays ``(1 or prod(batch), 1 or steps,
     ...)``, an absent piece an empty array."""
     npd = _np_dtype(dtype)
+    empty = _EMPTY_PIECES.get(npd)
+    if empty is None:  # (kept: built anew they cost a microsecond each at B = 1)
+        empty = _EMPTY_PIECES[npd] = tuple(np.zeros((0,) * d, dtype=npd) for d in PIECE_NDIMS)
     nb = math.prod(batch)
     out = []
-    for p, d in zip(pieces, PIECE_NDIMS, strict=True):
+    for p, d, none in zip(pieces, PIECE_NDIMS, empty, strict=True):
         if p is None:
-            out.append(np.zeros((0,) * d, dtype=npd))
+            out.append(none)
         elif p.ndim == d and p.shape[0] in (1, nb) and p.is_contiguous():
             # as the kernels take it (the common case)
             out.append(_np(p))
@@ -842,44 +833,21 @@ def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray,
     return tuple(out)
 
 
-_EMPTY_PIECES: dict = {}  # numpy dtype -> the kernels' empty arrays for absent pieces
-
-
 def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, ...], int]:
     """The LQ data ``(A, B, c, Q, R, S, q, r)`` (time dims given, ``with_time``) as the
     gain kernels' ``pieces`` (:func:`_piece_arrays`) and the data's own batch size: 1
     where every piece is shared by the batch (one Riccati pass serves all), else
     ``prod(batch)``; ``batch`` is the full batch shape (x0's included)."""
-    nb = math.prod(batch)
-    npd = _np_dtype(pieces[0].dtype)
-    empty = _EMPTY_PIECES.get(npd)
-    if empty is None:
-        empty = _EMPTY_PIECES[npd] = tuple(np.zeros((0,) * d, dtype=npd) for d in PIECE_NDIMS)
-    # the common case in one pass (each step costs about a microsecond at B = 1): one
-    # batch dim of 1 or B, contiguous, taken as it is
-    arrays = []
-    shared = True
-    for p, d, none in zip(pieces, PIECE_NDIMS, empty, strict=True):
-        if p is None:
-            arrays.append(none)
-            continue
-        b = p.shape[0]
-        if p.ndim != d or not (b == 1 or b == nb) or not p.is_contiguous():
-            break
-        shared = shared and b == 1
-        arrays.append((p.detach() if p.requires_grad else p).numpy())
-    else:
-        return tuple(arrays), 1 if shared else nb
     shared = True
     for p, d in zip(pieces, PIECE_NDIMS, strict=True):
         if p is None:
             continue
-        k = p.ndim - d + 1  # batch dims
+        k = p.ndim - d + 1  # batch dims (the common case: one, no slice to take)
         if (p.shape[0] != 1) if k == 1 else (k > 1 and math.prod(p.shape[:k]) != 1):
             shared = False
             break
     arrays = _piece_arrays(pieces, (1,) if shared else batch, pieces[0].dtype)
-    return arrays, 1 if shared else nb
+    return arrays, 1 if shared else math.prod(batch)
 
 
 _GAIN_OUTPUTS = ("Kk", "P", "p", "L", "s", "failed", "x", "u", "lam", "cost", "finite")
@@ -899,6 +867,8 @@ def lq_gain_solve(
     Cholesky factors), ``s (Bd,)``, ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T,
     m)``, ``lam (B, T+1, n)``, ``cost (B,)`` (NaN where not finite), ``finite (B,)``.
     Call only where :func:`can_use_compiled` holds."""
+    from ._numba_gemm import with_slp
+
     gain = _gain_kernels()
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     # the element pass written out for (n, m) where it is generated (gain_codegen)
@@ -922,9 +892,9 @@ def lq_gain_solve(
     nt, mt = gain.size_witness(n, m)
     if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
-        _with_slp(passes.gain_solve_kernel, pieces, x0, *out, nt, mt)
+        with_slp(passes.gain_solve_kernel, pieces, x0, *out, nt, mt)
     else:
-        _with_slp(
+        with_slp(
             _launch, passes.riccati_gain_kernel, data_batch, T, pieces, Kkn, Pn, pn, Ln, sn,
             failedn, nt, mt,
         )  # fmt: skip

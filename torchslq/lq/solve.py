@@ -189,7 +189,10 @@ def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
     # CONVERGED is 0: one product instead of a where over two scalars (which allocates
     # both as tensors; it counts at B = 1), on the CPU on numpy's flags (cheaper still)
     if finite.is_cpu:
-        status = torch.from_numpy(np.where(finite.numpy(), 0, int(Status.NON_FINITE)))
+        f = finite.numpy()  # (all finite the common case: numpy's where costs microseconds)
+        status = torch.from_numpy(
+            np.zeros(f.shape, np.int64) if f.all() else np.where(f, 0, _NON_FINITE)
+        )
     else:
         status = (~finite).long() * int(Status.NON_FINITE)
     return (
@@ -557,10 +560,9 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c) -> LQRSolution | None:
             return e if len(shape) == 1 else e.reshape(shape + a.shape[1:])
         return t(a if len(shape) == 1 else a.reshape(shape + a.shape[1:]))
 
-    # CONVERGED is 0 (lq_status); all finite the common case (numpy's where over two
-    # scalars costs microseconds)
-    finite = sol["finite"]
-    status = full(np.zeros(nb, np.int64) if finite.all() else np.where(finite, 0, _NON_FINITE))
+    status = lq_status(None, t(sol["finite"]))
+    if len(shape) != 1:  # (unbatched, or several batch dims)
+        status = status.reshape(shape)
     if torch.is_grad_enabled() and any(p.requires_grad for p in present):
         x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
     else:
