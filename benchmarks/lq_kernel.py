@@ -366,15 +366,17 @@ def bench(fn, repeat: int, budget: float, single_above: float = math.inf, call_l
     """
     cpu: list[float] = []
 
-    def call():
+    def call(loop: int = 1):
+        """``loop`` calls of ``fn``: the mean wall and CPU time of one, its last result."""
         if call_limit:
             signal.signal(signal.SIGALRM, _alarm)
             signal.setitimer(signal.ITIMER_REAL, call_limit)
         try:
             t0, c0 = time.perf_counter(), time.process_time()
-            res = fn()
-            cpu.append(time.process_time() - c0)
-            return time.perf_counter() - t0, res
+            for _ in range(loop):
+                res = fn()
+            cpu.append((time.process_time() - c0) / loop)
+            return (time.perf_counter() - t0) / loop, res
         finally:
             if call_limit:
                 signal.setitimer(signal.ITIMER_REAL, 0)
@@ -388,20 +390,10 @@ def bench(fn, repeat: int, budget: float, single_above: float = math.inf, call_l
     probe = call()[0]
     loop = 1 if probe >= SHORT_CALL else min(MAX_LOOP, math.ceil(LOOP_TIME / max(probe, 1e-7)))
     cpu.clear()
-
-    def sample() -> float:
-        if loop == 1:
-            return call()[0]
-        t0, c0 = time.perf_counter(), time.process_time()
-        for _ in range(loop):
-            fn()
-        cpu.append((time.process_time() - c0) / loop)
-        return (time.perf_counter() - t0) / loop
-
     times: list[float] = []
     start = time.perf_counter()
     while len(times) < max(1, repeat):
-        times.append(sample())
+        times.append(call(loop)[0])
         if time.perf_counter() - start + warm > budget:
             break
     return min(times), times, warm, out, False, min(cpu)
