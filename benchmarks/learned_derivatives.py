@@ -1,4 +1,4 @@
-"""A learned model's derivatives by its traced graph against autograd's passes.
+"""A learned model's derivatives: generated code, its traced graph and autograd's passes.
 
 Not part of the test suite. Run from the repo root::
 
@@ -21,13 +21,17 @@ float64, one thread. For each
 number of rows ``B x 50`` (random states and controls), the two ways alternate in one
 process, ``--rounds`` times, and the minimum is reported:
 
-* ``jacobians``: :func:`torchslq.linearize` (the graph path,
-  ``torchslq/dynamics/graph_jacobian.py``) against the same call with the graph path
-  off (autograd through one call of the model, its step standing in by its kernels);
+* ``jacobians``: :func:`torchslq.linearize` (the generated reverse sweep beside the
+  model's compiled step, ``torchslq/dynamics/network_reverse.py``) against the same call
+  with that off (the graph path, ``torchslq/dynamics/graph_jacobian.py``) and with the
+  graph path off too (autograd through one call of the model, its step standing in by
+  its kernels);
 * ``hessians``: :func:`torchslq.dynamics.linearize_with_hessians` and its Hessians (DDP's
-  value mode) the same way.
+  value mode), the graph path against autograd (no generated Hessians).
 
-The largest difference between the two ways' results is printed beside the times.
+Every call runs inside a solve's scope (``torchslq._pinned.solve_scope``: the model's
+compiled functions looked up once, as in a solve). The largest difference between the
+ways' results is printed beside the times.
 Results go to ``--out`` (``learned_derivatives.{json,md}``).
 """
 
@@ -42,6 +46,9 @@ from pathlib import Path
 
 import torch
 from torch import nn
+
+from torchslq._pinned import solve_scope
+from torchslq.dynamics import network_codegen
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
@@ -120,7 +127,26 @@ def _hessians(model, x, u):
     return (A, B, *hessians())
 
 
-PASSES = {"jacobians": (_jacobians, "graph_jacobians"), "hessians": (_hessians, "graph_hessians")}
+def _none(*args):
+    return None
+
+
+# pass -> way -> the functions switched off: (module, attribute)
+_GENERATED = (network_codegen, "network_jacobians")
+PASSES = {
+    "jacobians": (
+        _jacobians,
+        {
+            "generated": (),
+            "graph": (_GENERATED,),
+            "autograd": (_GENERATED, (linearize_module, "graph_jacobians")),
+        },
+    ),
+    "hessians": (
+        _hessians,
+        {"graph": (), "autograd": ((linearize_module, "graph_hessians"),)},
+    ),
+}
 
 
 def _time(fn, repeats: int = 3) -> float:
@@ -133,36 +159,38 @@ def _time(fn, repeats: int = 3) -> float:
 
 
 def measure(name: str, kind: str, batch: int, rounds: int) -> dict:
-    """Minimum times (ms) of the pass with and without the graph path, alternating."""
-    fn, switch = PASSES[kind]
+    """Minimum times (ms) of the pass's ways, alternating; ratios to the first way."""
+    fn, ways = PASSES[kind]
     model = MODELS[name]()
     g = torch.Generator().manual_seed(batch)
     x = torch.randn(batch, 50, 4, generator=g, dtype=torch.float64)
     u = torch.randn(batch, 50, 1, generator=g, dtype=torch.float64)
-    real = getattr(linearize_module, switch)
-    ways = {"graph": real, "autograd": lambda *args: None}
+    reals = {sw: getattr(*sw) for off in ways.values() for sw in off}
     times = {k: float("inf") for k in ways}
     outs = {}
     try:
         for _ in range(rounds):
-            for way, path in ways.items():
-                setattr(linearize_module, switch, path)
-                outs[way] = fn(model, x, u)  # (a warm-up in the first round)
-                times[way] = min(times[way], _time(lambda: fn(model, x, u)) * 1e3)
+            for way, off in ways.items():
+                for sw, real in reals.items():
+                    setattr(*sw, _none if sw in off else real)
+                with solve_scope():
+                    outs[way] = fn(model, x, u)  # (a warm-up in the first round)
+                    times[way] = min(times[way], _time(lambda: fn(model, x, u)) * 1e3)
     finally:
-        setattr(linearize_module, switch, real)
-    diff = max(
-        float((a - b).abs().max()) for a, b in zip(outs["graph"], outs["autograd"], strict=True)
-    )
-    return {
-        "model": name,
-        "pass": kind,
-        "rows": batch * 50,
-        "graph_ms": round(times["graph"], 3),
-        "autograd_ms": round(times["autograd"], 3),
-        "speedup": round(times["autograd"] / times["graph"], 2),
-        "max_abs_diff": diff,
+        for sw, real in reals.items():
+            setattr(*sw, real)
+    first = next(iter(ways))
+    row = {"model": name, "pass": kind, "rows": batch * 50}
+    row |= {f"{way}_ms": round(t, 3) for way, t in times.items()}
+    row |= {
+        f"{way} / {first}": round(t / times[first], 2) for way, t in times.items() if way != first
     }
+    row["max_abs_diff"] = max(
+        float((a - b).abs().max())
+        for way in ways
+        for a, b in zip(outs[first], outs[way], strict=True)
+    )
+    return row
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -187,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
     write_report(
         args.out,
         "learned_derivatives",
-        "A learned model's derivatives: traced graph vs autograd "
+        "A learned model's derivatives: generated code, traced graph and autograd "
         "(`benchmarks/learned_derivatives.py`)",
         run_meta(COMMAND, argv, load0),
         rows,
@@ -195,14 +223,19 @@ def main(argv: list[str] | None = None) -> int:
         "6-64-64-4 tanh MLP on slices of the state and sin/cos of its angle "
         "(`FeatureCartPole`); `graybox`: the cart-pole's equations inline in torch ops, one "
         "RK4 step, plus a 5-64-64-4 tanh residual MLP (`GrayBoxCartPole`). `B x 50` random "
-        f"rows; the two ways alternate in one process, {args.rounds} rounds, minimum of 3 "
-        "calls each. `max |diff|`: the largest difference between the two ways' Jacobians "
+        f"rows; the ways alternate in one process (inside a solve's scope), {args.rounds} "
+        "rounds, minimum of 3 calls each. `jacobians`: generated reverse sweep, traced graph, "
+        "autograd; `hessians`: traced graph, autograd (ratios to the first way; > 1: the "
+        "first faster). `max |diff|`: the largest difference between the ways' Jacobians "
         "(and Hessians).",
-        ["model", "pass", "rows", "graph [ms]", "autograd [ms]", "autograd / graph",
-         "max abs diff"],
+        ["model", "pass", "rows", "generated [ms]", "graph [ms]", "autograd [ms]",
+         "graph / generated", "autograd / first", "max abs diff"],
         lambda r: [
-            r["model"], r["pass"], str(r["rows"]), str(r["graph_ms"]), str(r["autograd_ms"]),
-            f"{r['speedup']}x", f"{r['max_abs_diff']:.1e}",
+            r["model"], r["pass"], str(r["rows"]), str(r.get("generated_ms", "-")),
+            str(r["graph_ms"]), str(r["autograd_ms"]),
+            f"{r['graph / generated']}x" if "graph / generated" in r else "-",
+            f"{r.get('autograd / generated', r.get('autograd / graph'))}x",
+            f"{r['max_abs_diff']:.1e}",
         ],
     )  # fmt: skip
     return 0

@@ -644,21 +644,34 @@ def _without_graph_path(monkeypatch) -> None:
     monkeypatch.setattr(linearize_module, "graph_jacobians", lambda *args: None)
 
 
-@pytest.mark.parametrize("graph", [True, False], ids=["graph", "autograd"])
-def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch, graph):
-    """By the model's traced graph (the step's Jacobians from its kernels) or, where
-    that does not apply, by autograd with the step standing in by its kernels."""
+def _without_generated_jacobians(monkeypatch) -> None:
+    """Learned models' Jacobians not by their generated reverse sweep
+    (:mod:`torchslq.dynamics.network_reverse`)."""
+    from torchslq.dynamics import network_codegen
+
+    monkeypatch.setattr(network_codegen, "network_jacobians", lambda *args: None)
+
+
+@pytest.mark.parametrize("path", ["generated", "graph", "autograd"])
+def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch, path):
+    """By the model's generated Jacobians or its traced graph (the step's Jacobians from
+    its kernels in both) or, where neither applies, by autograd with the step standing
+    in by its kernels."""
     model = ResidualOnStep()
     gen = torch.Generator().manual_seed(12)
     x = torch.randn(3, 7, 4, generator=gen, dtype=torch.float64)
     u = torch.randn(3, 7, 1, generator=gen, dtype=torch.float64)
-    if not graph:
+    if path != "generated":
+        _without_generated_jacobians(monkeypatch)
+    if path == "autograd":
         _without_graph_path(monkeypatch)
+    model.compiled_step()  # written first: its writing evaluates the step's Jacobians once
     calls = _count_standins(monkeypatch, "linear_standin")
     kernels = _count_standins(monkeypatch, "compiled_jacobians")
     A, B = ts.linearize(model, x, u)
     # the step entered once, by its kernels
-    assert (kernels, calls) == (([True], []) if graph else ([True], [True]))
+    assert (kernels, calls) == (([True], [True]) if path == "autograd" else ([True], []))
+    graph = path != "autograd"
     # torch.func's pullback of the whole model (the step on its torch ops)
     Ar, Br = ts.linearize(model, x, u, method="vjp")
     assert calls == ([] if graph else [True])

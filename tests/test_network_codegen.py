@@ -20,6 +20,7 @@ from test_graph_jacobian import (
     Scaled,
     data,
     mlp,
+    reference,
 )
 from torch import nn
 
@@ -134,6 +135,74 @@ def test_a_model_changed_after_its_trace_is_written_again():
         got = compiled_rows(model, x, u)
         assert got is not None
         torch.testing.assert_close(got, model(x, u), rtol=1e-13, atol=1e-13)
+
+
+def generated_jacobians(model, x, u):
+    """The generated Jacobians' function's ``(A, B)`` at ``x, u`` (None where it does
+    not apply), with nothing recording a graph."""
+    with torch.no_grad():
+        return network_codegen.network_jacobians(model, x, u)
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_generated_jacobians_equal_autodiff(name, monkeypatch):
+    """The reverse sweep written beside the step gives torch.func's per-row Jacobians
+    (every activation, the arithmetic, slices, stacks and a physics submodule), and
+    ``linearize`` takes it: the graph path is not called."""
+    import importlib
+
+    lin = importlib.import_module("torchslq.dynamics.linearize")
+    make, m = MODELS[name]
+    model = make()
+    x, u = data(m=m, scale=1.0)
+    got = generated_jacobians(model, x, u)
+    assert got is not None  # the Jacobians are written
+    A_ref, B_ref = reference(model, x, u)
+    assert A_ref.shape == got[0].shape and B_ref.shape == got[1].shape
+    assert B_ref.abs().max() > 1e-3
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+    monkeypatch.setattr(lin, "graph_jacobians", lambda *a: pytest.fail("graph path taken"))
+    A, B = ts.linearize(model, x, u)
+    torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-13)
+
+
+def test_generated_jacobians_of_wide_outputs_and_float32():
+    """More outputs than are unrolled (a loop over them) and a layer narrower than four;
+    a float32 model's Jacobians in float32."""
+    torch.manual_seed(2)
+    net = nn.Sequential(nn.Linear(13, 10), nn.Tanh(), nn.Linear(10, 3), nn.Tanh(), nn.Linear(3, 11))
+    model = ts.LearnedDynamics(net.to(F64), 11, 2)
+    x, u = data(n=11, m=2, scale=1.0)
+    got = generated_jacobians(model, x, u)
+    assert got is not None
+    A_ref, B_ref = reference(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+    model32 = ts.LearnedDynamics(mlp(nn.Tanh(), nn.SiLU(), dtype=torch.float32), 4, 2)
+    x, u = data(m=2, dtype=torch.float32, scale=1.0)
+    got = generated_jacobians(model32, x, u)
+    assert got is not None and got[0].dtype == torch.float32
+    A_ref, B_ref = reference(model32, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-5, atol=1e-6)
+
+
+def test_generated_jacobians_decline():
+    """Not where autograd must see the parameters, nor for a model with its own
+    ``jacobians``, nor off the CPU kernels' dtypes."""
+    model = LearnedPhysics()
+    x, u = data(m=1, scale=1.0)
+    with torch.enable_grad():
+        assert network_codegen.network_jacobians(model, x, u) is None  # weights need grad
+    assert generated_jacobians(model, x.to(torch.float16), u.to(torch.float16)) is None
+
+    class Own(LearnedPhysics):
+        def jacobians(self, x, u):
+            return ts.linearize(self.physics, x, u)
+
+    assert generated_jacobians(Own(), x, u) is None
 
 
 def test_float32_model():

@@ -173,3 +173,30 @@ def elu(a, alpha):
 @numba.njit(inline="always", error_model="numpy", _nrt=False)
 def leaky_relu(a, slope):
     return a if a > 0.0 else a * slope
+
+
+# ---------------------------------------------------------------- first derivatives
+# (the generated Jacobians' activation slopes, :mod:`torchslq.dynamics.network_reverse`;
+# the simpler ones are written inline from the activation's input and output)
+
+
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
+def silu_slope(a):
+    """``d silu / da = s (1 + a (1 - s))``, ``s = sigmoid(a)``."""
+    s = sigmoid(a)
+    return s * (1.0 + a * (1.0 - s))
+
+
+@numba.njit(inline="always", error_model="numpy", _nrt=False)
+def gelu_slope(a):
+    """``d gelu / da = Phi(a) + a phi(a)`` (the exact GELU)."""
+    return 0.5 * (1.0 + math.erf(a * 0.7071067811865476)) + a * 0.3989422804014327 * math.exp(
+        -0.5 * a * a
+    )
+
+
+@numba.njit(inline="always", error_model="numpy", _nrt=False)
+def softplus_slope(a, beta, threshold):
+    """torch's ``softplus`` slope: 1 where ``beta a > threshold``, else ``sigmoid(beta a)``."""
+    z = beta * a
+    return 1.0 if z > threshold else 1.0 / (1.0 + math.exp(-z))

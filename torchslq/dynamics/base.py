@@ -90,12 +90,15 @@ class Dynamics(nn.Module):
         return hooks.step, hooks.params(self)
 
     def compiled_jacobians(self, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:
-        """``(A, B)`` on the CPU kernel from the code generated from :meth:`forward`, or
+        """``(A, B)`` on the CPU kernel from the code generated from :meth:`forward` (for a
+        learned model from its traced graph, :mod:`torchslq.dynamics.network_reverse`), or
         None where it does not apply (:func:`torchslq.linearize` then uses
         :meth:`jacobians` or automatic differentiation). Detached."""
         hooks = self._generated_kernel_hooks(x, u)
         if hooks is None:
-            return None
+            from .network_codegen import network_jacobians
+
+            return network_jacobians(self, x, u)  # a learned model's, from its graph
         from .compiled_rk4 import rk4_jacobians_compiled
 
         return rk4_jacobians_compiled(hooks, 0.0, x, u)

@@ -40,12 +40,14 @@ import operator
 import weakref
 from collections.abc import Callable
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from torch import fx, nn
+from torch import Tensor, fx, nn
 
+from .._pinned import pinned
 from .base import Dynamics
 from .graph_jacobian import (
     _METHOD_DERIVATIVES,
@@ -59,13 +61,15 @@ from .graph_jacobian import (
     _Unsupported,
     _var,
 )
+from .network_reverse import write_jacobians
 
-__all__ = ["network_step"]
+__all__ = ["network_step", "network_jacobians"]
 
 #: bumped when the generated text changes meaning (a new file name, a new compilation);
 #: also when an activation it inlines changes (numba's cache does not see the callee's
-#: source: version 2 is the branch-free tanh, 3 the branch-free exp)
-NETWORK_CODEGEN_VERSION = 3
+#: source: version 2 is the branch-free tanh, 3 the branch-free exp, 4 adds the
+#: Jacobians, :mod:`torchslq.dynamics.network_reverse`)
+NETWORK_CODEGEN_VERSION = 4
 
 # functional and method activations: the numba expression of ``a``
 _ELEMENTWISE = {
@@ -96,17 +100,58 @@ import numpy as np
 
 from torchslq.dynamics._numba_net import elu as _elu
 from torchslq.dynamics._numba_net import gelu as _gelu
+from torchslq.dynamics._numba_net import gelu_slope as _gelu_slope
 from torchslq.dynamics._numba_net import leaky_relu as _leaky_relu
 from torchslq.dynamics._numba_net import relu as _relu
 from torchslq.dynamics._numba_net import sigmoid as _sigmoid
 from torchslq.dynamics._numba_net import silu as _silu
+from torchslq.dynamics._numba_net import silu_slope as _silu_slope
 from torchslq.dynamics._numba_net import softplus as _softplus
+from torchslq.dynamics._numba_net import softplus_slope as _softplus_slope
 from torchslq.dynamics._numba_net import stack_array as _stack
 from torchslq.dynamics._numba_net import tanh as _tanh
 """
 
-# structure digest -> the loaded step function
-_LOADED: dict[str, Callable] = {}
+# structure digest -> the loaded step function and Jacobians' function (or None)
+_LOADED: dict[str, tuple[Callable, Callable | None]] = {}
+
+
+# each forward template's first derivative, from the entry's input ``{a}`` and output
+# ``{h}`` (the reverse sweep's slopes, :mod:`torchslq.dynamics.network_reverse`)
+_SLOPES = {
+    "_tanh({})": "(1.0 - {h} * {h})",
+    "_sigmoid({})": "({h} * (1.0 - {h}))",
+    "_relu({})": "(1.0 if {a} > 0.0 else 0.0)",
+    "_silu({})": "_silu_slope({a})",
+    "_gelu({})": "_gelu_slope({a})",
+    "math.sin({})": "math.cos({a})",
+    "math.cos({})": "(-math.sin({a}))",
+    "math.exp({})": "{h}",
+    "({0} * {0})": "(2.0 * {a})",
+    "{}": "1.0",
+}
+
+
+def _activation_slope(mod: nn.Module) -> str:
+    """The slope template (:data:`_SLOPES`) of an activation layer
+    :func:`_activation_module` writes."""
+    kind = type(mod)
+    if kind is nn.Softplus:
+        return f"_softplus_slope({{a}}, {float(mod.beta)!r}, {float(mod.threshold)!r})"
+    if kind is nn.ELU:
+        return f"(1.0 if {{a}} > 0.0 else {{h}} + {float(mod.alpha)!r})"
+    if kind is nn.LeakyReLU:
+        return f"(1.0 if {{a}} > 0.0 else {float(mod.negative_slope)!r})"
+    return _SLOPES[_activation_module(mod)]
+
+
+def _power_slope(p: float) -> str:
+    """The slope template of ``a ** p``."""
+    if p == 1:
+        return "1.0"
+    if p == 2:
+        return "(2.0 * {a})"
+    return f"({float(p)!r} * {{a}} ** {float(p - 1)!r})"
 
 
 def _activation_module(mod: nn.Module) -> str | None:
@@ -161,12 +206,18 @@ class _Writer:
         self.count = 0
         self.subs: list[tuple[str, object]] = []  # (global name, step function)
         self.sources: list[tuple[str, str]] = []  # what each piece of the array is
+        self.offsets: dict[tuple[str, str], int] = {}  # source -> its offset (once each)
+        #: node -> how it was computed, for the reverse sweep
+        #: (:mod:`torchslq.dynamics.network_reverse`)
+        self.rules: dict[fx.Node, tuple] = {}
 
     def param(self, root: nn.Module, source: tuple[str, str]) -> int:
-        """Append the parameters ``source`` names (:func:`_parameter`) to the array; their
-        offset."""
+        """Append the parameters ``source`` names (:func:`_parameter`) to the array (once
+        per source); their offset."""
+        if source in self.offsets:
+            return self.offsets[source]
         a = _parameter(root, source)
-        offset = self.size
+        offset = self.offsets[source] = self.size
         self.params.append(a)
         self.sources.append(source)
         self.size += a.size
@@ -292,7 +343,9 @@ def _parameter(root: nn.Module, source: tuple[str, str]) -> np.ndarray:
     (transposed, its columns contiguous) or ``bias``, a constant ``attribute``, or a
     Dynamics submodule's ``step`` parameters; named relative to ``root``."""
     kind, target = source
-    if kind == "attribute":
+    if kind == "weight_rows":  # a layer's weight as it is, its rows contiguous
+        value = root.get_submodule(target).weight.detach()
+    elif kind == "attribute":
         value = root
         for part in target.split("."):
             value = getattr(value, part)
@@ -373,6 +426,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 else:
                     w.values[nd] = out
                 w.widths[nd] = width
+                w.rules[nd] = ("submodule", a, b)
             elif type(mod) is nn.Linear:
                 (a,) = args
                 if not _var(a) or w.widths[a] != mod.in_features:
@@ -380,21 +434,25 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 woff = w.param(root, ("weight", nd.target))
                 boff = None if mod.bias is None else w.param(root, ("bias", nd.target))
                 w.linear(nd, a, width, mod.in_features, woff, boff)
+                w.rules[nd] = ("linear", a, nd.target)
             else:
                 template = _activation_module(mod)
                 if template is None or len(args) != 1:
                     raise _Unsupported(type(mod).__name__)
                 a = w.operand(args[0], width, env, root)
                 w.elementwise(nd, width, lambda j, t=template, a=a: t.format(a(j)))
+                w.rules[nd] = ("activation", args[0], _activation_slope(mod))
         elif (p := _power_exponent(nd)) is not None:
             a = w.operand(args[0], width, env, root)
             if p == 2:
                 w.elementwise(nd, width, lambda j, a=a: f"({a(j)} * {a(j)})")
             else:
                 w.elementwise(nd, width, lambda j, a=a, p=p: f"({a(j)} ** {float(p)!r})")
+            w.rules[nd] = ("activation", args[0], _power_slope(p))
         elif nd.target is operator.getitem:
             src = args[0]
             start, stop, _ = _last_dim_part(args[1])[0].indices(w.widths[src])
+            w.rules[nd] = ("slice", src, start)
             if stop - start <= NARROW:  # entries of the source, no code
                 w.values[nd] = [w.entry(src, j) for j in range(start, stop)]
                 w.widths[nd] = stop - start
@@ -405,6 +463,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
             pieces = args[0]
             if not all(_var(q) for q in pieces) or sum(w.widths[q] for q in pieces) != width:
                 raise _Unsupported("a concatenation along the last dim of nodes")
+            w.rules[nd] = ("cat", pieces)
             if width <= NARROW:  # the pieces' entries, no code
                 w.values[nd] = [w.entry(q, j) for q in pieces for j in range(w.widths[q])]
                 w.widths[nd] = width
@@ -421,25 +480,35 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                     start += k
         elif nd.target == "unsqueeze":
             w.values[nd], w.widths[nd] = w.values[args[0]], w.widths[args[0]]
+            w.rules[nd] = ("sum", ((args[0], 1.0),))
         elif nd.op == "call_method" and nd.target in _METHOD_ELEMENTWISE:
             a = w.operand(args[0], width, env, root)
             t = _METHOD_ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
+            w.rules[nd] = ("activation", args[0], _SLOPES[t])
         elif nd.op == "call_function" and nd.target in _ELEMENTWISE:
             a = w.operand(args[0], width, env, root)
             t = _ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
+            w.rules[nd] = ("activation", args[0], _SLOPES[t])
         elif nd.target is operator.neg:
             a = w.operand(args[0], width, env, root)
             w.elementwise(nd, width, lambda j, a=a: f"(-{a(j)})")
+            w.rules[nd] = ("sum", ((args[0], -1.0),))
         elif nd.target in _OPERATORS:
             a, b = (w.operand(q, width, env, root) for q in args)
             op = _OPERATORS[nd.target]
             w.elementwise(nd, width, lambda j, a=a, b=b, op=op: f"({a(j)} {op} {b(j)})")
+            first, second = args
+            if op in "+-":
+                w.rules[nd] = ("sum", ((first, 1.0), (second, 1.0 if op == "+" else -1.0)))
+            else:
+                w.rules[nd] = ("product" if op == "*" else "quotient", first, a, second, b)
         else:
             raise _Unsupported(f"{nd.op} {nd.target}")
     if not _var(program.output) or w.widths[program.output] != n:
         raise _Unsupported("the output is not a state")
+    forward = list(w.lines)  # the nodes' code, for the Jacobians' function
     if isinstance(w.values[program.output], list):
         for j in range(n):
             w.emit(f"out[{j}] = {w.entry(program.output, j)}")
@@ -462,42 +531,70 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
             *head,
             "",
             "",
-            '@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")',
+            _DECORATOR,
             "def step(x, u, p, out, work):",
             *w.lines,
             "",
         ]
     )
+    w.jacobian_subs = None
+    try:
+        sweep, subs = write_jacobians(
+            w, program, root, n, m, NARROW, _new_array,
+            lambda target: w.param(root, ("weight_rows", target)),
+        )  # fmt: skip
+    except _Unsupported:
+        return body, w  # the step alone: the graph path linearises
+    S = "".join(f"S{k}a, S{k}b, " for k in range(len(subs)))
+    body += "\n".join(
+        [
+            "",
+            "",
+            _DECORATOR,
+            f"def jacobians(r0, r1, X, U, p, {S}A, B):",
+            f"    work = np.empty((8, {n}))",
+            "    for r in range(r0, r1):",
+            "        x = X[r]",
+            "        u = U[r]",
+            *("    " + line for line in forward),
+            *sweep,
+            "",
+        ]
+    )
+    w.jacobian_subs = subs
     return body, w
 
 
-def _load(text: str, digest: str, subs: list, in_memory: bool) -> Callable:
-    """The ``step`` of the generated ``text``: from its file in codegen's cache directory
-    (written if absent; numba caches the compilation beside it), else compiled in memory
-    with the submodules' steps ``subs`` as globals (once per process)."""
+_DECORATOR = '@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")'
+
+
+def _load(text: str, digest: str, subs: list, in_memory: bool) -> tuple[Callable, Callable | None]:
+    """The ``step`` and ``jacobians`` (None where not written) of the generated
+    ``text``: from its file in codegen's cache directory (written if absent; numba
+    caches the compilation beside it), else compiled in memory with the submodules'
+    steps ``subs`` as globals (once per process)."""
     from .._backend.source_modules import import_source, write_atomic
     from .codegen import _cache_dir
 
     if digest in _LOADED:
         return _LOADED[digest]
     directory = None if in_memory else _cache_dir()
-    step = None
+    scope = None
     if directory is not None:
         path = directory / f"net_{digest}.py"
         try:
             if not path.exists() or path.read_text() != text:
                 write_atomic(path, text)
-            step = import_source(path, f"torchslq_network_{digest}").step
+            scope = vars(import_source(path, f"torchslq_network_{digest}"))
         except OSError:
-            step = None
-    if step is None:  # no writable cache, or a submodule compiled in memory
-        scope: dict = {"__name__": f"torchslq_network_{digest}", **dict(subs)}
+            scope = None
+    if scope is None:  # no writable cache, or a submodule compiled in memory
+        scope = {"__name__": f"torchslq_network_{digest}", **dict(subs)}
         exec(
             compile(text.replace("cache=True", "cache=False"), f"<network {digest}>", "exec"), scope
         )
-        step = scope["step"]
-    _LOADED[digest] = step
-    return step
+    _LOADED[digest] = loaded = (scope["step"], scope.get("jacobians"))
+    return loaded
 
 
 def _model_dtype(model: nn.Module) -> torch.dtype:
@@ -525,12 +622,27 @@ def _matches(model: nn.Module, step, params: np.ndarray, n: int, m: int, dtype) 
     return bool(torch.allclose(got, real, rtol=0.0, atol=1e3 * eps * scale))
 
 
+class _Network(NamedTuple):
+    step: Callable
+    params: np.ndarray
+    #: ``jacobians(r0, r1, X, U, p, S..., A, B)`` (:mod:`.network_reverse`), or None
+    jacobians: Callable | None
+    #: the Dynamics submodules whose Jacobians it takes (targets, in order)
+    subs: tuple[str, ...]
+
+
 def network_step(model: nn.Module) -> tuple[Callable, np.ndarray] | None:
     """``(step, params)`` (:meth:`torchslq.Dynamics.compiled_step`) of a learned model
     from its traced graph (module docstring), or None: the graph has a node this module
     does not write, a Dynamics submodule without a compiled step, per-element data, or
     the step differs from ``forward``; code generation is off (``TORCHSLQ_CODEGEN=0``,
     ``generate_compiled_code = False``)."""
+    got = _network(model)
+    return None if got is None else (got.step, got.params)
+
+
+def _network(model: nn.Module) -> _Network | None:
+    """:func:`network_step` with the generated Jacobians' function."""
     from .._backend import can_use_compiled
     from .codegen import _enabled
 
@@ -551,25 +663,63 @@ def network_step(model: nn.Module) -> tuple[Callable, np.ndarray] | None:
     key = (_structure_key(model), dtype)
     hit = _BUILT.get(model)
     if hit is not None and hit[0] == key:  # the same structure: new weights only
-        step, sources = hit[1], hit[2]
+        built, sources = hit[1], hit[2]
         root = _root(model)
         params = _concatenated([_parameter(root, source) for source in sources])
-        if _matches(model, step, params, n, m, dtype):
-            return step, params
+        if _matches(model, built.step, params, n, m, dtype):
+            return built._replace(params=params)
     _BUILT.pop(model, None)
     for _ in range(2):
         got = _build(model, n, m, dtype)
         if got is not _STALE:
             if got is not None:
-                _BUILT[model] = (key, got[0], got[2])
-                return got[:2]
+                built, sources = got
+                _BUILT[model] = (key, built, sources)
+                return built
             return None
         # a trace holds forward's Python numbers and branches: trace it again, once
         _PROGRAMS.pop(model, None)
     return None
 
 
-# model -> (structure key, step, the parameter array's sources): a solve of a model
+def network_jacobians(model: nn.Module, x: Tensor, u: Tensor) -> tuple[Tensor, Tensor] | None:
+    """``(A (..., n, n), B (..., n, m))`` of a learned model at ``x (..., n)``, ``u (...,
+    m)`` by its generated Jacobians' function (:mod:`.network_reverse`), detached; None
+    where it does not apply: no compiled step or no Jacobians written for this model,
+    the model has its own :meth:`~torchslq.Dynamics.jacobians`, its parameters need
+    autograd, or the data are not CPU float tensors."""
+    from .._backend import _launch, can_use_compiled, module_needs_grad
+    from .compiled_rk4 import _rows
+    from .linearize import linearize
+
+    if (
+        not isinstance(model, Dynamics)
+        or model.has_analytic_jacobians
+        or not can_use_compiled(x, u)
+        or module_needs_grad(model)
+        or x.shape[-1] != getattr(model, "state_dim", None)
+        or u.shape[-1] != getattr(model, "control_dim", None)
+    ):
+        return None
+    got = pinned(model, "network", lambda: _network(model))  # once per solve
+    if got is None or got.jacobians is None:
+        return None
+    n, m = x.shape[-1], u.shape[-1]
+    lead, R, xr, ur = _rows(x, u)
+    if R == 0:
+        return x.new_empty(*lead, n, n), x.new_empty(*lead, n, m)
+    root = _root(model)
+    S = []
+    for target in got.subs:  # the submodules' Jacobians at the rows, by their own path
+        for J in linearize(root.get_submodule(target), xr, ur):
+            S.append(J.reshape(R, -1, J.shape[-1]).contiguous().numpy())
+    A = torch.empty(R, n, n, dtype=x.dtype)
+    B = torch.empty(R, n, m, dtype=x.dtype)
+    _launch(got.jacobians, R, 1, xr.numpy(), ur.numpy(), got.params, *S, A.numpy(), B.numpy())
+    return A.view(*lead, n, n), B.view(*lead, n, m)
+
+
+# model -> (structure key, _Network, the parameter array's sources): a solve of a model
 # built before reads its weights and checks the step, without tracing or writing it
 _BUILT: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
 
@@ -591,8 +741,8 @@ _STALE = object()
 
 
 def _build(model: nn.Module, n: int, m: int, dtype: torch.dtype):
-    """:func:`network_step` from the model's current trace: ``(step, params, sources)``;
-    None where it cannot be written or compiled; ``_STALE`` where it differs from
+    """:func:`_network` from the model's current trace: ``(_Network, sources)``; None
+    where it cannot be written or compiled; ``_STALE`` where it differs from
     ``forward``."""
     program = _program(model)
     if program is None:
@@ -610,13 +760,14 @@ def _build(model: nn.Module, n: int, m: int, dtype: torch.dtype):
     in_memory = bool(w.subs) and "_import_source" not in body
     params = _concatenated(w.params)
     try:
-        step = _load(text, digest, w.subs, in_memory)
+        step, jacobians = _load(text, digest, w.subs, in_memory)
         if not _matches(model, step, params, n, m, dtype):
             return _STALE
     except Exception as e:  # noqa: BLE001 - a step numba cannot compile: the torch path
         _warn_once(type(model).__name__, e)
         return None
-    return step, params, w.sources
+    subs = tuple(w.jacobian_subs or ())
+    return _Network(step, params, jacobians, subs), list(w.sources)
 
 
 _WARNED: set[str] = set()
