@@ -53,16 +53,21 @@ class _Sweep:
     def emit(self, line: str, indent: int = 0) -> None:
         self.lines.append("    " * (2 + indent) + line)
 
-    def grad(self, node: fx.Node) -> str:
-        """The sensitivity array of ``node`` (``(n, width)``, zeros when new)."""
-        if node not in self.G:
-            size = self.n * self.w.widths[node]
-            self.count += 1
-            name = self.G[node] = f"g{self.count}"
-            self.emit(f"{name} = {self.new_array(size)}")
-            self.emit(f"for q in range({size}):")
-            self.emit(f"{name}[q] = 0.0", 1)
-        return self.G[node]
+    def grad(self, node: fx.Node, whole: bool = False) -> tuple[str, str]:
+        """The sensitivity array of ``node`` (``(n, width)``) and the operator of a write
+        into it: ``+=``, or ``=`` for the first write where that is ``whole`` (it covers
+        every entry: no zeros written first)."""
+        if node in self.G:
+            return self.G[node], "+="
+        size = self.n * self.w.widths[node]
+        self.count += 1
+        name = self.G[node] = f"g{self.count}"
+        self.emit(f"{name} = {self.new_array(size)}")
+        if whole:
+            return name, "="
+        self.emit(f"for q in range({size}):")
+        self.emit(f"{name}[q] = 0.0", 1)
+        return name, "+="
 
     def outputs(self, body) -> list[tuple[str, int]]:
         """``body(j)`` for every output ``j``: unrolled for a few, else a loop."""
@@ -88,9 +93,9 @@ class _Sweep:
         expression``)."""
         if not _var(dst):
             return
-        g = self.grad(dst)
-        src, ws = src
         wd = self.w.widths[dst]
+        g, op = self.grad(dst, whole=doff == 0 and width == wd)
+        src, ws = src
 
         def body(i):
             lines = []
@@ -102,7 +107,7 @@ class _Sweep:
                 factor = f" * {float(scale)!r}"
             return lines + self.outputs(
                 lambda j: [
-                    (f"{g}[{_at(j, wd, i, doff)}] += {src}[{_at(j, ws, i, soff)}]{factor}", 0)
+                    (f"{g}[{_at(j, wd, i, doff)}] {op} {src}[{_at(j, ws, i, soff)}]{factor}", 0)
                 ]
             )
 
@@ -112,9 +117,10 @@ class _Sweep:
         """``G_a += G_y W``, ``W (width, k)`` row-major at ``p[wr]``."""
         if not _var(a):
             return
-        g = self.grad(a)
         n, width, k = self.n, self.w.widths[nd], self.w.widths[a]
-        if k <= self.narrow and n * k <= _MAX_ACCUMULATORS:
+        narrow = k <= self.narrow and n * k <= _MAX_ACCUMULATORS
+        g, op = self.grad(a, whole=narrow)
+        if narrow:
             # every (output, input) sum a local; one pass over the layer's entries
             for j in range(n):
                 for i in range(k):
@@ -128,7 +134,7 @@ class _Sweep:
                     self.emit(f"e{j}_{i} += gs * wt{i}", 1)
             for j in range(n):
                 for i in range(k):
-                    self.emit(f"{g}[{j * k + i}] += e{j}_{i}")
+                    self.emit(f"{g}[{j * k + i}] {op} e{j}_{i}")
             return
         # four of the layer's entries a pass: each output row's four sensitivities in
         # registers, the input's row read and written once per pass
@@ -167,7 +173,7 @@ class _Sweep:
         self.subs.append(nd.target)
         width = self.w.widths[nd]
         for a, name in zip(args, (f"S{idx}a", f"S{idx}b"), strict=True):
-            g = self.grad(a)
+            g, _ = self.grad(a)
             k = self.w.widths[a]
             self.emit(f"for j in range({self.n}):")
             self.emit(f"for o in range({width}):", 1)
@@ -197,7 +203,7 @@ def write_jacobians(w, program, root, n: int, m: int, narrow: int, new_array, we
     :class:`_Unsupported` for what it does not write."""
     sweep = _Sweep(w, n, narrow, new_array)
     out = program.output
-    g = sweep.grad(out)
+    g, _ = sweep.grad(out)
     for j in range(n):
         sweep.emit(f"{g}[{j * n + j}] = 1.0")
     for nd in reversed(program.nodes):
