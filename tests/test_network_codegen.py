@@ -21,6 +21,7 @@ from test_graph_jacobian import (
     data,
     mlp,
     reference,
+    reference_hessians,
 )
 from torch import nn
 
@@ -137,6 +138,13 @@ def test_a_model_changed_after_its_trace_is_written_again():
         torch.testing.assert_close(got, model(x, u), rtol=1e-13, atol=1e-13)
 
 
+def _too_large_for_sympy(model) -> bool:
+    """Whether codegen's symbolic path declines ``model`` by its number of weights (so
+    ``linearize`` reaches the network's generated derivatives; asking codegen itself
+    would run its slow symbolic pass)."""
+    return sum(p.numel() for p in model.parameters()) > codegen.MAX_PARAMETERS
+
+
 def generated_jacobians(model, x, u):
     """The generated Jacobians' function's ``(A, B)`` at ``x, u`` (None where it does
     not apply), with nothing recording a graph."""
@@ -144,7 +152,29 @@ def generated_jacobians(model, x, u):
         return network_codegen.network_jacobians(model, x, u)
 
 
-@pytest.mark.parametrize("name", list(MODELS))
+class Quotient(ts.Dynamics):
+    """A network's output divided by a node of the state, and a square."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        self.net = mlp(nn.Tanh(), nn.Tanh(), k=5, out=4)  # (more weights than codegen takes)
+
+    def forward(self, x, u):
+        return x + 0.1 * self.net(torch.cat([x, u], -1)) / (2.0 + x * x) + 0.01 * x**2
+
+
+DERIVATIVE_MODELS = {**MODELS, "quotient": (Quotient, 1)}
+# each compiles a function (seconds): every activation, the arithmetic, products of nodes
+# and a physics submodule, slices and features, quotients of nodes
+JACOBIAN_MODELS = [
+    "learned-sigmoid-silu", "learned-softplus-elu", "learned-relu-leaky", "learned-gelu",
+    "physics-residual", "features", "quotient",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", JACOBIAN_MODELS)
 def test_generated_jacobians_equal_autodiff(name, monkeypatch):
     """The reverse sweep written beside the step gives torch.func's per-row Jacobians
     (every activation, the arithmetic, slices, stacks and a physics submodule), and
@@ -152,7 +182,7 @@ def test_generated_jacobians_equal_autodiff(name, monkeypatch):
     import importlib
 
     lin = importlib.import_module("torchslq.dynamics.linearize")
-    make, m = MODELS[name]
+    make, m = DERIVATIVE_MODELS[name]
     model = make()
     x, u = data(m=m, scale=1.0)
     got = generated_jacobians(model, x, u)
@@ -162,10 +192,51 @@ def test_generated_jacobians_equal_autodiff(name, monkeypatch):
     assert B_ref.abs().max() > 1e-3
     torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
     torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+    if not _too_large_for_sympy(model):
+        return  # linearize takes codegen's symbolic derivatives (tests/test_codegen.py)
     monkeypatch.setattr(lin, "graph_jacobians", lambda *a: pytest.fail("graph path taken"))
     A, B = ts.linearize(model, x, u)
     torch.testing.assert_close(A, A_ref, rtol=1e-12, atol=1e-13)
     torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-13)
+
+
+# every activation's curvature, products and quotients of nodes, powers, a physics
+# submodule's Hessians (each compiles a function: a few, for the suite's time)
+HESSIAN_MODELS = [
+    "learned-sigmoid-silu", "learned-softplus-elu", "learned-gelu", "learned-physics",
+    "quotient",
+]  # fmt: skip
+
+
+@pytest.mark.parametrize("name", HESSIAN_MODELS)
+def test_generated_hessians_equal_nested_autodiff(name, monkeypatch):
+    """The forward tangents and second-order terms written beside the step give
+    torch.func's per-row Jacobians and every output's Hessian (jacfwd over jacrev), and
+    ``linearize_with_hessians`` (DDP's value mode) takes them: the graph path is not
+    called."""
+    import importlib
+
+    lin = importlib.import_module("torchslq.dynamics.linearize")
+    make, m = DERIVATIVE_MODELS[name]
+    model = make()
+    x, u = data(lead=(3, 5), m=m, scale=1.0)
+    with torch.no_grad():
+        got = network_codegen.network_hessians(model, x, u)
+    assert got is not None  # the Hessians are written
+    A_ref, B_ref = reference(model, x, u)
+    H_ref = reference_hessians(model, x, u)
+    torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+    assert max(float(h.abs().max()) for h in H_ref) > 1e-4  # curvature to get right
+    for h, h_ref in zip(got[2], H_ref, strict=True):
+        assert h.shape == h_ref.shape
+        torch.testing.assert_close(h, h_ref, rtol=1e-10, atol=1e-12)
+    if not _too_large_for_sympy(model):
+        return  # linearize takes codegen's symbolic derivatives (tests/test_codegen.py)
+    monkeypatch.setattr(lin, "graph_hessians", lambda *a: pytest.fail("graph path taken"))
+    A, B, hessians = lin.linearize_with_hessians(model, x, u)
+    torch.testing.assert_close(B, B_ref, rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(hessians()[1], H_ref[1], rtol=1e-10, atol=1e-12)
 
 
 def test_generated_jacobians_of_wide_outputs_and_float32():
@@ -187,6 +258,22 @@ def test_generated_jacobians_of_wide_outputs_and_float32():
     A_ref, B_ref = reference(model32, x, u)
     torch.testing.assert_close(got[0], A_ref, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(got[1], B_ref, rtol=1e-5, atol=1e-6)
+
+
+def test_derivatives_of_a_large_graph_are_not_written(monkeypatch):
+    """A graph with more elementwise nodes than MAX_DERIVATIVE_NODES allows gets its step
+    only and keeps the traced-graph pass (its derivatives still right)."""
+    monkeypatch.setattr(network_codegen, "MAX_DERIVATIVE_NODES", {"jacobians": 3, "hessians": 3})
+    model = ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2)  # (4 elementwise nodes)
+    x, u = data(lead=(2, 3), m=2, scale=1.0)
+    with torch.no_grad():
+        assert network_codegen.network_step(model) is not None
+        assert network_codegen.network_hessians(model, x, u) is None
+        assert generated_jacobians(model, x, u) is None
+    A, _, hessians = ts.dynamics.linearize_with_hessians(model, x, u)
+    torch.testing.assert_close(A, reference(model, x, u)[0], rtol=1e-12, atol=1e-13)
+    H_ref = reference_hessians(model, x, u)
+    torch.testing.assert_close(hessians()[0], H_ref[0], rtol=1e-10, atol=1e-12)
 
 
 def test_generated_jacobians_decline():

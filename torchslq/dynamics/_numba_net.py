@@ -200,3 +200,31 @@ def softplus_slope(a, beta, threshold):
     """torch's ``softplus`` slope: 1 where ``beta a > threshold``, else ``sigmoid(beta a)``."""
     z = beta * a
     return 1.0 if z > threshold else 1.0 / (1.0 + math.exp(-z))
+
+
+# ---------------------------------------------------------------- second derivatives
+# (the generated Hessians' activation curvatures, as the first derivatives above)
+
+
+@numba.njit(inline="always", error_model="numpy", fastmath={"contract"}, _nrt=False)
+def silu_curve(a):
+    """``d2 silu / da2 = s (1 - s) (2 + a (1 - 2 s))``, ``s = sigmoid(a)``."""
+    s = sigmoid(a)
+    return s * (1.0 - s) * (2.0 + a * (1.0 - 2.0 * s))
+
+
+@numba.njit(inline="always", error_model="numpy", _nrt=False)
+def gelu_curve(a):
+    """``d2 gelu / da2 = phi(a) (2 - a^2)`` (the exact GELU)."""
+    return 0.3989422804014327 * math.exp(-0.5 * a * a) * (2.0 - a * a)
+
+
+@numba.njit(inline="always", error_model="numpy", _nrt=False)
+def softplus_curve(a, beta, threshold):
+    """torch's ``softplus`` curvature: 0 where ``beta a > threshold``, else ``beta s (1 -
+    s)``, ``s = sigmoid(beta a)``."""
+    z = beta * a
+    if z > threshold:
+        return 0.0
+    s = 1.0 / (1.0 + math.exp(-z))
+    return beta * s * (1.0 - s)

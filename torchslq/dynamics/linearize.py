@@ -547,7 +547,15 @@ def linearize_with_hessians(
             A, B, blocks = out
             return A, B, lambda: blocks
     if method == "auto" and x.shape[:-1] == u.shape[:-1]:
-        # a learned model's by its traced graph (None where it does not apply)
+        # a learned model's by its generated code, else its traced graph (None where
+        # they do not apply)
+        from .network_codegen import network_hessians
+
+        with torch.no_grad():
+            generated = network_hessians(dynamics, x.detach(), u.detach())
+        if generated is not None:
+            A, B, blocks = generated
+            return A, B, lambda: blocks
         graph = graph_hessians(dynamics, x, u)
         if graph is not None:
             A, B, blocks = graph

@@ -47,8 +47,10 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, fx, nn
 
+from .._backend import _launch
 from .._pinned import pinned
 from .base import Dynamics
+from .compiled_rk4 import _rows
 from .graph_jacobian import (
     _METHOD_DERIVATIVES,
     _PROGRAMS,
@@ -63,7 +65,7 @@ from .graph_jacobian import (
 )
 from .network_reverse import write_jacobians
 
-__all__ = ["network_step", "network_jacobians"]
+__all__ = ["network_step", "network_jacobians", "network_hessians"]
 
 #: bumped when the generated text changes meaning (a new file name, a new compilation);
 #: also when an activation it inlines changes (numba's cache does not see the callee's
@@ -100,13 +102,16 @@ import numpy as np
 
 from torchslq.dynamics._numba_net import elu as _elu
 from torchslq.dynamics._numba_net import gelu as _gelu
+from torchslq.dynamics._numba_net import gelu_curve as _gelu_curve
 from torchslq.dynamics._numba_net import gelu_slope as _gelu_slope
 from torchslq.dynamics._numba_net import leaky_relu as _leaky_relu
 from torchslq.dynamics._numba_net import relu as _relu
 from torchslq.dynamics._numba_net import sigmoid as _sigmoid
 from torchslq.dynamics._numba_net import silu as _silu
+from torchslq.dynamics._numba_net import silu_curve as _silu_curve
 from torchslq.dynamics._numba_net import silu_slope as _silu_slope
 from torchslq.dynamics._numba_net import softplus as _softplus
+from torchslq.dynamics._numba_net import softplus_curve as _softplus_curve
 from torchslq.dynamics._numba_net import softplus_slope as _softplus_slope
 from torchslq.dynamics._numba_net import stack_array as _stack
 from torchslq.dynamics._numba_net import tanh as _tanh
@@ -132,26 +137,48 @@ _SLOPES = {
 }
 
 
-def _activation_slope(mod: nn.Module) -> str:
-    """The slope template (:data:`_SLOPES`) of an activation layer
-    :func:`_activation_module` writes."""
+# and each one's second derivative (the generated Hessians' curvatures)
+_CURVES = {
+    "_tanh({})": "(-2.0 * {h} * (1.0 - {h} * {h}))",
+    "_sigmoid({})": "({h} * (1.0 - {h}) * (1.0 - 2.0 * {h}))",
+    "_relu({})": "0.0",
+    "_silu({})": "_silu_curve({a})",
+    "_gelu({})": "_gelu_curve({a})",
+    "math.sin({})": "(-{h})",
+    "math.cos({})": "(-{h})",
+    "math.exp({})": "{h}",
+    "({0} * {0})": "2.0",
+    "{}": "0.0",
+}
+
+
+def _activation_slope(mod: nn.Module) -> tuple[str, str]:
+    """The slope and curvature templates (:data:`_SLOPES`, :data:`_CURVES`) of an
+    activation layer :func:`_activation_module` writes."""
     kind = type(mod)
     if kind is nn.Softplus:
-        return f"_softplus_slope({{a}}, {float(mod.beta)!r}, {float(mod.threshold)!r})"
+        args = f"{{a}}, {float(mod.beta)!r}, {float(mod.threshold)!r}"
+        return f"_softplus_slope({args})", f"_softplus_curve({args})"
     if kind is nn.ELU:
-        return f"(1.0 if {{a}} > 0.0 else {{h}} + {float(mod.alpha)!r})"
+        alpha = float(mod.alpha)
+        return (
+            f"(1.0 if {{a}} > 0.0 else {{h}} + {alpha!r})",
+            f"(0.0 if {{a}} > 0.0 else {{h}} + {alpha!r})",
+        )
     if kind is nn.LeakyReLU:
-        return f"(1.0 if {{a}} > 0.0 else {float(mod.negative_slope)!r})"
-    return _SLOPES[_activation_module(mod)]
+        return f"(1.0 if {{a}} > 0.0 else {float(mod.negative_slope)!r})", "0.0"
+    template = _activation_module(mod)
+    return _SLOPES[template], _CURVES[template]
 
 
-def _power_slope(p: float) -> str:
-    """The slope template of ``a ** p``."""
+def _power_slope(p: float) -> tuple[str, str]:
+    """The slope and curvature templates of ``a ** p``."""
     if p == 1:
-        return "1.0"
+        return "1.0", "0.0"
     if p == 2:
-        return "(2.0 * {a})"
-    return f"({float(p)!r} * {{a}} ** {float(p - 1)!r})"
+        return "(2.0 * {a})", "2.0"
+    p = float(p)
+    return f"({p!r} * {{a}} ** {p - 1.0!r})", f"({p * (p - 1.0)!r} * {{a}} ** {p - 2.0!r})"
 
 
 def _activation_module(mod: nn.Module) -> str | None:
@@ -180,6 +207,14 @@ def _activation_module(mod: nn.Module) -> str | None:
 #: nodes at most this wide are held as scalar locals (no allocation, straight-line
 #: code); wider ones as arrays, one allocation per node and call
 NARROW = 8
+
+
+#: the most elementwise nodes (``graph_jacobian``'s count) of a graph whose Jacobians and
+#: Hessians are written beside its step: numba's compilation grows faster than the text
+#: (measured for the Jacobians: 4.8 s with 4 such nodes, 8.7 s with 39, 32 s with 131,
+#: including the physics submodule's kernels; for the Hessians 9.7 s, 50 s and 642 s).
+#: Larger graphs keep the traced-graph or autograd pass.
+MAX_DERIVATIVE_NODES = {"jacobians": 48, "hessians": 20}
 
 
 #: the widest node held on the step's stack (32 kB); a wider one is allocated per call,
@@ -485,12 +520,12 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
             a = w.operand(args[0], width, env, root)
             t = _METHOD_ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
-            w.rules[nd] = ("activation", args[0], _SLOPES[t])
+            w.rules[nd] = ("activation", args[0], (_SLOPES[t], _CURVES[t]))
         elif nd.op == "call_function" and nd.target in _ELEMENTWISE:
             a = w.operand(args[0], width, env, root)
             t = _ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
-            w.rules[nd] = ("activation", args[0], _SLOPES[t])
+            w.rules[nd] = ("activation", args[0], (_SLOPES[t], _CURVES[t]))
         elif nd.target is operator.neg:
             a = w.operand(args[0], width, env, root)
             w.elementwise(nd, width, lambda j, a=a: f"(-{a(j)})")
@@ -537,38 +572,45 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
             "",
         ]
     )
-    w.jacobian_subs = None
-    try:
-        sweep, subs = write_jacobians(
-            w, program, root, n, m, NARROW, _new_array,
-            lambda target: w.param(root, ("weight_rows", target)),
-        )  # fmt: skip
-    except _Unsupported:
-        return body, w  # the step alone: the graph path linearises
-    S = "".join(f"S{k}a, S{k}b, " for k in range(len(subs)))
-    body += "\n".join(
-        [
-            "",
-            "",
-            _DECORATOR,
-            f"def jacobians(r0, r1, X, U, p, {S}A, B):",
-            f"    work = np.empty((8, {n}))",
-            "    for r in range(r0, r1):",
-            "        x = X[r]",
-            "        u = U[r]",
-            *("    " + line for line in forward),
-            *sweep,
-            "",
-        ]
-    )
-    w.jacobian_subs = subs
+    w.jacobian_subs = w.hessian_subs = None
+    for kind, weights in (
+        ("jacobians", None),
+        ("hessians", lambda t: w.param(root, ("weight", t))),
+    ):
+        if program.elementwise > MAX_DERIVATIVE_NODES[kind]:
+            continue  # its compilation would cost more than it saves
+        try:
+            sweep, subs = write_jacobians(
+                w, program, root, n, m, NARROW, _new_array,
+                lambda target: w.param(root, ("weight_rows", target)), weights,
+            )  # fmt: skip
+        except (_Unsupported, KeyError):
+            continue  # not written: the graph path differentiates
+        hessians = kind == "hessians"
+        S = "".join(f"S{k}a, S{k}b, {f'S{k}h, ' if hessians else ''}" for k in range(len(subs)))
+        body += "\n".join(
+            [
+                "",
+                "",
+                _DECORATOR,
+                f"def {kind}(r0, r1, X, U, p, {S}A, B{', H' if hessians else ''}):",
+                f"    work = np.empty((8, {n}))",
+                "    for r in range(r0, r1):",
+                "        x = X[r]",
+                "        u = U[r]",
+                *("    " + line for line in forward),
+                *sweep,
+                "",
+            ]
+        )
+        setattr(w, f"{kind[:-1]}_subs", subs)
     return body, w
 
 
 _DECORATOR = '@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")'
 
 
-def _load(text: str, digest: str, subs: list, in_memory: bool) -> tuple[Callable, Callable | None]:
+def _load(text: str, digest: str, subs: list, in_memory: bool) -> tuple:
     """The ``step`` and ``jacobians`` (None where not written) of the generated
     ``text``: from its file in codegen's cache directory (written if absent; numba
     caches the compilation beside it), else compiled in memory with the submodules'
@@ -593,7 +635,7 @@ def _load(text: str, digest: str, subs: list, in_memory: bool) -> tuple[Callable
         exec(
             compile(text.replace("cache=True", "cache=False"), f"<network {digest}>", "exec"), scope
         )
-    _LOADED[digest] = loaded = (scope["step"], scope.get("jacobians"))
+    _LOADED[digest] = loaded = (scope["step"], scope.get("jacobians"), scope.get("hessians"))
     return loaded
 
 
@@ -629,6 +671,9 @@ class _Network(NamedTuple):
     jacobians: Callable | None
     #: the Dynamics submodules whose Jacobians it takes (targets, in order)
     subs: tuple[str, ...]
+    #: ``hessians(r0, r1, X, U, p, S..., A, B, H)``, or None; and its submodules
+    hessians: Callable | None = None
+    hessian_subs: tuple[str, ...] = ()
 
 
 def network_step(model: nn.Module) -> tuple[Callable, np.ndarray] | None:
@@ -688,20 +733,9 @@ def network_jacobians(model: nn.Module, x: Tensor, u: Tensor) -> tuple[Tensor, T
     where it does not apply: no compiled step or no Jacobians written for this model,
     the model has its own :meth:`~torchslq.Dynamics.jacobians`, its parameters need
     autograd, or the data are not CPU float tensors."""
-    from .._backend import _launch, can_use_compiled, module_needs_grad
-    from .compiled_rk4 import _rows
     from .linearize import linearize
 
-    if (
-        not isinstance(model, Dynamics)
-        or model.has_analytic_jacobians
-        or not can_use_compiled(x, u)
-        or module_needs_grad(model)
-        or x.shape[-1] != getattr(model, "state_dim", None)
-        or u.shape[-1] != getattr(model, "control_dim", None)
-    ):
-        return None
-    got = pinned(model, "network", lambda: _network(model))  # once per solve
+    got = _applicable(model, x, u)
     if got is None or got.jacobians is None:
         return None
     n, m = x.shape[-1], u.shape[-1]
@@ -717,6 +751,66 @@ def network_jacobians(model: nn.Module, x: Tensor, u: Tensor) -> tuple[Tensor, T
     B = torch.empty(R, n, m, dtype=x.dtype)
     _launch(got.jacobians, R, 1, xr.numpy(), ur.numpy(), got.params, *S, A.numpy(), B.numpy())
     return A.view(*lead, n, n), B.view(*lead, n, m)
+
+
+def network_hessians(model: nn.Module, x: Tensor, u: Tensor):
+    """``(A, B, (Hxx (n, ..., n, n), Huu (n, ..., m, m), Hux (n, ..., m, n)))``: a learned
+    model's Jacobians and every output's Hessian blocks (the leading index the output, as
+    :func:`~torchslq.dynamics.dynamics_hessians`) by its generated ``hessians`` function
+    (:mod:`.network_reverse`), detached; None where :func:`network_jacobians` does not
+    apply or no Hessians were written for this model."""
+    got = _applicable(model, x, u)
+    if got is None or got.hessians is None:
+        return None
+    from .linearize import linearize_with_hessians
+
+    n, m = x.shape[-1], u.shape[-1]
+    k = n + m
+    lead, R, xr, ur = _rows(x, u)
+    if R == 0:
+        return None
+    root = _root(model)
+    S = []
+    for target in got.hessian_subs:  # the submodules' derivatives at the rows
+        Ja, Jb, blocks = linearize_with_hessians(root.get_submodule(target), xr, ur)
+        Hxx, Huu, Hux = (h.reshape(h.shape[0], R, *h.shape[-2:]).movedim(0, 1) for h in blocks())
+        width = Hxx.shape[1]
+        Hz = xr.new_empty(R, width, k, k)
+        Hz[..., :n, :n], Hz[..., n:, n:] = Hxx, Huu
+        Hz[..., n:, :n], Hz[..., :n, n:] = Hux, Hux.mT
+        S += [Ja.reshape(R, width, n).contiguous().numpy(), Jb.reshape(R, width, m).contiguous()]
+        S[-1] = S[-1].numpy()
+        S.append(Hz.numpy())
+    A = torch.empty(R, n, n, dtype=x.dtype)
+    B = torch.empty(R, n, m, dtype=x.dtype)
+    H = torch.empty(R, n, k, k, dtype=x.dtype)
+    _launch(
+        got.hessians, R, 1, xr.numpy(), ur.numpy(), got.params, *S, *(t.numpy() for t in (A, B, H))
+    )
+    H = H.movedim(1, 0)  # (n, R, k, k)
+    blocks = (
+        H[..., :n, :n].reshape(n, *lead, n, n).contiguous(),
+        H[..., n:, n:].reshape(n, *lead, m, m).contiguous(),
+        H[..., n:, :n].reshape(n, *lead, m, n).contiguous(),
+    )
+    return A.view(*lead, n, n), B.view(*lead, n, m), blocks
+
+
+def _applicable(model: nn.Module, x: Tensor, u: Tensor) -> _Network | None:
+    """The model's generated functions (once per solve) where they apply to ``x``, ``u``
+    (:func:`network_jacobians`), else None."""
+    from .._backend import can_use_compiled, module_needs_grad
+
+    if (
+        not isinstance(model, Dynamics)
+        or model.has_analytic_jacobians
+        or not can_use_compiled(x, u)
+        or module_needs_grad(model)
+        or x.shape[-1] != getattr(model, "state_dim", None)
+        or u.shape[-1] != getattr(model, "control_dim", None)
+    ):
+        return None
+    return pinned(model, "network", lambda: _network(model))  # once per solve
 
 
 # model -> (structure key, _Network, the parameter array's sources): a solve of a model
@@ -760,14 +854,14 @@ def _build(model: nn.Module, n: int, m: int, dtype: torch.dtype):
     in_memory = bool(w.subs) and "_import_source" not in body
     params = _concatenated(w.params)
     try:
-        step, jacobians = _load(text, digest, w.subs, in_memory)
+        step, jacobians, hessians = _load(text, digest, w.subs, in_memory)
         if not _matches(model, step, params, n, m, dtype):
             return _STALE
     except Exception as e:  # noqa: BLE001 - a step numba cannot compile: the torch path
         _warn_once(type(model).__name__, e)
         return None
-    subs = tuple(w.jacobian_subs or ())
-    return _Network(step, params, jacobians, subs), list(w.sources)
+    subs, hessian_subs = tuple(w.jacobian_subs or ()), tuple(w.hessian_subs or ())
+    return _Network(step, params, jacobians, subs, hessians, hessian_subs), list(w.sources)
 
 
 _WARNED: set[str] = set()

@@ -164,13 +164,18 @@ class _Sweep:
                     f"{g}[{_at(j, k, 'i', 0)}] += gs{_name(j)}_0 * p[{wr + o * k} + i]", base + 1
                 )
 
+    def sub_index(self, target: str) -> int:
+        """The argument index of a Dynamics submodule's arrays (one per submodule)."""
+        if target not in self.subs:
+            self.subs.append(target)
+        return self.subs.index(target)
+
     def submodule(self, nd: fx.Node, src: str, inputs: tuple, args: tuple) -> None:
         """``G_a += G_y S_a[r]`` for the submodule's two inputs (the model's own ``x``,
         ``u``: their Jacobians are the arrays ``S{k}a``, ``S{k}b``)."""
         if tuple(args) != tuple(inputs):
             raise _Unsupported("a Dynamics submodule on other nodes than (x, u)")
-        idx = len(self.subs)
-        self.subs.append(nd.target)
+        idx = self.sub_index(nd.target)
         width = self.w.widths[nd]
         for a, name in zip(args, (f"S{idx}a", f"S{idx}b"), strict=True):
             g, _ = self.grad(a)
@@ -180,6 +185,228 @@ class _Sweep:
             self.emit(f"gs = {src}[j * {width} + o]", 2)
             self.emit(f"for i in range({k}):", 2)
             self.emit(f"{g}[j * {k} + i] += gs * {name}[r, o, i]", 3)
+
+
+class _Second(_Sweep):
+    """The sweep with every output's Hessian: the nodes' tangents ``T = d node / d z (k,
+    width)``, ``z = (x, u)``, pushed forward first, and each nonlinear node adding
+    ``T_in' (sum_j G_j d2 node) T_in`` to ``hz (n, k, k)`` in the backward sweep (as
+    :func:`~torchslq.dynamics.graph_hessians` does on torch ops)."""
+
+    def __init__(self, w, n: int, m: int, narrow: int, new_array) -> None:
+        super().__init__(w, n, narrow, new_array)
+        self.k = n + m
+        self.T: dict[fx.Node, str] = {}
+
+    def tangent(self, node: fx.Node) -> str:
+        """The tangent array of ``node`` (``(k, width)``, zeros when new)."""
+        if node not in self.T:
+            size = self.k * self.w.widths[node]
+            self.count += 1
+            name = self.T[node] = f"t{self.count}"
+            self.emit(f"{name} = {self.new_array(size)}")
+            self.emit(f"for q in range({size}):")
+            self.emit(f"{name}[q] = 0.0", 1)
+        return self.T[node]
+
+    def push(self, dst: fx.Node, a, width: int, scale=None, doff=0, soff=0) -> None:
+        """``T_dst[c, doff + i] += T_a[c, soff + i] * scale(i)`` for ``i < width`` (``scale``
+        None, a number or ``i -> expression``); nothing for a constant ``a``."""
+        if not _var(a):
+            return
+        t, ta = self.tangent(dst), self.T[a]
+        wd, wa, k = self.w.widths[dst], self.w.widths[a], self.k
+
+        def body(i):
+            lines = []
+            factor = ""
+            if callable(scale):
+                lines.append((f"s = {scale(i)}", 0))
+                factor = " * s"
+            elif scale is not None and scale != 1.0:
+                factor = f" * {float(scale)!r}"
+            return [
+                *lines,
+                (f"for c in range({k}):", 0),
+                (f"{t}[{_at('c', wd, i, doff)}] += {ta}[{_at('c', wa, i, soff)}]{factor}", 1),
+            ]
+
+        self.entries(width, body)
+
+    def forward_tangents(self, program, inputs: tuple, rules: dict, woffsets) -> None:
+        """Every node's tangent, in the program's order."""
+        n, k, w = self.n, self.k, self.w
+        for node, first in zip(inputs, (0, n), strict=True):
+            t = self.tangent(node)
+            for i in range(w.widths[node]):
+                self.emit(f"{t}[{(first + i) * w.widths[node] + i}] = 1.0")
+        needed = _tangents_needed(program, rules)
+        for nd in program.nodes:
+            if nd.op in ("placeholder", "output", "get_attr") or nd not in needed:
+                continue
+            rule, width = rules[nd], w.widths[nd]
+            kind = rule[0]
+            if kind == "linear":
+                _, a, target = rule
+                t, ta, ka, off = self.tangent(nd), self.T[a], w.widths[a], woffsets(target)
+                self.emit(f"for c in range({k}):")
+                blocked = ka - ka % 4  # four inputs a pass, as the step's layer
+                if blocked:
+                    self.emit(f"for i in range(0, {blocked}, 4):", 1)
+                    for q in range(4):
+                        self.emit(f"s{q} = {ta}[c * {ka} + i + {q}]", 2)
+                    terms = " + ".join(
+                        f"s{q} * p[{off + q * width} + i * {width} + o]" for q in range(4)
+                    )
+                    self.emit(f"for o in range({width}):", 2)
+                    self.emit(f"{t}[c * {width} + o] += {terms}", 3)
+                if blocked < ka:
+                    self.emit(f"for i in range({blocked}, {ka}):", 1)
+                    self.emit(f"s = {ta}[c * {ka} + i]", 2)
+                    self.emit(f"for o in range({width}):", 2)
+                    self.emit(f"{t}[c * {width} + o] += s * p[{off} + i * {width} + o]", 3)
+            elif kind == "activation":
+                _, a, (slope, _) = rule
+                self.push(
+                    nd,
+                    a,
+                    width,
+                    lambda i, a=a, nd=nd, slope=slope: slope.format(
+                        a=w.entry(a, i), h=w.entry(nd, i)
+                    ),
+                )
+            elif kind == "sum":
+                for a, sign in rule[1]:
+                    self.push(nd, a, width, sign)
+            elif kind == "product":
+                _, a, a_text, b, b_text = rule
+                self.push(nd, a, width, b_text)
+                self.push(nd, b, width, a_text)
+            elif kind == "quotient":
+                _, a, _, b, b_text = rule
+                self.push(nd, a, width, lambda i, b_text=b_text: f"(1.0 / {b_text(i)})")
+                self.push(
+                    nd, b, width,
+                    lambda i, nd=nd, b_text=b_text: f"(-{w.entry(nd, i)} / {b_text(i)})",
+                )  # fmt: skip
+            elif kind == "slice":
+                _, source, start = rule
+                self.push(nd, source, width, soff=start)
+            elif kind == "cat":
+                start = 0
+                for piece in rule[1]:
+                    self.push(nd, piece, w.widths[piece], doff=start)
+                    start += w.widths[piece]
+            elif kind == "submodule":  # on (x, u): its Jacobians' columns
+                idx = self.sub_index(nd.target)
+                t = self.tangent(nd)
+                self.emit(f"for o in range({width}):")
+                self.emit(f"for c in range({n}):", 1)
+                self.emit(f"{t}[c * {width} + o] = S{idx}a[r, o, c]", 2)
+                self.emit(f"for c in range({k - n}):", 1)
+                self.emit(f"{t}[(c + {n}) * {width} + o] = S{idx}b[r, o, c]", 2)
+
+    def curvature(self, nd: fx.Node, rule: tuple, src: tuple) -> None:
+        """Node ``nd``'s second-order term with its sensitivity ``src``."""
+        g, width = src
+        w, kind = self.w, rule[0]
+
+        def each(coef, a, b, symmetric):
+            # hz_j += sum_i C_ji T_a[:, i] T_b[:, i]' (+ its transpose), C = G diag(coef):
+            # the pairs c >= d of the symmetric sum, every output's sum a local over i
+            ta, tb, k, n = self.T[a], self.T[b], self.k, self.n
+            self.count += 1
+            C = f"cw{self.count}"
+            self.emit(f"{C} = {self.new_array(n * width)}")
+            self.entries(
+                width,
+                lambda i: (
+                    [(f"s = {coef(i)}", 0)]
+                    + self.outputs(
+                        lambda j: [(f"{C}[{_at(j, width, i)}] = {g}[{_at(j, width, i)}] * s", 0)]
+                    )
+                ),
+            )
+            pair = f"{ta}[c * {width} + i] * {tb}[d * {width} + i]"
+            if symmetric:
+                pair = f"({pair} + {tb}[c * {width} + i] * {ta}[d * {width} + i])"
+            rows = range(n) if n <= _UNROLL_OUTPUTS else ["j"]
+            base = 2 if n <= _UNROLL_OUTPUTS else 3
+            self.emit(f"for c in range({k}):")
+            self.emit("for d in range(c + 1):", 1)
+            if n > _UNROLL_OUTPUTS:
+                self.emit(f"for j in range({n}):", 2)
+            for j in rows:
+                self.emit(f"acc{j} = 0.0", base)
+            self.emit(f"for i in range({width}):", base)
+            self.emit(f"pcd = {pair}", base + 1)
+            for j in rows:
+                self.emit(f"acc{j} += {C}[{_at(j, width, 'i')}] * pcd", base + 1)
+            for j in rows:
+                self.emit(f"hz[({j} * {k} + c) * {k} + d] += acc{j}", base)
+                self.emit("if d != c:", base)
+                self.emit(f"hz[({j} * {k} + d) * {k} + c] += acc{j}", base + 1)
+
+        def h(i):
+            return w.entry(nd, i)
+
+        if kind == "activation":
+            _, a, (_, curve) = rule
+            if _var(a) and curve != "0.0":
+                each(lambda i: curve.format(a=w.entry(a, i), h=h(i)), a, a, False)
+        elif kind == "product":
+            _, a, _, b, _ = rule
+            if _var(a) and _var(b):
+                each(lambda i: "1.0", a, b, True)
+        elif kind == "quotient":
+            _, a, _, b, b_text = rule
+            if _var(b):  # d2/db2 = 2 h / b^2; d2/da db = -1 / b^2
+                each(lambda i: f"(2.0 * {h(i)} / ({b_text(i)} * {b_text(i)}))", b, b, False)
+                if _var(a):
+                    each(lambda i: f"(-1.0 / ({b_text(i)} * {b_text(i)}))", a, b, True)
+        elif kind == "submodule":
+            idx, k = self.sub_index(nd.target), self.k
+            self.emit(f"for j in range({self.n}):")
+            self.emit(f"for o in range({width}):", 1)
+            self.emit(f"gs = {g}[j * {width} + o]", 2)
+            self.emit(f"for c in range({k}):", 2)
+            self.emit(f"for d in range({k}):", 3)
+            self.emit(f"hz[(j * {k} + c) * {k} + d] += gs * S{idx}h[r, o, c, d]", 4)
+
+
+def _arguments(rule: tuple) -> list:
+    """The nodes and constants a rule reads."""
+    kind = rule[0]
+    if kind == "sum":
+        return [a for a, _ in rule[1]]
+    if kind in ("product", "quotient"):
+        return [rule[1], rule[3]]
+    if kind == "cat":
+        return list(rule[1])
+    return [rule[1]] if kind != "submodule" else [rule[1], rule[2]]
+
+
+def _tangents_needed(program, rules: dict) -> set:
+    """The nodes whose tangents a second-order term reads (a curved activation's input,
+    a product's or quotient's operands) and every node those depend on."""
+    seeds = []
+    for nd in program.nodes:
+        rule = rules.get(nd)
+        if rule is None:
+            continue
+        if rule[0] == "activation" and rule[2][1] != "0.0":
+            seeds.append(rule[1])
+        elif rule[0] in ("product", "quotient"):
+            seeds += [rule[1], rule[3]]
+    needed: set = set()
+    while seeds:
+        nd = seeds.pop()
+        if not _var(nd) or nd in needed:
+            continue
+        needed.add(nd)
+        if nd in rules:
+            seeds += _arguments(rules[nd])
+    return needed
 
 
 def _name(j) -> str:
@@ -195,13 +422,33 @@ def _at(j, width: int, i, offset=0) -> str:
     return f"{head} + {tail}"
 
 
-def write_jacobians(w, program, root, n: int, m: int, narrow: int, new_array, weight_rows):
+def write_jacobians(
+    w, program, root, n: int, m: int, narrow: int, new_array, weight_rows, weights=None
+):
     """The lines of the generated ``jacobians`` function's sweep (to follow the step's
     forward lines in the row loop) and the Dynamics submodules whose Jacobians it takes
     as arguments (targets, in order). ``w`` is the forward writer after the step's nodes;
-    ``weight_rows(target)`` the offset of a layer's weight rows in ``p``. Raises
-    :class:`_Unsupported` for what it does not write."""
-    sweep = _Sweep(w, n, narrow, new_array)
+    ``weight_rows(target)`` the offset of a layer's weight rows in ``p``. With
+    ``weights(target)`` (the offset of its transposed weight, the step's), the lines of
+    the ``hessians`` function instead: also every output's Hessian into ``H[r]`` (and
+    each submodule's Hessians taken as a third argument). Raises :class:`_Unsupported`
+    for what it does not write."""
+    second = weights is not None
+    sweep = _Second(w, n, m, narrow, new_array) if second else _Sweep(w, n, narrow, new_array)
+    if second:
+        for nd in program.nodes:
+            rule = w.rules.get(nd)
+            if (
+                rule is not None
+                and rule[0] == "submodule"
+                and tuple(rule[1:]) != tuple(program.inputs)
+            ):
+                raise _Unsupported("a Dynamics submodule on other nodes than (x, u)")
+        sweep.forward_tangents(program, tuple(program.inputs), w.rules, weights)
+        size = n * sweep.k * sweep.k
+        sweep.emit(f"hz = {new_array(size)}")
+        sweep.emit(f"for q in range({size}):")
+        sweep.emit("hz[q] = 0.0", 1)
     out = program.output
     g, _ = sweep.grad(out)
     for j in range(n):
@@ -213,13 +460,20 @@ def write_jacobians(w, program, root, n: int, m: int, narrow: int, new_array, we
         if rule is None:
             raise _Unsupported(f"no reverse rule for {nd.op} {nd.target}")
         width = w.widths[nd]
-        _apply(sweep, nd, rule, (sweep.G.pop(nd), width), tuple(program.inputs), weight_rows)
+        src = (sweep.G.pop(nd), width)
+        _apply(sweep, nd, rule, src, tuple(program.inputs), weight_rows)
+        if second:
+            sweep.curvature(nd, rule, src)
     xin, uin = program.inputs
     for node, name, k in ((xin, "A", n), (uin, "B", m)):
         g = sweep.G.get(node)
         sweep.emit(f"for j in range({n}):")
         sweep.emit(f"for i in range({k}):", 1)
         sweep.emit(f"{name}[r, j, i] = {'0.0' if g is None else f'{g}[j * {k} + i]'}", 2)
+    if second:
+        k = n + m
+        sweep.emit(f"for q in range({n * k * k}):")
+        sweep.emit(f"H[r, q // {k * k}, (q // {k}) % {k}, q % {k}] = hz[q]", 1)
     return sweep.lines, sweep.subs
 
 
@@ -231,7 +485,7 @@ def _apply(sweep: _Sweep, nd: fx.Node, rule: tuple, src: tuple, inputs: tuple, w
         _, a, target = rule
         sweep.linear(nd, a, src[0], weight_rows(target))
     elif kind == "activation":
-        _, a, slope = rule
+        _, a, (slope, _) = rule
         sweep.scaled_add(a, src, width, lambda i: slope.format(a=w.entry(a, i), h=w.entry(nd, i)))
     elif kind == "sum":
         for a, sign in rule[1]:
