@@ -27,6 +27,23 @@ def _generated_code_for_the_zoo(request, monkeypatch):
         monkeypatch.setattr(cls, "generate_compiled_code", True, raising=False)
 
 
+@pytest.fixture(autouse=True)
+def _generated_derivatives_where_tested(request, monkeypatch):
+    """A learned model's generated Jacobians and Hessians
+    (:mod:`torchslq.dynamics.network_reverse`, on by default) only where a test checks
+    them (``pytest.mark.network_derivatives``): each model's two functions compile in
+    5-20 s with a cold cache, and the learned models of the other modules' solves are
+    served by the traced-graph pass, which ``tests/test_graph_jacobian.py`` checks.
+    ``TORCHSLQ_TEST_CODEGEN=1`` runs every test with them."""
+    if request.node.get_closest_marker("network_derivatives") or os.environ.get(
+        "TORCHSLQ_TEST_CODEGEN"
+    ):
+        return
+    from torchslq.dynamics import network_codegen
+
+    monkeypatch.setattr(network_codegen, "MAX_DERIVATIVE_NODES", {"jacobians": -1, "hessians": -1})
+
+
 #: the sizes that keep LQ kernels compiled for their own (n, m) in the suite: the
 #: cart-pole's, the pendulum's and the unicycle's, which most solver tests use
 SPECIALISED_SIZES = ((4, 1), (2, 1), (3, 2))

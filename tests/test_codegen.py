@@ -652,6 +652,7 @@ def _without_generated_jacobians(monkeypatch) -> None:
     monkeypatch.setattr(network_codegen, "network_jacobians", lambda *args: None)
 
 
+@pytest.mark.network_derivatives
 @pytest.mark.parametrize("path", ["generated", "graph", "autograd"])
 def test_a_generated_step_inside_a_model_enters_its_jacobians_by_its_kernels(monkeypatch, path):
     """By the model's generated Jacobians or its traced graph (the step's Jacobians from

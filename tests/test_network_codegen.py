@@ -31,7 +31,8 @@ from torchslq.dynamics import _numba_net, codegen, network_codegen
 from torchslq.dynamics.rollout import rollout_closed_loop
 from torchslq.systems import CartPole
 
-pytestmark = pytest.mark.codegen  # (the suite's own models otherwise keep torch ops)
+# (the suite's own models otherwise keep torch ops and the traced-graph derivatives)
+pytestmark = [pytest.mark.codegen, pytest.mark.network_derivatives]
 
 F64 = torch.float64
 
