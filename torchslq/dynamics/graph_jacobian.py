@@ -426,13 +426,21 @@ def graph_hessians(
     except _Unsupported:
         return None
     lead = x.shape[:-1]
-    H = H.movedim(1, 0)  # (n, rows, k, k)
-    blocks = (
-        H[..., :n, :n].reshape(n, *lead, n, n).contiguous(),
-        H[..., n:, n:].reshape(n, *lead, m, m).contiguous(),
-        H[..., n:, :n].reshape(n, *lead, m, n).contiguous(),
+    return Jx.reshape(*lead, n, n), Ju.reshape(*lead, n, m), hessian_blocks(H, lead, n)
+
+
+def hessian_blocks(H: Tensor, lead, n: int) -> tuple[Tensor, Tensor, Tensor]:
+    """Every output's Hessians ``H (rows, n_out, k, k)`` (``k = n + m``) as
+    :func:`~torchslq.dynamics.dynamics_hessians`' blocks ``(Hxx (n_out, *lead, n, n),
+    Huu (n_out, *lead, m, m), Hux (n_out, *lead, m, n))``."""
+    n_out, k = H.shape[1], H.shape[-1]
+    m = k - n
+    H = H.movedim(1, 0)  # (n_out, rows, k, k)
+    return (
+        H[..., :n, :n].reshape(n_out, *lead, n, n).contiguous(),
+        H[..., n:, n:].reshape(n_out, *lead, m, m).contiguous(),
+        H[..., n:, :n].reshape(n_out, *lead, m, n).contiguous(),
     )
-    return Jx.reshape(*lead, n, n), Ju.reshape(*lead, n, m), blocks
 
 
 def _traced_as_called(model: nn.Module, root: nn.Module, out: Tensor, x: Tensor, u: Tensor) -> bool:

@@ -62,6 +62,7 @@ from .graph_jacobian import (
     _root,
     _Unsupported,
     _var,
+    hessian_blocks,
 )
 from .network_reverse import write_jacobians
 
@@ -787,13 +788,7 @@ def network_hessians(model: nn.Module, x: Tensor, u: Tensor):
     _launch(
         got.hessians, R, 1, xr.numpy(), ur.numpy(), got.params, *S, *(t.numpy() for t in (A, B, H))
     )
-    H = H.movedim(1, 0)  # (n, R, k, k)
-    blocks = (
-        H[..., :n, :n].reshape(n, *lead, n, n).contiguous(),
-        H[..., n:, n:].reshape(n, *lead, m, m).contiguous(),
-        H[..., n:, :n].reshape(n, *lead, m, n).contiguous(),
-    )
-    return A.view(*lead, n, n), B.view(*lead, n, m), blocks
+    return A.view(*lead, n, n), B.view(*lead, n, m), hessian_blocks(H, lead, n)
 
 
 def _applicable(model: nn.Module, x: Tensor, u: Tensor) -> _Network | None:

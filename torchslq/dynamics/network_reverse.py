@@ -98,13 +98,7 @@ class _Sweep:
         src, ws = src
 
         def body(i):
-            lines = []
-            factor = ""
-            if callable(scale):
-                lines.append((f"s = {scale(i)}", 0))
-                factor = " * s"
-            elif scale is not None and scale != 1.0:
-                factor = f" * {float(scale)!r}"
+            lines, factor = _factor(scale, i)
             return lines + self.outputs(
                 lambda j: [
                     (f"{g}[{_at(j, wd, i, doff)}] {op} {src}[{_at(j, ws, i, soff)}]{factor}", 0)
@@ -218,13 +212,7 @@ class _Second(_Sweep):
         wd, wa, k = self.w.widths[dst], self.w.widths[a], self.k
 
         def body(i):
-            lines = []
-            factor = ""
-            if callable(scale):
-                lines.append((f"s = {scale(i)}", 0))
-                factor = " * s"
-            elif scale is not None and scale != 1.0:
-                factor = f" * {float(scale)!r}"
+            lines, factor = _factor(scale, i)
             return [
                 *lines,
                 (f"for c in range({k}):", 0),
@@ -407,6 +395,16 @@ def _tangents_needed(program, rules: dict) -> set:
         if nd in rules:
             seeds += _arguments(rules[nd])
     return needed
+
+
+def _factor(scale, i) -> tuple[list, str]:
+    """The lines computing entry ``i``'s factor ``s`` and the text multiplying by it
+    (``scale`` None: 1; a number; or ``i -> expression``)."""
+    if callable(scale):
+        return [(f"s = {scale(i)}", 0)], " * s"
+    if scale is not None and scale != 1.0:
+        return [], f" * {float(scale)!r}"
+    return [], ""
 
 
 def _name(j) -> str:
