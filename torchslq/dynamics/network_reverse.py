@@ -253,38 +253,9 @@ class _Second(_Sweep):
                     self.emit(f"s = {ta}[c * {ka} + i]", 2)
                     self.emit(f"for o in range({width}):", 2)
                     self.emit(f"{t}[c * {width} + o] += s * p[{off} + i * {width} + o]", 3)
-            elif kind == "activation":
-                _, a, (slope, _) = rule
-                self.push(
-                    nd,
-                    a,
-                    width,
-                    lambda i, a=a, nd=nd, slope=slope: slope.format(
-                        a=w.entry(a, i), h=w.entry(nd, i)
-                    ),
-                )
-            elif kind == "sum":
-                for a, sign in rule[1]:
-                    self.push(nd, a, width, sign)
-            elif kind == "product":
-                _, a, a_text, b, b_text = rule
-                self.push(nd, a, width, b_text)
-                self.push(nd, b, width, a_text)
-            elif kind == "quotient":
-                _, a, _, b, b_text = rule
-                self.push(nd, a, width, lambda i, b_text=b_text: f"(1.0 / {b_text(i)})")
-                self.push(
-                    nd, b, width,
-                    lambda i, nd=nd, b_text=b_text: f"(-{w.entry(nd, i)} / {b_text(i)})",
-                )  # fmt: skip
-            elif kind == "slice":
-                _, source, start = rule
-                self.push(nd, source, width, soff=start)
-            elif kind == "cat":
-                start = 0
-                for piece in rule[1]:
-                    self.push(nd, piece, w.widths[piece], doff=start)
-                    start += w.widths[piece]
+            elif kind in _ELEMENTWISE:
+                for a, span, scale, a_off, off in _elementwise_terms(w, nd, rule):
+                    self.push(nd, a, span, scale, doff=off, soff=a_off)
             elif kind == "submodule":  # on (x, u): its Jacobians' columns
                 idx = self.sub_index(nd.target)
                 t = self.tangent(nd)
@@ -360,6 +331,40 @@ class _Second(_Sweep):
             self.emit(f"for c in range({k}):", 2)
             self.emit(f"for d in range({k}):", 3)
             self.emit(f"hz[(j * {k} + c) * {k} + d] += gs * S{idx}h[r, o, c, d]", 4)
+
+
+#: the rules whose derivatives are entrywise (:func:`_elementwise_terms`)
+_ELEMENTWISE = ("activation", "sum", "product", "quotient", "slice", "cat")
+
+
+def _elementwise_terms(w, nd: fx.Node, rule: tuple) -> list[tuple]:
+    """Node ``nd``'s derivatives by its entrywise ``rule``, one tuple ``(a, span, scale,
+    a_off, off)`` per argument: ``d nd[off + i] / d a[a_off + i] = scale(i)`` for ``i <
+    span`` (``scale`` None: 1; a number; or ``i -> expression``). The reverse sweep
+    carries sensitivities back by them, the forward tangents forward."""
+    kind, width = rule[0], w.widths[nd]
+    if kind == "activation":  # h = s(a): s'(a) from a and h
+        _, a, (slope, _) = rule
+        return [(a, width, lambda i: slope.format(a=w.entry(a, i), h=w.entry(nd, i)), 0, 0)]
+    if kind == "sum":
+        return [(a, width, sign, 0, 0) for a, sign in rule[1]]
+    if kind == "product":  # a b: b and a
+        _, a, a_text, b, b_text = rule
+        return [(a, width, b_text, 0, 0), (b, width, a_text, 0, 0)]
+    if kind == "quotient":  # h = a / b: 1 / b and -h / b
+        _, a, _, b, b_text = rule
+        return [
+            (a, width, lambda i: f"(1.0 / {b_text(i)})", 0, 0),
+            (b, width, lambda i: f"(-{w.entry(nd, i)} / {b_text(i)})", 0, 0),
+        ]
+    if kind == "slice":
+        _, source, start = rule
+        return [(source, width, None, start, 0)]
+    terms, start = [], 0  # cat
+    for piece in rule[1]:
+        terms.append((piece, w.widths[piece], None, 0, start))
+        start += w.widths[piece]
+    return terms
 
 
 def _arguments(rule: tuple) -> list:
@@ -482,29 +487,9 @@ def _apply(sweep: _Sweep, nd: fx.Node, rule: tuple, src: tuple, inputs: tuple, w
     if kind == "linear":
         _, a, target = rule
         sweep.linear(nd, a, src[0], weight_rows(target))
-    elif kind == "activation":
-        _, a, (slope, _) = rule
-        sweep.scaled_add(a, src, width, lambda i: slope.format(a=w.entry(a, i), h=w.entry(nd, i)))
-    elif kind == "sum":
-        for a, sign in rule[1]:
-            sweep.scaled_add(a, src, width, sign)
-    elif kind == "product":  # a b: G_a += G b, G_b += G a
-        _, a, a_text, b, b_text = rule
-        sweep.scaled_add(a, src, width, b_text)
-        sweep.scaled_add(b, src, width, a_text)
-    elif kind == "quotient":  # h = a / b: G_a += G / b, G_b -= G h / b
-        _, a, _, b, b_text = rule
-        sweep.scaled_add(a, src, width, lambda i: f"(1.0 / {b_text(i)})")
-        sweep.scaled_add(b, src, width, lambda i: f"(-{w.entry(nd, i)} / {b_text(i)})")
-    elif kind == "slice":
-        _, source, start = rule
-        sweep.scaled_add(source, src, width, doff=start)
-    elif kind == "cat":
-        start = 0
-        for piece in rule[1]:
-            k = w.widths[piece]
-            sweep.scaled_add(piece, src, k, soff=start)
-            start += k
+    elif kind in _ELEMENTWISE:
+        for a, span, scale, a_off, off in _elementwise_terms(w, nd, rule):
+            sweep.scaled_add(a, src, span, scale, doff=a_off, soff=off)
     elif kind == "submodule":
         _, a, b = rule
         sweep.submodule(nd, src[0], inputs, (a, b))
