@@ -483,7 +483,7 @@ def write_jacobians(
 def _apply(sweep: _Sweep, nd: fx.Node, rule: tuple, src: tuple, inputs: tuple, weight_rows):
     """Node ``nd``'s sensitivity ``src`` (its array and width) carried to its arguments
     by its ``rule`` (how the forward writer computed it)."""
-    w, width, kind = sweep.w, src[1], rule[0]
+    w, kind = sweep.w, rule[0]
     if kind == "linear":
         _, a, target = rule
         sweep.linear(nd, a, src[0], weight_rows(target))
