@@ -320,12 +320,26 @@ def versions() -> dict[str, str]:
     return package_versions("torch", "jax", "jaxlib", "numpy")
 
 
+def discrete_path(dyn, x0: torch.Tensor) -> str:
+    """What a discrete model (the learned one) runs on: its traced graph written as a
+    compiled step and, where they are written too, its Jacobians
+    (:mod:`torchslq.dynamics.network_codegen`), or torch ops."""
+    from torchslq.dynamics import network_codegen
+
+    if network_codegen.network_step(dyn) is None:
+        return "torch ops"
+    u = torch.zeros(x0.shape[0], dyn.control_dim, dtype=x0.dtype)
+    with torch.no_grad():
+        jacobians = network_codegen.network_jacobians(dyn, x0, u) is not None
+    return "compiled step and Jacobians" if jacobians else "compiled step"
+
+
 def row_of(model, B, solver, res, problem, x0) -> dict:
     J, gn = evaluate(problem, x0, res["u"])
     it = res["iters"]
     f = getattr(problem.dynamics, "continuous", None)
     # "compiled": code generated from the model's forward (the zoo's too)
-    path = "torch ops" if f is None else codegen.explain(f)
+    path = discrete_path(problem.dynamics, x0) if f is None else codegen.explain(f)
     best = min(res["times"])
     return {
         "model": model, "B": B, "solver": solver, "first_s": res["first"],
