@@ -18,8 +18,8 @@ install: $(STAMP)
 demo: $(STAMP)
 	$(VENV)/bin/torchslq demo
 
-# two workers (pytest-xdist) on 2 cores: about 4 minutes with numba's cache warm, 8 on a
-# fresh clone, half of that compiling the kernels (cached for later runs)
+# two workers (pytest-xdist) on 2 cores: about 6 minutes with numba's cache warm, 10 on a
+# fresh clone, two thirds of that compiling the kernels (cached for later runs)
 test: $(STAMP)
 	$(PY) -m pytest -n 2 tests
 
