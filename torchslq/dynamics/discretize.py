@@ -16,6 +16,7 @@ from .._shapes import broadcast_shapes
 from ._taylor import second_order_taylor
 from .base import ContinuousDynamics, Dynamics, identity_like
 from .compiled_rk4 import rk4_hooks, rk4_jacobians_compiled, rk4_vhp_compiled
+from .graph_jacobian import xu_hessian
 from .linearize import first_order_only, second_order_only
 
 __all__ = ["discretize", "DiscretizedDynamics"]
@@ -109,7 +110,7 @@ class DiscretizedDynamics(Dynamics):
         lead, _, _, value = point
         n, m = x.shape[-1], u.shape[-1]
         A, B, (Hxx, Huu, Hux) = both  # Hessians (n, *lead, ., .): output first
-        H = torch.cat([torch.cat([Hxx, Hux.mT], -1), torch.cat([Hux, Huu], -1)], -2)
+        H = xu_hessian(Hxx, Huu, Hux)
         dz = torch.cat([(x - x.detach()).expand(*lead, n), (u - u.detach()).expand(*lead, m)], -1)
         return value + second_order_taylor(dz, torch.cat([A, B], -1), H.movedim(0, -3))
 

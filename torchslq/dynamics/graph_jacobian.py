@@ -443,6 +443,13 @@ def hessian_blocks(H: Tensor, lead, n: int) -> tuple[Tensor, Tensor, Tensor]:
     )
 
 
+def xu_hessian(Hxx: Tensor, Huu: Tensor, Hux: Tensor) -> Tensor:
+    """The Hessian blocks (:func:`hessian_blocks`' layout: ``Hxx (..., n, n)``, ``Huu
+    (..., m, m)``, ``Hux (..., m, n)``) joined into the Hessian in ``z = (x, u)``, ``(...,
+    n + m, n + m)``."""
+    return torch.cat([torch.cat([Hxx, Hux.mT], -1), torch.cat([Hux, Huu], -1)], -2)
+
+
 def _traced_as_called(model: nn.Module, root: nn.Module, out: Tensor, x: Tensor, u: Tensor) -> bool:
     """Whether the traced program's output ``out (rows, n)`` equals the model's own
     ``forward`` at the first row (to rounding): a trace holds the Python numbers and
@@ -721,9 +728,7 @@ def _submodule_curvature(
     ``(r, n_out, k, k)`` (``H_l`` its outputs' Hessians in its inputs ``(a, b)``, ``T_in
     (r, k, n_a + n_b)`` their tangents; ``g (r, n_out, n_l)`` its sensitivities)."""
     Hxx, Huu, Hux = (blk[:, rows] for blk in blocks)  # (n_l, r, ., .)
-    top = torch.cat([Hxx, Hux.mT], -1)
-    bottom = torch.cat([Hux, Huu], -1)
-    Hl = torch.cat([top, bottom], -2).movedim(0, 1)  # (r, n_l, kl, kl)
+    Hl = xu_hessian(Hxx, Huu, Hux).movedim(0, 1)  # (r, n_l, kl, kl)
     r, n_l, kl = Hl.shape[0], Hl.shape[1], Hl.shape[-1]
     M = (g @ Hl.reshape(r, n_l, kl * kl)).view(r, -1, kl, kl)  # (r, n_out, kl, kl)
     a, b = nd.args

@@ -63,6 +63,7 @@ from .graph_jacobian import (
     _Unsupported,
     _var,
     hessian_blocks,
+    xu_hessian,
 )
 from .network_reverse import write_jacobians
 
@@ -774,14 +775,10 @@ def network_hessians(model: nn.Module, x: Tensor, u: Tensor):
     S = []
     for target in got.hessian_subs:  # the submodules' derivatives at the rows
         Ja, Jb, blocks = linearize_with_hessians(root.get_submodule(target), xr, ur)
-        Hxx, Huu, Hux = (h.reshape(h.shape[0], R, *h.shape[-2:]).movedim(0, 1) for h in blocks())
-        width = Hxx.shape[1]
-        Hz = xr.new_empty(R, width, k, k)
-        Hz[..., :n, :n], Hz[..., n:, n:] = Hxx, Huu
-        Hz[..., n:, :n], Hz[..., :n, n:] = Hux, Hux.mT
-        S += [Ja.reshape(R, width, n).contiguous().numpy(), Jb.reshape(R, width, m).contiguous()]
-        S[-1] = S[-1].numpy()
-        S.append(Hz.numpy())
+        Hz = xu_hessian(*(h.reshape(h.shape[0], R, *h.shape[-2:]) for h in blocks()))
+        width = Hz.shape[0]
+        pieces = (Ja.reshape(R, width, n), Jb.reshape(R, width, m), Hz.movedim(0, 1))
+        S += [t.contiguous().numpy() for t in pieces]
     A = torch.empty(R, n, n, dtype=x.dtype)
     B = torch.empty(R, n, m, dtype=x.dtype)
     H = torch.empty(R, n, k, k, dtype=x.dtype)
