@@ -110,10 +110,11 @@ def test_implicit_gradients_against_finite_differences():
 
 
 @pytest.mark.parametrize("bounds", [False, True])
-def test_reduced_newton_system_matches_the_known_solution_and_the_full_one(bounds):
+def test_reduced_newton_system_matches_the_known_solution_and_the_full_one(bounds, backend):
     """The null-space (variable reduction) interior point: the same solution and
     multipliers as the known ones and as the full-KKT method, with active general
-    inequalities and (``bounds``) an active simple bound."""
+    inequalities and (``bounds``) an active simple bound; its iterations per element in
+    the compiled loop and as batched torch ops."""
     qp = known_qp(B=4, n=9, me=5, mi=4, n_act=2, seed=11, bounds=bounds)
     H, f, A, b, G, h, z_star, lam_star, mu_star = qp[:9]
     lbub = qp[9:] if bounds else []
@@ -138,7 +139,7 @@ def test_reduced_newton_system_gradients_against_finite_differences():
     assert torch.autograd.gradcheck(fn, ins, eps=1e-6, atol=1e-6, rtol=1e-4)
 
 
-def test_reduced_newton_system_on_a_transcription_with_active_bounds():
+def test_reduced_newton_system_on_a_transcription_with_active_bounds(backend):
     """A TR transcription (defects and boundary rows leave 10 degrees of freedom of 36)
     with active control and state bounds: the reduced and full methods reach the sparse
     solver's optimum, and ``auto`` picks the reduced one there."""
@@ -266,8 +267,11 @@ def test_convex_qp_with_an_inactive_bound_is_its_equality_part():
 
 def test_stalled_elements_finish_with_the_full_newton_system(monkeypatch):
     """An element that the reduced system hands over (here: element 1, forced) is solved
-    again by the full one; the batch then equals the full method's solution."""
+    again by the full one; the batch then equals the full method's solution. (The torch
+    loop's stall test is the one patched here: the compiled loop has its own copy.)"""
     from torchslq.lqdo import kkt
+
+    monkeypatch.setattr("torchslq._backend.dispatch._enabled", False)  # the torch loop
 
     H, f, A, b, G, h, z_star, lam_star, mu_star, lb, ub = known_qp(
         B=3, n=9, me=5, mi=4, n_act=2, seed=5, bounds=True
@@ -288,7 +292,7 @@ def test_stalled_elements_finish_with_the_full_newton_system(monkeypatch):
     torch.testing.assert_close(mu, mu_star, rtol=1e-7, atol=1e-7)
 
 
-def test_batched_crane_qlin_on_the_reduced_system_equals_per_problem_clarabel():
+def test_batched_crane_qlin_on_the_reduced_system_equals_per_problem_clarabel(backend):
     """Quasilinearization on a batch of container-crane PS10 problems (other initial
     states) with the dense backend (the reduced Newton system: n = 80, me = 72) reaches
     the objective of each problem solved alone with Clarabel."""
@@ -309,3 +313,47 @@ def test_batched_crane_qlin_on_the_reduced_system_equals_per_problem_clarabel():
         tri = transcribe(crane, "PS", nodes=10)
         ri = Quasilinearization(backend="clarabel").solve(tri, cases.crane_initial_guess(tri))
         assert float(res.objective[i]) == pytest.approx(float(ri.objective[0]), rel=1e-6)
+
+
+def test_compiled_reduced_iterations_hand_a_nonconvex_element_to_the_full_system():
+    """The compiled loop factors the augmented reduced system without pivoting, which
+    needs ``Z'HZ`` positive definite. An element that is not convex on the constraints'
+    null space (element 1: a negative curvature along a bounded direction) stops there
+    and is finished by the full Newton system: the result is a KKT point of each QP
+    (checked from the definitions), the convex elements' the known solution."""
+    from torchslq.lq import compiled_available
+    from torchslq.lqdo import kkt
+    from torchslq._backend.dispatch import reduced_ip_compiled
+
+    if not compiled_available():
+        pytest.skip("numba kernels not available")
+    H, f, A, b, G, h, z_star, lam_star, mu_star, lb, ub = known_qp(
+        B=3, n=6, me=2, mi=3, n_act=1, seed=9, bounds=True
+    )
+    H = H.clone()
+    H[1] = torch.diag(torch.tensor([-1.0, 1.0, 1.0, 1.0, 1.0, 1.0]))
+    ineq = kkt.Inequalities(G, lb, ub)
+    hall = ineq.h_all(h)
+    nk = kkt.newton_system(H, f, A, b, ineq, "reduced")
+    z = nk.start().contiguous().clone()
+    s = (hall - ineq.mv(z)).clamp_min(1.0)
+    mu = torch.ones_like(s)
+    one = torch.ones(3, dtype=H.dtype)
+    done, handoff, _ = reduced_ip_compiled(nk, ineq, f, hall, one, one, 1e-10, 60, z, s, mu)
+    assert handoff.tolist() == [False, True, False] and bool(done.all())
+
+    z, lam, mu, st = qp_solve(H, f, A, b, G, h, lb, ub, kkt="reduced")
+    assert (st == 0).all()
+    for i in (0, 2):
+        torch.testing.assert_close(z[i], z_star[i], rtol=1e-8, atol=1e-8)
+    # element 1: stationarity with the bounds' multipliers, feasibility, complementarity
+    zi, li, mi_ = z[1], lam[1], mu[1]
+    g = H[1] @ zi + f[1] + A[1].T @ li + G[1].T @ mi_
+    at_lb, at_ub = zi <= lb[1] + 1e-7, zi >= ub[1] - 1e-7
+    free = ~(at_lb | at_ub)
+    torch.testing.assert_close(g[free], torch.zeros_like(g[free]), rtol=0, atol=1e-7)
+    assert bool((g[at_lb] >= -1e-7).all()) and bool((g[at_ub] <= 1e-7).all())
+    torch.testing.assert_close(A[1] @ zi, b[1], rtol=0, atol=1e-9)
+    assert bool((G[1] @ zi <= h[1] + 1e-9).all()) and bool((mi_ >= -1e-12).all())
+    torch.testing.assert_close(mi_ * (h[1] - G[1] @ zi), torch.zeros_like(mi_), rtol=0, atol=1e-7)
+    assert bool(((zi >= lb[1] - 1e-9) & (zi <= ub[1] + 1e-9)).all())

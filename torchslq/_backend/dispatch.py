@@ -941,3 +941,40 @@ def lq_gain_gradients(
             if need:
                 g[~ok] = 0.0
     return tuple(torch.from_numpy(g) if need else None for g, need in zip(out, needs, strict=True))
+
+
+def reduced_ip_compiled(
+    kkt, ineq, f: Tensor, h: Tensor, scale_d: Tensor, scale_i: Tensor, tol: float,
+    max_iter: int, z: Tensor, s: Tensor, mu: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
+    """The interior point's iterations on the reduced Newton system, per element in one
+    compiled loop (:func:`._numba_qp.reduced_ip_kernel`), for
+    :func:`torchslq.lqdo.backends.qp_solve`'s float64 CPU path.
+
+    ``kkt``: a :class:`torchslq.lqdo.kkt.ReducedKKT` (its ``Hz`` is advanced with the
+    iterates), ``ineq`` its :class:`~torchslq.lqdo.kkt.Inequalities`; ``z (B, n)``,
+    ``s``, ``mu (B, mi)``: the start, advanced in place (contiguous float64). Returns
+    ``(done, handoff, iters)``, ``(B,)`` each: as the torch loop's flags, and the
+    iteration at which each element stopped."""
+    from . import _numba_qp
+
+    B = f.shape[0]
+    done = torch.empty(B, dtype=torch.bool)
+    handoff = torch.empty(B, dtype=torch.bool)
+    iters = torch.empty(B, dtype=torch.int64)
+    kkt.Hz = kkt.Hz.contiguous().clone()
+
+    def c(t: Tensor) -> np.ndarray:
+        return _np(t.contiguous())
+
+    def i64(t: Tensor) -> np.ndarray:
+        return _np(t.to(torch.int64).contiguous())
+
+    _launch(
+        _numba_qp.reduced_ip_kernel, B, 64, c(kkt.Z), c(kkt.HZ), c(kkt.ZHZ), c(kkt.C),
+        c(ineq.G), c(f), c(h), c(ineq.eu), c(ineq.el), i64(ineq.uidx), i64(ineq.lidx),
+        i64(ineq.upos), i64(ineq.lpos), i64(ineq.bidx), c(scale_d), c(scale_i), float(tol),
+        int(max_iter), _np(z), _np(kkt.Hz), _np(s), _np(mu), _np(done), _np(handoff),
+        _np(iters),
+    )  # fmt: skip
+    return done, handoff, iters

@@ -28,8 +28,10 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from .._backend import can_use_compiled
+from .._backend.dispatch import reduced_ip_compiled
 from ..status import Status
-from .kkt import KKT_METHODS, Inequalities, newton_system
+from .kkt import KKT_METHODS, Inequalities, ReducedKKT, newton_system
 from .qp import DenseQP, SparseQP, TensorKeyedCache, few_inequalities
 
 __all__ = ["QPSolution", "qp_solve", "solve", "solve_dense", "solve_sparse", "SPARSE_SOLVERS"]
@@ -374,28 +376,14 @@ def _clarabel(qp: SparseQP, tol: float, max_iter: int | None, fresh: bool = Fals
     return x, y[: B * me], y[B * me : B * (me + mi)], ok, int(res.iterations)
 
 
-def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None):
-    """Batched Mehrotra predictor-corrector on the Newton system ``method`` of
-    :func:`kkt.newton_system`, from ``start = (z, lam, s, mu)`` if given; elements that
-    the reduced system cannot finish (see :meth:`kkt.ReducedKKT.stalled`) continue from
-    where they are with the full one. Returns z, lam, mu, s, status, iterations (of both
-    runs)."""
-    B, n = f.shape
-    me, mi = A.shape[1], ineq.m
+def _iterate(kkt, ineq, f, b, h, tol, max_iter, start, scales):
+    """The interior point's iterations as batched torch ops on ``kkt`` from
+    ``start = (z, lam, s, mu)``; ``scales``: the residuals' ``(scale_d, scale_e,
+    scale_i)``. Returns z, lam, s, mu, done, handoff (to the full system), iterations."""
+    z, lam, s, mu = start
+    scale_d, scale_e, scale_i = scales
+    B, me, mi = f.shape[0], b.shape[1], ineq.m
     dt, dev = f.dtype, f.device
-    kkt = newton_system(H, f, A, b, ineq, method)
-    if start is not None:
-        z, lam, s, mu = start
-    else:
-        z = kkt.start()
-        lam = f.new_zeros(B, me)
-        s = f.new_ones(B, mi)
-        mu = f.new_ones(B, mi)
-        if mi:
-            s = (h - ineq.mv(z)).clamp_min(1.0)
-    scale_d = 1 + f.abs().amax(-1)
-    scale_e = 1 + b.abs().amax(-1) if me else f.new_ones(B)
-    scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
     done = torch.zeros(B, dtype=torch.bool, device=dev)
     handoff = torch.zeros(B, dtype=torch.bool, device=dev)  # to finish with FullKKT
     it = 0
@@ -445,8 +433,53 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None):
         if mi:
             s = s + a * ds
             mu = mu + a * dm
+    return z, lam, s, mu, done, handoff, it
+
+
+def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None):
+    """Batched Mehrotra predictor-corrector on the Newton system ``method`` of
+    :func:`kkt.newton_system`, from ``start = (z, lam, s, mu)`` if given; elements that
+    the reduced system cannot finish (see :meth:`kkt.ReducedKKT.stalled`) continue from
+    where they are with the full one. Returns z, lam, mu, s, status, iterations (of both
+    runs).
+
+    On the CPU in float64 the reduced system's iterations run per element in one
+    compiled loop (:func:`torchslq._backend.dispatch.reduced_ip_compiled`, the same
+    steps; switched off with :func:`torchslq.lq.set_compiled`), else as batched torch
+    ops (:func:`_iterate`)."""
+    B, n = f.shape
+    me, mi = A.shape[1], ineq.m
+    kkt = newton_system(H, f, A, b, ineq, method)
+    if start is not None:
+        z, lam, s, mu = start
+    else:
+        z = kkt.start()
+        lam = f.new_zeros(B, me)
+        s = f.new_ones(B, mi)
+        mu = f.new_ones(B, mi)
+        if mi:
+            s = (h - ineq.mv(z)).clamp_min(1.0)
+    scale_d = 1 + f.abs().amax(-1)
+    scale_e = 1 + b.abs().amax(-1) if me else f.new_ones(B)
+    scale_i = 1 + h.abs().amax(-1) if mi else f.new_ones(B)
+    if (
+        start is None
+        and isinstance(kkt, ReducedKKT)
+        and f.dtype == torch.float64
+        and B
+        and can_use_compiled(f, H, A, h)
+    ):
+        z, s, mu = z.contiguous().clone(), s.contiguous().clone(), mu.contiguous().clone()
+        done, handoff, iters = reduced_ip_compiled(
+            kkt, ineq, f, h, scale_d, scale_i, tol, max_iter, z, s, mu
+        )
+        it = int(iters.max())
+    else:
+        z, lam, s, mu, done, handoff, it = _iterate(
+            kkt, ineq, f, b, h, tol, max_iter, (z, lam, s, mu), (scale_d, scale_e, scale_i)
+        )
     lam = kkt.multipliers(z, lam, ineq.tmv(mu) if mi else None)
-    status = torch.full((B,), int(Status.MAX_ITER), dtype=torch.int64, device=dev)
+    status = torch.full((B,), int(Status.MAX_ITER), dtype=torch.int64, device=f.device)
     status = status.masked_fill(done, int(Status.CONVERGED))
     finite = torch.isfinite(z).all(-1)
     status = status.masked_fill(~finite, int(Status.NON_FINITE))

@@ -1,0 +1,283 @@
+"""numba kernel of the batched interior point's iterations on the reduced Newton system
+(imported on first use).
+
+:func:`torchslq.lqdo.backends.qp_solve` runs Mehrotra's predictor-corrector method on a
+batch of dense QPs. With the null-space method (:class:`torchslq.lqdo.kkt.ReducedKKT`)
+an iteration of an element is small work (for the container crane PS10: 8 degrees of
+freedom, 40 bounds, an augmented system of 12 to 40 rows), and on torch ops it is some
+sixty batched ops and two LAPACK calls padded to the largest element's system, about
+35 microseconds per element and iteration at ``B = 256``. Here each element runs its
+own loop: the same residuals, convergence and stall tests, weights, augmented system
+(rows with a weight above 1 kept out of ``Z'KZ``, see ``ReducedKKT``), predictor and
+corrector steps as the torch loop, in the same order; the one difference is the
+factorisation of the augmented system, ``LDL'`` without pivoting instead of
+Bunch-Kaufman. That system is quasi-definite (``Z'KZ`` positive definite, the
+augmented block ``-1/w`` negative definite), so the unpivoted factorisation exists and
+its pivots' signs are known; an element whose pivots break that (a QP not convex on the
+constraints' null space) stops and is handed over, like a stalled one, to the full
+Newton system on torch ops, which continues from its iterate.
+
+The per-QP set-up (the LU of ``A'``, ``Z``, ``Z'HZ``, ``HZ``, ``C``) stays in
+``ReducedKKT``: it is batched LAPACK work, efficient on torch.
+"""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+_REG = 1e-13  # as torchslq.lqdo.kkt._REG
+
+
+@numba.njit(nogil=True, cache=True)
+def _max_step(v, dv, m):
+    """Largest step in (0, 1] keeping ``v + a dv >= 0``."""
+    a = 1.0
+    for i in range(m):
+        if dv[i] < 0.0:
+            t = -v[i] / dv[i]
+            if t < a:
+                a = t
+    return a
+
+
+@numba.njit(nogil=True, cache=True)
+def reduced_ip_kernel(
+    b0, b1, Z, HZ, ZHZ, C, G, f, h, eu, el, uidx, lidx, upos, lpos, bidx,
+    scale_d, scale_i, tol, max_iter, z, Hz, s, mu, done, handoff, iters,
+):  # fmt: skip
+    """Mehrotra iterations of the elements ``b0 <= b < b1`` on their reduced systems.
+
+    Args:
+        Z ``(B, n, r)``, HZ ``(B, n, r)``, ZHZ ``(B, r, r)``: the null-space basis and
+            its products with ``H``; C ``(B, mc, r)``: ``[G Z; Z[bidx]]``;
+            G ``(B, mg, n)``, f ``(B, n)``, h ``(B, mi)``: the inequality rows'
+            right-hand side ``[h; ub_u; -lb_l]``; eu ``(B, nu)``, el ``(B, nl)``: 1
+            where an element's bound is finite; uidx, lidx: the bounded variables;
+            upos, lpos: their places in bidx (``ReducedKKT``'s fields);
+            scale_d, scale_i ``(B,)``: the residuals' scales; tol, max_iter.
+        z, Hz ``(B, n)``: the start on entry (``z0`` and ``H z0``), the last iterate
+            and its carried product on return; s, mu ``(B, mi)`` likewise.
+        done, handoff ``(B,)`` bool, iters ``(B,)`` int64: outputs, as the torch
+            loop's flags (``handoff``: stalled or not quasi-definite, to finish on the
+            full system) and the iteration at which the element stopped (``max_iter``
+            where it did not).
+    """
+    n, r = Z.shape[1], Z.shape[2]
+    mg, mi, mc = G.shape[1], h.shape[1], C.shape[1]
+    nu, nl = uidx.shape[0], lidx.shape[0]
+    eps = np.finfo(np.float64).eps
+    tiny = np.finfo(np.float64).tiny
+    g = np.empty(n)
+    gr = np.empty(r)
+    ri = np.empty(mi)
+    w = np.empty(mc)
+    sel = np.empty(mc, dtype=np.int64)
+    N = r + mc
+    K = np.empty((N, N))
+    d = np.empty(N)
+    vc = np.empty(mc)
+    rhs = np.empty(N)
+    dz = np.empty(n)
+    Hdz = np.empty(n)
+    Gdz = np.empty(mg)
+    ds = np.empty(mi)
+    dm = np.empty(mi)
+    rc = np.empty(mi)
+    for b in range(b0, b1):
+        done[b] = False
+        handoff[b] = False
+        iters[b] = max_iter
+        zb, Hzb, sb, mub = z[b], Hz[b], s[b], mu[b]
+        Zb, HZb, Cb = Z[b], HZ[b], C[b]
+        for it in range(1, max_iter + 1):
+            # residuals: g = Hz + f + G_all' mu, its reduced part Z'g; ri = G_all z + s - h
+            for j in range(n):
+                g[j] = Hzb[j] + f[b, j]
+            for i in range(mg):
+                for j in range(n):
+                    g[j] += G[b, i, j] * mub[i]
+            for u in range(nu):
+                g[uidx[u]] += eu[b, u] * mub[mg + u]
+            for q in range(nl):
+                g[lidx[q]] -= el[b, q] * mub[mg + nu + q]
+            rdmax = 0.0
+            finite = True
+            for k in range(r):
+                acc = 0.0
+                for j in range(n):
+                    acc += Zb[j, k] * g[j]
+                gr[k] = acc
+                if not np.isfinite(acc):
+                    finite = False
+                elif abs(acc) > rdmax:
+                    rdmax = abs(acc)
+            for i in range(mg):
+                acc = 0.0
+                for j in range(n):
+                    acc += G[b, i, j] * zb[j]
+                ri[i] = acc
+            for u in range(nu):
+                ri[mg + u] = eu[b, u] * zb[uidx[u]]
+            for q in range(nl):
+                ri[mg + nu + q] = -el[b, q] * zb[lidx[q]]
+            rimax = 0.0
+            gap = 0.0
+            for i in range(mi):
+                ri[i] += sb[i] - h[b, i]
+                rimax = max(rimax, abs(ri[i]))
+                gap += sb[i] * mub[i]
+            if mi:
+                gap /= mi
+            conv = rdmax <= tol * scale_d[b] and gap <= tol and rimax <= tol * scale_i[b]
+            if conv or not finite:
+                done[b] = True
+                iters[b] = it
+                break
+            stalled = False
+            for i in range(mi):
+                if sb[i] < 10.0 * eps * (1.0 + abs(h[b, i])):
+                    stalled = True
+            if stalled:
+                done[b] = handoff[b] = True
+                iters[b] = it
+                break
+            # the weights of the rows of C (a variable's two bounds summed)
+            for i in range(mg):
+                w[i] = mub[i] / sb[i]
+            for i in range(mg, mc):
+                w[i] = 0.0
+            for u in range(nu):
+                w[mg + upos[u]] += eu[b, u] * (mub[mg + u] / sb[mg + u])
+            for q in range(nl):
+                w[mg + lpos[q]] += el[b, q] * (mub[mg + nu + q] / sb[mg + nu + q])
+            # K = [[Z'HZ + C_s' W_s C_s + reg I, C_l'], [C_l, -1/w_l]], in its lower triangle
+            k = 0
+            for i in range(mc):
+                if w[i] > 1.0:
+                    sel[k] = i
+                    k += 1
+            m = r + k
+            for a in range(r):
+                for c in range(a + 1):
+                    K[a, c] = ZHZ[b, a, c]
+            for i in range(mc):
+                wi = w[i]
+                if wi > 1.0 or wi == 0.0:
+                    continue
+                for a in range(r):
+                    ca = wi * Cb[i, a]
+                    for c in range(a + 1):
+                        K[a, c] += ca * Cb[i, c]
+            for a in range(r):
+                K[a, a] += _REG
+            for p in range(k):
+                for c in range(r):
+                    K[r + p, c] = Cb[sel[p], c]
+                for c in range(r, r + p):
+                    K[r + p, c] = 0.0
+                K[r + p, r + p] = -1.0 / w[sel[p]]
+            # LDL' without pivoting (quasi-definite: d > 0 on the first r, < 0 after)
+            ok = True
+            for j in range(m):
+                dj = K[j, j]
+                for p in range(j):
+                    dj -= K[j, p] * K[j, p] * d[p]
+                if not ((j < r and dj > 0.0) or (j >= r and dj < 0.0)) or not np.isfinite(dj):
+                    ok = False
+                    break
+                d[j] = dj
+                for i in range(j + 1, m):
+                    acc = K[i, j]
+                    for p in range(j):
+                        acc -= K[i, p] * K[j, p] * d[p]
+                    K[i, j] = acc / dj
+            if not ok:
+                done[b] = handoff[b] = True
+                iters[b] = it
+                break
+            alpha = 1.0
+            for phase in range(2 if mi else 1):
+                # the complementarity target: the affine step's, then Mehrotra's
+                if phase == 0:
+                    for i in range(mi):
+                        rc[i] = -sb[i] * mub[i]
+                else:
+                    a_aff = min(_max_step(sb, ds, mi), _max_step(mub, dm, mi))
+                    gap_aff = 0.0
+                    for i in range(mi):
+                        gap_aff += (sb[i] + a_aff * ds[i]) * (mub[i] + a_aff * dm[i])
+                    gap_aff /= mi
+                    sigma = min(max(gap_aff / max(gap, tiny), 0.0), 1.0) ** 3
+                    for i in range(mi):
+                        rc[i] = -sb[i] * mub[i] - ds[i] * dm[i] + sigma * gap
+                # the right-hand side -(Z'g + C' v), v = (rc + mu ri) / s on C's rows
+                for i in range(mg):
+                    vc[i] = (rc[i] + mub[i] * ri[i]) / sb[i]
+                for i in range(mg, mc):
+                    vc[i] = 0.0
+                for u in range(nu):
+                    vc[mg + upos[u]] += (
+                        eu[b, u] * (rc[mg + u] + mub[mg + u] * ri[mg + u]) / sb[mg + u]
+                    )
+                for q in range(nl):
+                    t = nu + mg + q
+                    vc[mg + lpos[q]] -= el[b, q] * (rc[t] + mub[t] * ri[t]) / sb[t]
+                for a in range(r):
+                    acc = gr[a]
+                    for i in range(mc):
+                        acc += Cb[i, a] * vc[i]
+                    rhs[a] = -acc
+                for p in range(k):
+                    rhs[r + p] = 0.0
+                # solve L D L' x = rhs
+                for i in range(m):
+                    acc = rhs[i]
+                    for p in range(i):
+                        acc -= K[i, p] * rhs[p]
+                    rhs[i] = acc
+                for i in range(m):
+                    rhs[i] /= d[i]
+                for i in range(m - 1, -1, -1):
+                    acc = rhs[i]
+                    for p in range(i + 1, m):
+                        acc -= K[p, i] * rhs[p]
+                    rhs[i] = acc
+                # dz = Z dw, H dz = (HZ) dw, G dz = (GZ) dw; a large row's step from v / w
+                for j in range(n):
+                    a1 = 0.0
+                    a2 = 0.0
+                    for a in range(r):
+                        a1 += Zb[j, a] * rhs[a]
+                        a2 += HZb[j, a] * rhs[a]
+                    dz[j] = a1
+                    Hdz[j] = a2
+                for i in range(mg):
+                    acc = 0.0
+                    for a in range(r):
+                        acc += Cb[i, a] * rhs[a]
+                    Gdz[i] = acc
+                for p in range(k):
+                    i = sel[p]
+                    cl = rhs[r + p] / w[i]
+                    if i < mg:
+                        Gdz[i] = cl
+                    else:
+                        dz[bidx[i - mg]] = cl
+                for i in range(mg):
+                    ds[i] = -ri[i] - Gdz[i]
+                for u in range(nu):
+                    ds[mg + u] = -ri[mg + u] - eu[b, u] * dz[uidx[u]]
+                for q in range(nl):
+                    t = mg + nu + q
+                    ds[t] = -ri[t] + el[b, q] * dz[lidx[q]]
+                for i in range(mi):
+                    dm[i] = (rc[i] - mub[i] * ds[i]) / sb[i]
+            if mi:
+                alpha = min(0.99 * min(_max_step(sb, ds, mi), _max_step(mub, dm, mi)), 1.0)
+            for j in range(n):
+                zb[j] += alpha * dz[j]
+                Hzb[j] += alpha * Hdz[j]
+            for i in range(mi):
+                sb[i] += alpha * ds[i]
+                mub[i] += alpha * dm[i]
