@@ -321,9 +321,9 @@ def test_compiled_reduced_iterations_hand_a_nonconvex_element_to_the_full_system
     null space (element 1: a negative curvature along a bounded direction) stops there
     and is finished by the full Newton system: the result is a KKT point of each QP
     (checked from the definitions), the convex elements' the known solution."""
+    from torchslq._backend.dispatch import reduced_ip_compiled
     from torchslq.lq import compiled_available
     from torchslq.lqdo import kkt
-    from torchslq._backend.dispatch import reduced_ip_compiled
 
     if not compiled_available():
         pytest.skip("numba kernels not available")
