@@ -128,9 +128,11 @@ def main(argv: list[str] | None = None) -> int:
     lines += [
         "## Batched against one-by-one",
         "",
-        "Per-problem wall time of one batched call (dense torch interior point) and of solving "
-        "the same problems one at a time (first problems of the batch), same run. The crane's "
-        "batch runs on the reduced Newton system (`kkt='auto'`); "
+        "Per-problem wall time of one batched call (the dense interior point) and of solving "
+        "the same problems one at a time (first problems of the batch), same run; best of 3 "
+        "batched calls and of 2 passes over the single problems, each after a warm-up. The "
+        "crane's batch runs on the reduced Newton system (`kkt='auto'`; on the CPU in float64 "
+        "its iterations are one compiled loop per element); "
         "`per_problem_batched_full_kkt_ms` is the same batch on the full KKT matrix "
         "(`qp_options={'kkt': 'full'}`, one run) and `full_kkt_equal` whether its objectives "
         "agree to 1e-6.",

@@ -65,7 +65,7 @@ def reduced_ip_kernel(
     """
     n, r = Z.shape[1], Z.shape[2]
     mg, mi, mc = G.shape[1], h.shape[1], C.shape[1]
-    nu, nl = uidx.shape[0], lidx.shape[0]
+    nu, nl, nb = uidx.shape[0], lidx.shape[0], bidx.shape[0]
     eps = np.finfo(np.float64).eps
     tiny = np.finfo(np.float64).tiny
     g = np.empty(n)
@@ -76,6 +76,7 @@ def reduced_ip_kernel(
     N = r + mc
     K = np.empty((N, N))
     d = np.empty(N)
+    ld = np.empty(N)
     vc = np.empty(mc)
     rhs = np.empty(N)
     dz = np.empty(n)
@@ -182,7 +183,8 @@ def reduced_ip_kernel(
             for j in range(m):
                 dj = K[j, j]
                 for p in range(j):
-                    dj -= K[j, p] * K[j, p] * d[p]
+                    ld[p] = K[j, p] * d[p]
+                    dj -= K[j, p] * ld[p]
                 if not ((j < r and dj > 0.0) or (j >= r and dj < 0.0)) or not np.isfinite(dj):
                     ok = False
                     break
@@ -190,7 +192,7 @@ def reduced_ip_kernel(
                 for i in range(j + 1, m):
                     acc = K[i, j]
                     for p in range(j):
-                        acc -= K[i, p] * K[j, p] * d[p]
+                        acc -= K[i, p] * ld[p]
                     K[i, j] = acc / dj
             if not ok:
                 done[b] = handoff[b] = True
@@ -243,15 +245,23 @@ def reduced_ip_kernel(
                     for p in range(i + 1, m):
                         acc -= K[p, i] * rhs[p]
                     rhs[i] = acc
-                # dz = Z dw, H dz = (HZ) dw, G dz = (GZ) dw; a large row's step from v / w
-                for j in range(n):
-                    a1 = 0.0
-                    a2 = 0.0
-                    for a in range(r):
-                        a1 += Zb[j, a] * rhs[a]
-                        a2 += HZb[j, a] * rhs[a]
-                    dz[j] = a1
-                    Hdz[j] = a2
+                # dz = Z dw, H dz = (HZ) dw, G dz = (GZ) dw; a large row's step from v / w.
+                # The predictor's step is needed on the inequalities' rows only.
+                if phase == 0 and mi:
+                    for jb in range(nb):
+                        acc = 0.0
+                        for a in range(r):
+                            acc += Cb[mg + jb, a] * rhs[a]
+                        dz[bidx[jb]] = acc
+                else:
+                    for j in range(n):
+                        a1 = 0.0
+                        a2 = 0.0
+                        for a in range(r):
+                            a1 += Zb[j, a] * rhs[a]
+                            a2 += HZb[j, a] * rhs[a]
+                        dz[j] = a1
+                        Hdz[j] = a2
                 for i in range(mg):
                     acc = 0.0
                     for a in range(r):

