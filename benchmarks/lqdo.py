@@ -135,7 +135,9 @@ def main(argv: list[str] | None = None) -> int:
         "its iterations are one compiled loop per element); "
         "`per_problem_batched_full_kkt_ms` is the same batch on the full KKT matrix "
         "(`qp_options={'kkt': 'full'}`, one run) and `full_kkt_equal` whether its objectives "
-        "agree to 1e-6.",
+        "agree to 1e-6; `per_problem_batched_torch_loop_ms` / `torch_loop_equal` the same "
+        "for the reduced system's iterations as batched torch ops (`set_compiled(False)`, as "
+        "on a GPU; best of 2).",
         "",
         R.format_rows(batch_rows),
         "",

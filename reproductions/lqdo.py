@@ -30,6 +30,7 @@ import numpy as np
 import torch
 
 from torchslq import Status
+from torchslq.lq import set_compiled
 from torchslq.lqdo import Quasilinearization, TwoLevel, cases, transcribe
 from torchslq.lqdo import backends as _backends
 
@@ -458,6 +459,14 @@ def batched(B: int = 256, n_single: int = 16) -> list:
     rf = batch_solve("full")
     t_full = time.perf_counter() - t0
     full_equal = bool(torch.allclose(rf.objective, rb.objective, rtol=1e-6, atol=0))
+    # the same batch with the reduced system's iterations as batched torch ops (as on a
+    # GPU) instead of the compiled per-element loop, best of 2 after a warm-up
+    old = set_compiled(False)
+    try:
+        rt, t_torch = _timed(batch_solve, 2)
+    finally:
+        set_compiled(old)
+    torch_equal = bool(torch.allclose(rt.objective, rb.objective, rtol=1e-6, atol=0))
     for backend in ("dense", "clarabel"):
 
         def singles(backend=backend):
@@ -485,6 +494,8 @@ def batched(B: int = 256, n_single: int = 16) -> list:
                 converged=f"{int((rb.status == 0).sum())}/{B}",
                 per_problem_batched_full_kkt_ms=1e3 * t_full / B,
                 full_kkt_equal=full_equal,
+                per_problem_batched_torch_loop_ms=1e3 * t_torch / B,
+                torch_loop_equal=torch_equal,
             )
         )
     return rows
