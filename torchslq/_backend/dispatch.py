@@ -970,8 +970,10 @@ def reduced_ip_compiled(
     def i64(t: Tensor) -> np.ndarray:
         return _np(t.to(torch.int64).contiguous())
 
+    # an element's solve is a dozen iterations of a few microseconds: weighted as 512
+    # steps of an LQ pass when the batch is split over threads
     _launch(
-        _numba_qp.reduced_ip_kernel, B, 64, c(kkt.Z), c(kkt.HZ), c(kkt.ZHZ), c(kkt.C),
+        _numba_qp.reduced_ip_kernel, B, 512, c(kkt.Z), c(kkt.HZ), c(kkt.ZHZ), c(kkt.C),
         c(ineq.G), c(f), c(h), c(ineq.eu), c(ineq.el), i64(ineq.uidx), i64(ineq.lidx),
         i64(ineq.upos), i64(ineq.lpos), i64(ineq.bidx), c(scale_d), c(scale_i), float(tol),
         int(max_iter), _np(z), _np(kkt.Hz), _np(s), _np(mu), _np(done), _np(handoff),
