@@ -357,3 +357,22 @@ def test_compiled_reduced_iterations_hand_a_nonconvex_element_to_the_full_system
     assert bool((G[1] @ zi <= h[1] + 1e-9).all()) and bool((mi_ >= -1e-12).all())
     torch.testing.assert_close(mi_ * (h[1] - G[1] @ zi), torch.zeros_like(mi_), rtol=0, atol=1e-7)
     assert bool(((zi >= lb[1] - 1e-9) & (zi <= ub[1] + 1e-9)).all())
+
+
+@pytest.mark.parametrize("kkt", ["reduced", "full"])
+def test_an_element_with_non_finite_data_is_non_finite_and_spares_the_others(kkt, backend):
+    """A NaN in one element's Hessian and in another's linear term: those two get the
+    status ``non_finite`` (not ``converged``), the third the known solution, on either
+    Newton system and either backend of the reduced one's iterations."""
+    from torchslq import Status
+
+    H, f, A, b, G, h, z_star, lam_star, mu_star, lb, ub = known_qp(
+        B=3, n=9, me=5, mi=4, n_act=2, seed=11, bounds=True
+    )
+    H, f = H.clone(), f.clone()
+    H[1, 2, 3] = float("nan")
+    f[2, 0] = float("nan")
+    z, lam, mu, st = qp_solve(H, f, A, b, G, h, lb, ub, kkt=kkt)
+    assert st.tolist() == [0, int(Status.NON_FINITE), int(Status.NON_FINITE)]
+    torch.testing.assert_close(z[0], z_star[0], rtol=1e-8, atol=1e-8)
+    torch.testing.assert_close(mu[0], mu_star[0], rtol=1e-7, atol=1e-7)

@@ -134,6 +134,9 @@ def reduced_ip_kernel(
             if conv or not finite:
                 done[b] = True
                 iters[b] = it
+                if not finite:  # non-finite data: reported as such (status non_finite)
+                    for j in range(n):
+                        zb[j] = np.nan
                 break
             stalled = False
             for i in range(mi):
