@@ -578,6 +578,9 @@ def qp_solve(
             ``"full"`` (LDL' of the KKT matrix), ``"reduced"`` (one LU of ``A'`` per
             call, then the iterates stay on ``A z = b`` and only the reduced matrix on
             ``A``'s null space is factored) or ``"auto"`` (reduced where it is cheaper).
+            On the CPU in float64 the reduced system's iterations run per element in
+            one compiled loop (the same steps; ``torchslq.lq.set_compiled(False)``
+            keeps batched torch ops, as on a GPU).
 
     Returns:
         ``z (B, n)``, ``lam (B, me)``, ``mu (B, mi)`` (``Hz + f + A'lam + G'mu = 0``) and
