@@ -899,10 +899,9 @@ def lq_gain_solve(
             failedn, nt, mt,
         )  # fmt: skip
         _launch(
-            _kernels().lq_rollout_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, x0, xn, un,
-            nt, mt,
+            gain.rollout_value_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, Pn, pn, sn,
+            x0, xn, un, lamn, costn, finiten, nt, mt,
         )  # fmt: skip
-        _launch(gain.value_kernel, nb, T, Pn, pn, sn, xn, un, lamn, costn, finiten, nt, mt)
     return dict(zip(_GAIN_OUTPUTS, out, strict=True))
 
 
