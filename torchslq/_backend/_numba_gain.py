@@ -39,10 +39,10 @@ import numpy as np
 
 from ._numba_gemm import acc_tn
 from ._numba_kernels import (  # noqa: F401 (size_witness re-exported)
+    _affine_step,
     _controls,
     _idx,
     finite_gains,
-    lq_rollout_kernel,
     restart_step,
     size_witness,
 )
@@ -429,11 +429,15 @@ def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finit
 
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
 def rollout_value_kernel(b0, b1, A, Bm, c, Kk, P, p, s, x0, x, u, lam, cost, finite, nt, mt):
-    """:func:`._numba_kernels.lq_rollout_kernel` and :func:`value_kernel` in one pass
-    over each element's steps (their sums in their order, contracted into FMAs here:
-    equal to rounding): ``lam_t`` is formed while ``x_t`` is at hand, in the shadow of
-    the rollout's chain of dependent sums, instead of in a second pass that reads ``x``
-    again (at ``(4, 1)``, ``B = 1024``, ``T = 100``: 1.8 + 1.6 ms apart)."""
+    """Per element ``b0 <= e < b1``: the rollout of
+    :func:`._numba_kernels.lq_rollout_kernel` (its step, contracted into FMAs here: equal
+    to rounding) and, in the same pass over the steps, the costates
+    ``lam_t = P_t x_t + p_t``, the optimal cost ``x_0'P_0 x_0 / 2 + p_0'x_0 + s`` (NaN
+    where not finite) and whether ``x, u`` are finite. ``P, p, s`` with a batch of 1
+    (shared data) or B; outputs ``x, lam (B, T+1, n)``, ``u (B, T, m)``, ``cost (B,)``,
+    ``finite (B,)``; ``nt, mt``: :func:`size_witness`. (The costates were a second pass
+    that read ``x`` again: at ``(4, 1)``, ``B = 1024``, ``T = 100``, 1.8 + 1.6 ms for
+    the two passes.)"""
     T = u.shape[1]
     fixed = len(nt) > 0
     n = len(nt) if fixed else x.shape[2]
@@ -452,7 +456,8 @@ def rollout_value_kernel(b0, b1, A, Bm, c, Kk, P, p, s, x0, x, u, lam, cost, fin
             Pt = P[bv, t]
             for i in range(n):
                 lt[i] = p[bv, t, i]
-            for j in range(n):  # (rows for columns: P_t is symmetric, as value_kernel)
+            # rows for columns (P_t is symmetric): the contiguous inner loop vectorises
+            for j in range(n):
                 a = xt[j]
                 fin = fin and math.isfinite(a)
                 Pj = Pt[j]
@@ -464,63 +469,10 @@ def rollout_value_kernel(b0, b1, A, Bm, c, Kk, P, p, s, x0, x, u, lam, cost, fin
             _controls(Kk[bk, t], xt, ut, True, m, n)
             for i in range(m):
                 fin = fin and math.isfinite(ut[i])
-            ba, ta = _idx(A, e, t)
-            bb, tb = _idx(Bm, e, t)
-            bc, tc = _idx(c, e, t) if affine else (0, 0)
-            At = A[ba, ta]
-            Bt = Bm[bb, tb]
-            xn = x[e, t + 1]
-            for i in range(n):
-                acc = c[bc, tc, i] if affine else 0.0
-                for j in range(m):
-                    acc += Bt[i, j] * ut[j]
-                for j in range(n):
-                    acc += At[i, j] * xt[j]
-                xn[i] = acc
+            _affine_step(A, Bm, c, affine, e, t, xt, ut, x[e, t + 1], m, n)
         J = s[bv]
         for i in range(n):
             J += x[e, 0, i] * (p[bv, 0, i] + 0.5 * (lam[e, 0, i] - p[bv, 0, i]))
-        cost[e] = J if fin else np.nan
-        finite[e] = fin
-
-
-@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
-def value_kernel(b0, b1, P, p, s, x, u, lam, cost, finite, nt, mt):
-    """From the pass's value functions and the rollout ``x (B, T+1, n)``, ``u (B, T,
-    m)`` of elements ``b0 <= b < b1``: the costates ``lam_t = P_t x_t + p_t``, the
-    optimal cost ``x_0'P_0 x_0 / 2 + p_0'x_0 + s`` (NaN where not finite) and whether
-    ``x, u`` are finite. ``P, p, s`` with a batch of 1 (shared data) or B; outputs
-    ``lam (B, T+1, n)``, ``cost (B,)``, ``finite (B,)``; ``nt, mt``: :func:`size_witness`."""
-    T1 = x.shape[1]
-    fixed = len(nt) > 0
-    n = len(nt) if fixed else x.shape[2]
-    m = len(mt) if fixed else u.shape[2]
-    for e in range(b0, b1):
-        bk = e if P.shape[0] > 1 else 0
-        le = lam[e]
-        for t in range(T1):
-            lt = le[t]
-            xt = x[e, t]
-            Pt = P[bk, t]
-            for i in range(n):
-                lt[i] = p[bk, t, i]
-            # lam_t += sum_j x_tj P_t[j] (rows for columns: P_t is symmetric), whose
-            # contiguous inner loop vectorises (a dot per row waits on each sum)
-            for j in range(n):
-                a = xt[j]
-                Pj = Pt[j]
-                for i in range(n):
-                    lt[i] += a * Pj[i]
-        fin = True
-        for t in range(T1):
-            for i in range(n):
-                fin = fin and math.isfinite(x[e, t, i])
-        for t in range(T1 - 1):
-            for i in range(m):
-                fin = fin and math.isfinite(u[e, t, i])
-        J = s[bk]
-        for i in range(n):
-            J += x[e, 0, i] * (p[bk, 0, i] + 0.5 * (le[0, i] - p[bk, 0, i]))
         cost[e] = J if fin else np.nan
         finite[e] = fin
 

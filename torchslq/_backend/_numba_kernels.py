@@ -102,6 +102,24 @@ def rollout_kernel(b0, b1, F, Kk, x0, x, u):
             _feedback_step(F[bf, t], Kk[bk, t], x[b, t], u[b, t], x[b, t + 1], True)
 
 
+@numba.njit(cache=True, nogil=True, _nrt=False, inline="always")
+def _affine_step(A, Bm, c, affine, b, t, xt, ut, xn, m, n):
+    """``xn = A_t xt + B_t ut (+ c_t)`` for element ``b`` (``c`` read where ``affine``),
+    summed from ``c``, then ``B u``, then ``A x``. Inlined, as :func:`_controls`."""
+    ba, ta = _idx(A, b, t)
+    bb, tb = _idx(Bm, b, t)
+    bc, tc = _idx(c, b, t) if affine else (0, 0)
+    At = A[ba, ta]
+    Bt = Bm[bb, tb]
+    for i in range(n):
+        s = c[bc, tc, i] if affine else 0.0
+        for j in range(m):
+            s += Bt[i, j] * ut[j]
+        for j in range(n):
+            s += At[i, j] * xt[j]
+        xn[i] = s
+
+
 @numba.njit(cache=True, nogil=True, _nrt=False)
 def lq_rollout_kernel(b0, b1, A, Bm, c, Kk, x0, x, u, nt, mt):
     """``u_t = K_t x_t + k_t``, ``x_{t+1} = A_t x_t + B_t u_t + c_t`` per element, from
@@ -124,19 +142,7 @@ def lq_rollout_kernel(b0, b1, A, Bm, c, Kk, x0, x, u, nt, mt):
             xt = x[b, t]
             ut = u[b, t]
             _controls(Kk[bk, t], xt, ut, True, m, n)
-            ba, ta = _idx(A, b, t)
-            bb, tb = _idx(Bm, b, t)
-            bc, tc = _idx(c, b, t) if affine else (0, 0)
-            At = A[ba, ta]
-            Bt = Bm[bb, tb]
-            xn = x[b, t + 1]
-            for i in range(n):
-                s = c[bc, tc, i] if affine else 0.0
-                for j in range(m):
-                    s += Bt[i, j] * ut[j]
-                for j in range(n):
-                    s += At[i, j] * xt[j]
-                xn[i] = s
+            _affine_step(A, Bm, c, affine, b, t, xt, ut, x[b, t + 1], m, n)
 
 
 @numba.njit(cache=True, nogil=True)
