@@ -339,7 +339,8 @@ def test_compiled_reduced_iterations_hand_a_nonconvex_element_to_the_full_system
     s = (hall - ineq.mv(z)).clamp_min(1.0)
     mu = torch.ones_like(s)
     one = torch.ones(3, dtype=H.dtype)
-    done, handoff, _ = reduced_ip_compiled(nk, ineq, f, hall, one, one, 1e-10, 60, z, s, mu)
+    args = (f, hall, one, one, 1e-10, 60, kkt._REG, z, s, mu)
+    done, handoff, _ = reduced_ip_compiled(nk, ineq, *args)
     assert handoff.tolist() == [False, True, False] and bool(done.all())
 
     z, lam, mu, st = qp_solve(H, f, A, b, G, h, lb, ub, kkt="reduced")

@@ -26,8 +26,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-_REG = 1e-13  # as torchslq.lqdo.kkt._REG
-
 
 @numba.njit(nogil=True, cache=True)
 def _max_step(v, dv, m):
@@ -44,7 +42,7 @@ def _max_step(v, dv, m):
 @numba.njit(nogil=True, cache=True)
 def reduced_ip_kernel(
     b0, b1, Z, HZ, ZHZ, C, G, f, h, eu, el, uidx, lidx, upos, lpos, bidx,
-    scale_d, scale_i, tol, max_iter, z, Hz, s, mu, done, handoff, iters,
+    scale_d, scale_i, tol, max_iter, reg, z, Hz, s, mu, done, handoff, iters,
 ):  # fmt: skip
     """Mehrotra iterations of the elements ``b0 <= b < b1`` on their reduced systems.
 
@@ -55,7 +53,8 @@ def reduced_ip_kernel(
             right-hand side ``[h; ub_u; -lb_l]``; eu ``(B, nu)``, el ``(B, nl)``: 1
             where an element's bound is finite; uidx, lidx: the bounded variables;
             upos, lpos: their places in bidx (``ReducedKKT``'s fields);
-            scale_d, scale_i ``(B,)``: the residuals' scales; tol, max_iter.
+            scale_d, scale_i ``(B,)``: the residuals' scales; tol, max_iter; reg: the
+            primal regularisation of ``Z'KZ``'s diagonal (``ReducedKKT``'s).
         z, Hz ``(B, n)``: the start on entry (``z0`` and ``H z0``), the last iterate
             and its carried product on return; s, mu ``(B, mi)`` likewise.
         done, handoff ``(B,)`` bool, iters ``(B,)`` int64: outputs, as the torch
@@ -174,7 +173,7 @@ def reduced_ip_kernel(
                     for c in range(a + 1):
                         K[a, c] += ca * Cb[i, c]
             for a in range(r):
-                K[a, a] += _REG
+                K[a, a] += reg
             for p in range(k):
                 for c in range(r):
                     K[r + p, c] = Cb[sel[p], c]

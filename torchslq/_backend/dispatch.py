@@ -944,14 +944,15 @@ def lq_gain_gradients(
 
 def reduced_ip_compiled(
     kkt, ineq, f: Tensor, h: Tensor, scale_d: Tensor, scale_i: Tensor, tol: float,
-    max_iter: int, z: Tensor, s: Tensor, mu: Tensor,
+    max_iter: int, reg: float, z: Tensor, s: Tensor, mu: Tensor,
 ) -> tuple[Tensor, Tensor, Tensor]:  # fmt: skip
     """The interior point's iterations on the reduced Newton system, per element in one
     compiled loop (:func:`._numba_qp.reduced_ip_kernel`), for
     :func:`torchslq.lqdo.backends.qp_solve`'s float64 CPU path.
 
     ``kkt``: a :class:`torchslq.lqdo.kkt.ReducedKKT` (its ``Hz`` is advanced with the
-    iterates), ``ineq`` its :class:`~torchslq.lqdo.kkt.Inequalities`; ``z (B, n)``,
+    iterates), ``ineq`` its :class:`~torchslq.lqdo.kkt.Inequalities`; ``reg``: the
+    primal regularisation of the reduced matrix's diagonal (``kkt._REG``); ``z (B, n)``,
     ``s``, ``mu (B, mi)``: the start, advanced in place (contiguous float64). Returns
     ``(done, handoff, iters)``, ``(B,)`` each: as the torch loop's flags, and the
     iteration at which each element stopped."""
@@ -975,7 +976,7 @@ def reduced_ip_compiled(
         _numba_qp.reduced_ip_kernel, B, 512, c(kkt.Z), c(kkt.HZ), c(kkt.ZHZ), c(kkt.C),
         c(ineq.G), c(f), c(h), c(ineq.eu), c(ineq.el), i64(ineq.uidx), i64(ineq.lidx),
         i64(ineq.upos), i64(ineq.lpos), i64(ineq.bidx), c(scale_d), c(scale_i), float(tol),
-        int(max_iter), _np(z), _np(kkt.Hz), _np(s), _np(mu), _np(done), _np(handoff),
+        int(max_iter), float(reg), _np(z), _np(kkt.Hz), _np(s), _np(mu), _np(done), _np(handoff),
         _np(iters),
     )  # fmt: skip
     return done, handoff, iters

@@ -31,7 +31,7 @@ from torch import Tensor
 from .._backend import can_use_compiled
 from .._backend.dispatch import reduced_ip_compiled
 from ..status import Status
-from .kkt import KKT_METHODS, Inequalities, ReducedKKT, newton_system
+from .kkt import _REG, KKT_METHODS, Inequalities, ReducedKKT, newton_system
 from .qp import DenseQP, SparseQP, TensorKeyedCache, few_inequalities
 
 __all__ = ["QPSolution", "qp_solve", "solve", "solve_dense", "solve_sparse", "SPARSE_SOLVERS"]
@@ -447,7 +447,7 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None):
     compiled loop (:func:`torchslq._backend.dispatch.reduced_ip_compiled`, the same
     steps; switched off with :func:`torchslq.lq.set_compiled`), else as batched torch
     ops (:func:`_iterate`)."""
-    B, n = f.shape
+    B = f.shape[0]
     me, mi = A.shape[1], ineq.m
     kkt = newton_system(H, f, A, b, ineq, method)
     if start is not None:
@@ -471,7 +471,7 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None):
     ):
         z, s, mu = z.contiguous().clone(), s.contiguous().clone(), mu.contiguous().clone()
         done, handoff, iters = reduced_ip_compiled(
-            kkt, ineq, f, h, scale_d, scale_i, tol, max_iter, z, s, mu
+            kkt, ineq, f, h, scale_d, scale_i, tol, max_iter, _REG, z, s, mu
         )
         it = int(iters.max())
     else:
