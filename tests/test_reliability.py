@@ -434,3 +434,67 @@ def test_lqr_solve_checks_clean_data_at_once_and_faults_per_element(monkeypatch)
     nonfinite, not_pd = real(A, Bm, Qt, Rt, x0, big, None, None, None, torch.Size([Bsz]))
     assert not bool(nonfinite.any()) and not bool(not_pd.any())
     assert S._data_clean(A, Bm, Qt, Rt, x0, q, None, None, None)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_data_check_agrees_with_the_per_element_check(dtype):
+    """On the CPU ``lqr_solve``'s quick check runs compiled on the kernels' arrays
+    (:func:`torchslq._backend.dispatch.lq_data_clean`). For a NaN or an infinity in each
+    argument in turn, an ``R`` that is not positive definite (indefinite, singular, with
+    an asymmetric part that a symmetric-only check would miss) and clean data, it says
+    "clean" exactly where the per-element check (``_input_faults``, torch's ``isfinite``
+    and LAPACK's Cholesky) finds nothing; and the statuses of the solve are that check's."""
+    import sys
+
+    from torchslq._backend import dispatch
+
+    S = sys.modules["torchslq.lq.solve"]
+    if not dispatch.compiled_available():
+        pytest.skip("numba not installed: the compiled check is not used")
+    g = torch.Generator().manual_seed(11)
+    Bsz, T, n, m = 3, 6, 3, 2
+    data = {
+        "A": torch.eye(n) + 0.1 * torch.randn(Bsz, T, n, n, generator=g),
+        "B": torch.randn(Bsz, T, n, m, generator=g),
+        "Q": torch.eye(n).expand(Bsz, T + 1, n, n),  # broadcast: cut to one step
+        "R": torch.eye(m).repeat(Bsz, T, 1, 1),
+        "x0": torch.randn(Bsz, n, generator=g),
+        "q": torch.randn(Bsz, T + 1, n, generator=g),
+        "r": torch.randn(Bsz, T, m, generator=g),
+        "S": 0.1 * torch.randn(Bsz, T, m, n, generator=g),
+        "c": torch.randn(Bsz, T, n, generator=g),
+    }
+    data = {k: v.to(dtype) for k, v in data.items()}
+    order = ("A", "B", "Q", "R", "x0", "q", "r", "S", "c")
+    batch = torch.Size([Bsz])
+
+    def cases():
+        yield "clean", data
+        for name in order:
+            for bad in (float("nan"), float("inf")):
+                d = {k: v.clone() for k, v in data.items()}
+                d[name].view(-1)[-1] = bad  # the last element's last entry
+                yield f"{name}={bad}", d
+        for label, Rb in (
+            ("indefinite", [[1.0, 2.0], [2.0, 1.0]]),
+            ("singular", [[1.0, 1.0], [1.0, 1.0]]),
+            ("negative", [[-1.0, 0.0], [0.0, 1.0]]),
+            ("asymmetric, PD symmetric part", [[1.0, 3.0], [-3.0, 1.0]]),
+        ):
+            d = dict(data, R=data["R"].clone())
+            d["R"][1, T - 1] = torch.tensor(Rb, dtype=dtype)
+            yield label, d
+
+    for label, d in cases():
+        args = [d[k] for k in order]
+        inputs = S._gain_inputs(*args, batch)
+        assert inputs is not None
+        nonfinite, not_pd = S._input_faults(*args, batch)
+        exact = not bool((nonfinite | not_pd).any())
+        assert dispatch.lq_data_clean(inputs[0], inputs[2]) == exact, label
+        status = ts.lqr_solve(*args).status
+        want = torch.zeros(Bsz, dtype=torch.int64)
+        want[not_pd] = int(ts.Status.NOT_POSITIVE_DEFINITE)
+        want[nonfinite] = int(ts.Status.NON_FINITE)
+        assert torch.equal(status, want), label
+        assert label == "clean" or not exact or label.startswith("asymmetric"), label

@@ -684,3 +684,51 @@ def _adjoint_gain_rows(
                     gr[e, t, i] = du[i] + gj * ut[i]
             for i in range(n):
                 dx[i] = dxn[i]
+
+
+@numba.njit(cache=True, nogil=True, _nrt=False)
+def _all_finite(a):
+    """Whether every entry of the C-contiguous array ``a`` is finite."""
+    flat = a.reshape(a.size)
+    for i in range(flat.size):
+        if not math.isfinite(flat[i]):
+            return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _all_positive_definite(R):
+    """Whether the symmetric part of every ``R[b, t] (m, m)`` has a Cholesky factor
+    (every pivot positive, as LAPACK's ``potrf`` decides; ``R`` finite)."""
+    m = R.shape[2]
+    L = np.empty((m, m), R.dtype)
+    for b in range(R.shape[0]):
+        for t in range(R.shape[1]):
+            Rt = R[b, t]
+            for j in range(m):
+                d = Rt[j, j]
+                for k in range(j):
+                    d -= L[j, k] * L[j, k]
+                if not d > 0.0:
+                    return False
+                L[j, j] = math.sqrt(d)
+                for i in range(j + 1, m):
+                    v = 0.5 * (Rt[i, j] + Rt[j, i])
+                    for k in range(j):
+                        v -= L[i, k] * L[j, k]
+                    L[i, j] = v / L[j, j]
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def data_clean_kernel(pieces, x0):
+    """Whether :func:`torchslq.lqr_solve`'s data are clean: every entry of the
+    ``pieces`` ``(A, B, c, Q, R, S, q, r)`` and of ``x0`` finite and every ``R``
+    positive definite (the quick check of its ``validate``, on the kernels' arrays: a
+    pass over the data, a fraction of the solve's cost)."""
+    return (
+        _all_finite(x0) and _all_finite(pieces[0]) and _all_finite(pieces[1])
+        and _all_finite(pieces[2]) and _all_finite(pieces[3]) and _all_finite(pieces[4])
+        and _all_finite(pieces[5]) and _all_finite(pieces[6]) and _all_finite(pieces[7])
+        and _all_positive_definite(pieces[4])
+    )  # fmt: skip

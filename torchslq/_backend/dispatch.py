@@ -52,6 +52,7 @@ import torch
 from torch import Tensor
 
 from .._shapes import broadcast_shapes
+from . import gain_codegen, specialisation
 from .gain_codegen import gain_kernels
 from .model_fns import rollout_kernel
 
@@ -825,9 +826,21 @@ def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray,
     for p, d, none in zip(pieces, PIECE_NDIMS, empty, strict=True):
         if p is None:
             out.append(none)
-        elif p.ndim == d and p.shape[0] in (1, nb) and p.is_contiguous():
-            # as the kernels take it (the common case)
-            out.append(_np(p))
+        elif p.ndim == d and p.shape[0] in (1, nb):
+            # one flat batch dim already (the common case): numpy's view of it; a time or
+            # batch dim broadcast with stride 0 (an expanded weight) cut to 1, copied
+            # only where what is left is not contiguous (numpy's slicing and checks cost
+            # a fraction of torch's at B = 1)
+            a = (p.detach() if p.requires_grad else p).numpy()
+            if p.is_contiguous():
+                out.append(a)
+                continue
+            st = a.strides
+            if a.shape[1] > 1 and st[1] == 0:
+                a = a[:, :1]
+            if a.shape[0] > 1 and st[0] == 0:
+                a = a[:1]
+            out.append(a if a.flags.c_contiguous else np.ascontiguousarray(a))
         else:
             out.append(_flat(_one_time_step(p, d - 2), batch, d - 1))
     return tuple(out)
@@ -850,6 +863,33 @@ def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, 
     return arrays, 1 if shared else math.prod(batch)
 
 
+_GAIN_PLANS: dict = {}  # (n, m, switches) -> _gain_plan's tuple
+
+
+def _gain_plan(n: int, m: int) -> tuple:
+    """``(gain, passes, nt, mt, with_slp)`` for ``n`` states and ``m`` controls: the module
+    :mod:`._numba_gain`, the element pass written out for ``(n, m)`` where it is
+    generated (:func:`.gain_codegen.gain_kernels`; else ``gain``), the size witnesses
+    and :func:`._numba_gemm.with_slp` (looked up once: at B = 1 each lookup counts)."""
+    # (the switches that decide which kernels a size gets are part of the key)
+    key = (n, m, gain_codegen._enabled, specialisation._only)
+    plan = _GAIN_PLANS.get(key)
+    if plan is None:
+        gain = _gain_kernels()
+        from ._numba_gemm import with_slp
+
+        passes = gain_kernels(n, m) or gain
+        plan = _GAIN_PLANS[key] = (gain, passes, *gain.size_witness(n, m), with_slp)
+    return plan
+
+
+def lq_data_clean(pieces: tuple[np.ndarray, ...], x0: np.ndarray) -> bool:
+    """Whether every entry of the kernels' ``pieces`` (:func:`lq_gain_pieces`) and of
+    ``x0`` is finite and every ``R`` positive definite: :func:`torchslq.lqr_solve`'s
+    quick check of its data, compiled (:func:`._numba_gain.data_clean_kernel`)."""
+    return bool(_gain_kernels().data_clean_kernel(pieces, x0))
+
+
 _GAIN_OUTPUTS = ("Kk", "P", "p", "L", "s", "failed", "x", "u", "lam", "cost", "finite")
 
 
@@ -867,12 +907,8 @@ def lq_gain_solve(
     Cholesky factors), ``s (Bd,)``, ``failed (Bd,)``; and ``x (B, T+1, n)``, ``u (B, T,
     m)``, ``lam (B, T+1, n)``, ``cost (B,)`` (NaN where not finite), ``finite (B,)``.
     Call only where :func:`can_use_compiled` holds."""
-    from ._numba_gemm import with_slp
-
-    gain = _gain_kernels()
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
-    # the element pass written out for (n, m) where it is generated (gain_codegen)
-    passes = gain_kernels(n, m) or gain
+    gain, passes, nt, mt, with_slp = _gain_plan(n, m)
     nb = x0.shape[0]
     npd = x0.dtype
     out = (
@@ -889,7 +925,6 @@ def lq_gain_solve(
         np.empty(nb, np.bool_),
     )
     Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten = out
-    nt, mt = gain.size_witness(n, m)
     if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
         with_slp(passes.gain_solve_kernel, pieces, x0, *out, nt, mt)

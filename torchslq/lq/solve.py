@@ -33,7 +33,12 @@ from .._backend import (
     can_use_compiled,
     compiled_available,
 )
-from .._backend.dispatch import lq_gain_gradients, lq_gain_pieces, lq_gain_solve
+from .._backend.dispatch import (
+    lq_data_clean,
+    lq_gain_gradients,
+    lq_gain_pieces,
+    lq_gain_solve,
+)
 from .._shapes import broadcast_shapes
 from ..status import Status
 from .riccati import (
@@ -524,31 +529,50 @@ class _GainLQRFunction(torch.autograd.Function):
         return (None, None, None, *out)
 
 
-def _solve_gain(A, B, Q, R, x0, q, r, S, c) -> LQRSolution | None:
+def _gain_inputs(A, B, Q, R, x0, q, r, S, c, batch: torch.Size) -> tuple | None:
+    """The data of :func:`lqr_solve` (time dims expanded, ``batch`` their broadcast
+    batch shape) as the gain-form CPU kernels' arrays: ``(pieces, data_batch, x0)`` of
+    :func:`lq_gain_pieces` and ``x0 (prod(batch), n)``; None where those kernels do not
+    apply (not on the CPU, a ``torch.func`` transform)."""
+    present = [t for t in (A, B, Q, R, x0, q, r, S, c) if t is not None]
+    if not x0.is_cpu or not can_use_compiled(*present, differentiable=True):
+        return None
+    n = A.shape[-1]
+    nb = max(math.prod(batch), 1)
+    pieces, data_batch = lq_gain_pieces((A, B, c, Q, R, S, q, r), batch)
+    x0d = x0.detach() if x0.requires_grad else x0
+    if x0.ndim == 2 and x0.shape[0] == nb and x0.is_contiguous():
+        return pieces, data_batch, x0d.numpy()
+    return pieces, data_batch, x0d.expand(*batch, n).reshape(nb, n).contiguous().numpy()
+
+
+def _any_requires_grad(tensors: tuple) -> bool:
+    for t in tensors:
+        if t is not None and t.requires_grad:
+            return True
+    return False
+
+
+def _solve_gain(
+    A, B, Q, R, x0, q, r, S, c, batch: torch.Size, inputs: tuple
+) -> LQRSolution | None:
     """:func:`lqr_solve` on the gain-form CPU kernels (:func:`lq_gain_solve`), with or
     without autograd (:class:`_GainLQRFunction`); the arguments as given, time dims
-    expanded. For ``method`` ``"sequential"`` or ``"auto"``, which is the sequential
-    kernel here (:func:`choose_method`'s rule on the CPU with the compiled kernels).
-    None where this does not apply (not on the CPU, a ``torch.func`` transform) or where
-    an element's factorisation failed: the homogeneous path then classifies the
-    failures.
+    expanded, ``inputs`` the kernels' arrays of them (:func:`_gain_inputs`). For
+    ``method`` ``"sequential"`` or ``"auto"``, which is the sequential kernel here
+    (:func:`choose_method`'s rule on the CPU with the compiled kernels). None where an
+    element's factorisation failed: the homogeneous path then classifies the failures.
 
     (Written for a small solve's overhead: at ``(n, m) = (4, 1)``, ``B = 1``, ``T = 100``
     the kernel takes about 10 us, and every tensor op here about one: the outputs are
     numpy arrays, sliced and reshaped by numpy, each made a tensor once.)"""
     data = (A, B, Q, R, x0, q, r, S, c)
-    present = [t for t in data if t is not None]
-    if not x0.is_cpu or not can_use_compiled(*present, differentiable=True):
-        return None
     T, n = A.shape[-3], A.shape[-1]
-    batch = _batch_shape(*data)
     nb = max(math.prod(batch), 1)
-    pieces, data_batch = lq_gain_pieces((A, B, c, Q, R, S, q, r), batch)
-    x0n = x0.detach().numpy() if x0.shape == (nb, n) and x0.is_contiguous() else None
-    if x0n is None:
-        x0n = x0.detach().expand(*batch, n).reshape(nb, n).contiguous().numpy()
+    pieces, data_batch, x0n = inputs
     sol = lq_gain_solve(pieces, data_batch, x0n, T)
-    if sol["failed"].any():
+    failed = sol["failed"]
+    if failed[0] if data_batch == 1 else failed.any():
         return None
 
     shape = tuple(batch)
@@ -560,10 +584,11 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c) -> LQRSolution | None:
             return e if len(shape) == 1 else e.reshape(shape + a.shape[1:])
         return t(a if len(shape) == 1 else a.reshape(shape + a.shape[1:]))
 
-    status = lq_status(None, t(sol["finite"]))
+    f = sol["finite"]  # (lq_status's rule on numpy's flags: cheaper at B = 1)
+    status = t(np.zeros(nb, np.int64) if f.all() else np.where(f, 0, _NON_FINITE))
     if len(shape) != 1:  # (unbatched, or several batch dims)
         status = status.reshape(shape)
-    if torch.is_grad_enabled() and any(p.requires_grad for p in present):
+    if torch.is_grad_enabled() and _any_requires_grad(data):
         x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
     else:
         x, u, cost = full(sol["x"]), full(sol["u"]), full(sol["cost"])
@@ -659,12 +684,19 @@ def lqr_solve(
     S = with_time(S, 2, T)
     c = with_time(c, 1, T)
 
+    # on the CPU: the gain-form kernels' arrays of the data (None where they do not apply)
+    gain_inputs = None
     if validate:
         try:
             batch = _batch_shape(A, B, Q, R, x0, q, r, S, c)
         except RuntimeError as err:
             raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
-        faulty = not _data_clean(A, B, Q, R, x0, q, r, S, c)
+        if method != "scan":
+            gain_inputs = _gain_inputs(A, B, Q, R, x0, q, r, S, c, batch)
+        if gain_inputs is not None:  # the same check, compiled, on the kernels' arrays
+            faulty = not lq_data_clean(gain_inputs[0], gain_inputs[2])
+        else:
+            faulty = not _data_clean(A, B, Q, R, x0, q, r, S, c)
         if faulty:  # which elements, or an error naming the argument
             nonfinite, not_pd = _input_faults(A, B, Q, R, x0, q, r, S, c, batch)
             # an element with an R that is not positive definite is not solved (NaN data
@@ -678,9 +710,13 @@ def lqr_solve(
         # on the CPU: the gain-form kernels straight from the data, with or without a
         # graph (None where they do not apply, or an element failed: the homogeneous
         # path below then classifies the failures)
-        sol = _solve_gain(A, B, Q, R, x0, q, r, S, c)
-        if sol is not None:
-            return sol
+        if gain_inputs is None:
+            batch = _batch_shape(A, B, Q, R, x0, q, r, S, c)
+            gain_inputs = _gain_inputs(A, B, Q, R, x0, q, r, S, c, batch)
+        if gain_inputs is not None:
+            sol = _solve_gain(A, B, Q, R, x0, q, r, S, c, batch, gain_inputs)
+            if sol is not None:
+                return sol
     F = homogeneous_dynamics(A, B, c)
     H, VhT = homogeneous_cost(Q, R, q, r, S)
     batch = broadcast_shapes(F.shape[:-3], H.shape[:-3], VhT.shape[:-2], x0.shape[:-1])
