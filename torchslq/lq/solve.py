@@ -553,9 +553,7 @@ def _any_requires_grad(tensors: tuple) -> bool:
     return False
 
 
-def _solve_gain(
-    A, B, Q, R, x0, q, r, S, c, batch: torch.Size, inputs: tuple
-) -> LQRSolution | None:
+def _solve_gain(A, B, Q, R, x0, q, r, S, c, batch: torch.Size, inputs: tuple) -> LQRSolution | None:
     """:func:`lqr_solve` on the gain-form CPU kernels (:func:`lq_gain_solve`), with or
     without autograd (:class:`_GainLQRFunction`); the arguments as given, time dims
     expanded, ``inputs`` the kernels' arrays of them (:func:`_gain_inputs`). For
