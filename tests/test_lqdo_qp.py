@@ -377,3 +377,57 @@ def test_an_element_with_non_finite_data_is_non_finite_and_spares_the_others(kkt
     assert st.tolist() == [0, int(Status.NON_FINITE), int(Status.NON_FINITE)]
     torch.testing.assert_close(z[0], z_star[0], rtol=1e-8, atol=1e-8)
     torch.testing.assert_close(mu[0], mu_star[0], rtol=1e-7, atol=1e-7)
+
+
+def test_compiled_reduced_setup_equals_the_torch_setup_and_the_definitions():
+    """On the CPU in float64 ``ReducedKKT``'s null-space set-up runs per element in one
+    compiled loop. On a batch of random equality- and inequality-constrained QPs with
+    bounds (and a transcription's QPs, whose ``H`` is mostly zeros) its fields equal the
+    torch set-up's, and they are what they are defined to be: ``A Z = 0`` with ``Z``'s
+    free rows the identity, ``A z0 = b`` with ``z0`` orthogonal to ``range(Z)``,
+    ``HZ = H Z``, ``Z'HZ``, ``C = [G Z; Z[bidx]]``, ``Hz = H z0``; and the multipliers
+    solve the basic rows of ``H z + f + A' lam = 0`` at a point where ``Z'g = 0``."""
+    from torchslq.lq import compiled_available, set_compiled
+    from torchslq.lqdo import kkt
+
+    if not compiled_available():
+        pytest.skip("numba kernels not available")
+    H, f, A, b, G, h, *_, lb, ub = known_qp(B=5, n=9, me=4, mi=3, bounds=True)
+    tr = transcribe(lq_problem(bounded=True), "TR", nodes=12)
+    d = tr.qp(tr.initial_guess(B=3)).dense(bounds=False)
+    qp_tr = tr.qp(tr.initial_guess(B=3))
+    cases = [
+        (H, f, A, b, kkt.Inequalities(G, lb, ub)),
+        (d.H, d.f, d.A, d.b, kkt.Inequalities(d.G, qp_tr.lb, qp_tr.ub)),
+    ]
+    fields = ("Z", "z0", "HZ", "ZHZ", "C", "Hz")
+    for H, f, A, b, ineq in cases:
+        old = set_compiled(False)
+        try:
+            ref = kkt.newton_system(H, f, A, b, ineq, "reduced")
+        finally:
+            set_compiled(old)
+        got = kkt.newton_system(H, f, A, b, ineq, "reduced")
+        assert got.compiled and not ref.compiled
+        for name in fields:
+            torch.testing.assert_close(getattr(got, name), getattr(ref, name), rtol=0, atol=1e-12)
+        Z, z0 = got.Z, got.z0
+        r = Z.shape[-1]
+        torch.testing.assert_close(A @ Z, torch.zeros_like(A @ Z), rtol=0, atol=1e-12)
+        free = Z.gather(1, got.free.unsqueeze(-1).expand(-1, -1, r))
+        torch.testing.assert_close(free, torch.eye(r, dtype=Z.dtype).expand_as(free))
+        torch.testing.assert_close((A @ z0[..., None])[..., 0], b, rtol=0, atol=1e-12)
+        ztz0 = (Z.mT @ z0[..., None])[..., 0]
+        torch.testing.assert_close(ztz0, torch.zeros_like(ztz0), rtol=0, atol=1e-12)
+        torch.testing.assert_close(got.HZ, H @ Z, rtol=0, atol=1e-12)
+        torch.testing.assert_close(got.ZHZ, Z.mT @ H @ Z, rtol=0, atol=1e-12)
+        parts = [ineq.G @ Z, Z[:, ineq.bidx, :]]
+        torch.testing.assert_close(got.C, torch.cat(parts, 1), rtol=0, atol=1e-12)
+        torch.testing.assert_close(got.Hz, (H @ z0[..., None])[..., 0], rtol=0, atol=1e-12)
+        # multipliers at the reduced minimiser z = z0 + Z w, Z'(H z + f) = 0
+        w = torch.linalg.solve(Z.mT @ H @ Z, -(Z.mT @ (H @ z0[..., None] + f[..., None])))
+        z = z0 + (Z @ w)[..., 0]
+        got.Hz = (H @ z[..., None])[..., 0]
+        lam = got.multipliers(z, None, None)
+        g = (H @ z[..., None])[..., 0] + f + (A.mT @ lam[..., None])[..., 0]
+        torch.testing.assert_close(g, torch.zeros_like(g), rtol=0, atol=1e-9)

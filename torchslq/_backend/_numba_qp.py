@@ -293,3 +293,155 @@ def reduced_ip_kernel(
             for i in range(mi):
                 sb[i] += alpha * ds[i]
                 mub[i] += alpha * dm[i]
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def reduced_setup_kernel(b0, b1, LU, perm, H, rb, G, bidx, Z, z0, HZ, ZHZ, C, Hz):
+    """The null-space set-up of ``ReducedKKT`` (its formulas, in its order) for the
+    elements ``b0 <= e < b1``, from the LU factors of ``A'``.
+
+    Args:
+        LU ``(B, n, me)``: ``lu_factor``'s factors of ``A' (n, me)`` (any strides):
+            ``L = [L1; L2]`` unit lower below the diagonal, ``U`` on and above it;
+            perm ``(B, n)``: row ``i`` of ``L U`` is row ``perm[i]`` of ``A'``;
+            H ``(B, n, n)``, rb ``(B, me)``: the QP's Hessian and ``A z = b``'s right
+            side; G ``(B, mg, n)``; bidx ``(nb,)``: the bounded variables.
+        Z ``(B, n, r)``, z0 ``(B, n)``, HZ ``(B, n, r)``, ZHZ ``(B, r, r)``,
+            C ``(B, mg + nb, r)``, Hz ``(B, n)``: outputs; ``Z`` the basis
+            ``[-L1^{-T} L2'; I]`` in ``z``'s order, ``z0`` the least-norm point with
+            ``A z0 = b`` (``U'^{-1} b`` then ``L1^{-T}`` on the basic variables, minus
+            its part in ``range(Z)``), ``C = [G Z; Z[bidx]]``, ``Hz = H z0``.
+    """
+    n, me = LU.shape[1], LU.shape[2]
+    r = n - me
+    mg, nb = G.shape[1], bidx.shape[0]
+    S = np.empty((me, r + 1))
+    ZtZ = np.empty((r, r))
+    w = np.empty(r)
+    # (the triangular solves right-looking and the products as sums of outer products:
+    # every multiply-add in an inner loop goes to another accumulator, where dot
+    # products would wait on one running sum)
+    for e in range(b0, b1):
+        L = LU[e]
+        p = perm[e]
+        # [L2', c] with c = U'^{-1} b (U'[k, i] = U[i, k] = L[i, k] for i <= k)
+        for i in range(me):
+            for j in range(r):
+                S[i, j] = L[me + j, i]
+            S[i, r] = rb[e, i]
+        for i in range(me):
+            ci = S[i, r] / L[i, i]
+            S[i, r] = ci
+            for k in range(i + 1, me):
+                S[k, r] -= L[i, k] * ci
+        # sol = L1'^{-1} [L2', c] (L1'[k, i] = L[i, k] for i > k, unit diagonal)
+        for i in range(me - 1, 0, -1):
+            for k in range(i):
+                a = L[i, k]
+                for j in range(r + 1):
+                    S[k, j] -= a * S[i, j]
+        Ze = Z[e]
+        for i in range(me):
+            for j in range(r):
+                Ze[p[i], j] = -S[i, j]
+        for i in range(r):
+            for j in range(r):
+                Ze[p[me + i], j] = 1.0 if i == j else 0.0
+        ze = z0[e]
+        for j in range(n):
+            ze[j] = 0.0
+        for i in range(me):
+            ze[p[i]] = S[i, r]
+        # least norm on z0 + range(Z): z0 - Z (Z'Z)^{-1} Z'z0 (Cholesky of Z'Z)
+        for a in range(r):
+            w[a] = 0.0
+            for c in range(r):
+                ZtZ[a, c] = 0.0
+        for j in range(n):
+            zj = ze[j]
+            for a in range(r):
+                za = Ze[j, a]
+                w[a] += za * zj
+                for c in range(a + 1):
+                    ZtZ[a, c] += za * Ze[j, c]
+        for j in range(r):
+            d = ZtZ[j, j]
+            for k in range(j):
+                d -= ZtZ[j, k] * ZtZ[j, k]
+            d = np.sqrt(d)
+            ZtZ[j, j] = d
+            for i in range(j + 1, r):
+                acc = ZtZ[i, j]
+                for k in range(j):
+                    acc -= ZtZ[i, k] * ZtZ[j, k]
+                ZtZ[i, j] = acc / d
+        for i in range(r):
+            acc = w[i]
+            for k in range(i):
+                acc -= ZtZ[i, k] * w[k]
+            w[i] = acc / ZtZ[i, i]
+        for i in range(r - 1, -1, -1):
+            acc = w[i]
+            for k in range(i + 1, r):
+                acc -= ZtZ[k, i] * w[k]
+            w[i] = acc / ZtZ[i, i]
+        for j in range(n):
+            acc = 0.0
+            for a in range(r):
+                acc += Ze[j, a] * w[a]
+            ze[j] -= acc
+        # HZ = H Z, Hz = H z0 (a row of H at a time), ZHZ = Z'HZ
+        He, HZe, ZHZe = H[e], HZ[e], ZHZ[e]
+        for i in range(n):
+            for a in range(r):
+                HZe[i, a] = 0.0
+            acc = 0.0
+            for j in range(n):
+                hij = He[i, j]
+                if hij != 0.0:  # (a transcription's H is mostly zeros)
+                    for a in range(r):
+                        HZe[i, a] += hij * Ze[j, a]
+                    acc += hij * ze[j]
+            Hz[e, i] = acc
+        for a in range(r):
+            for c in range(r):
+                ZHZe[a, c] = 0.0
+        for j in range(n):
+            for a in range(r):
+                za = Ze[j, a]
+                for c in range(r):
+                    ZHZe[a, c] += za * HZe[j, c]
+        for i in range(mg):
+            for a in range(r):
+                C[e, i, a] = 0.0
+            for j in range(n):
+                gij = G[e, i, j]
+                for a in range(r):
+                    C[e, i, a] += gij * Ze[j, a]
+        for q in range(nb):
+            for a in range(r):
+                C[e, mg + q, a] = Ze[bidx[q], a]
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
+def basic_solve_kernel(b0, b1, LU, g, out):
+    """``out = -(L1 U)^{-1} g`` for the elements ``b0 <= e < b1``: ``LU (B, n, me)`` as in
+    :func:`reduced_setup_kernel` (its first ``me`` rows ``L1 U``), ``g (B, me)``."""
+    me = LU.shape[2]
+    y = np.empty(me)
+    for e in range(b0, b1):
+        L = LU[e]
+        # right-looking (see reduced_setup_kernel): L1 y = g, unit lower, then U x = y
+        for i in range(me):
+            y[i] = g[e, i]
+        for i in range(me):
+            yi = y[i]
+            for k in range(i + 1, me):
+                y[k] -= L[k, i] * yi
+        for i in range(me - 1, -1, -1):
+            yi = y[i] / L[i, i]
+            y[i] = yi
+            for k in range(i):
+                y[k] -= L[k, i] * yi
+        for i in range(me):
+            out[e, i] = -y[i]

@@ -1015,3 +1015,38 @@ def reduced_ip_compiled(
         _np(iters),
     )  # fmt: skip
     return done, handoff, iters
+
+
+def reduced_setup_compiled(
+    LU: Tensor, perm: Tensor, H: Tensor, b: Tensor, G: Tensor, bidx: Tensor
+) -> tuple[Tensor, ...]:
+    """``ReducedKKT``'s null-space set-up per element in one compiled loop
+    (:func:`._numba_qp.reduced_setup_kernel`), for the float64 CPU path of
+    :class:`torchslq.lqdo.kkt.ReducedKKT`: ``(Z, z0, HZ, ZHZ, C, Hz)`` from the LU
+    factors ``LU (B, n, me)`` of ``A'`` and their row order ``perm (B, n)``, ``H (B, n,
+    n)``, ``b (B, me)``, ``G (B, mg, n)`` and the bounded variables ``bidx``."""
+    from . import _numba_qp
+
+    B, n, me = LU.shape
+    r, mc = n - me, G.shape[1] + bidx.numel()
+    Z, HZ = H.new_empty(B, n, r), H.new_empty(B, n, r)
+    z0, Hz = H.new_empty(B, n), H.new_empty(B, n)
+    ZHZ, C = H.new_empty(B, r, r), H.new_empty(B, mc, r)
+    LUn = LU.detach().numpy()  # (column-major as LAPACK left it: read in place)
+    # an element's set-up is some 10^5 multiply-adds: weighted as 512 steps of an LQ pass
+    _launch(
+        _numba_qp.reduced_setup_kernel, B, 512, LUn, _np(perm.to(torch.int64)), _np(H), _np(b),
+        _np(G), _np(bidx.to(torch.int64)), _np(Z), _np(z0), _np(HZ), _np(ZHZ), _np(C), _np(Hz),
+    )  # fmt: skip
+    return Z, z0, HZ, ZHZ, C, Hz
+
+
+def basic_solve_compiled(LU: Tensor, g: Tensor) -> Tensor:
+    """``-(L1 U)^{-1} g`` per element (:func:`._numba_qp.basic_solve_kernel`): the
+    reduced system's multipliers of ``A z = b`` from ``g (B, me)``, the gradient on the
+    basic variables, and ``A'``'s LU factors ``LU (B, n, me)``."""
+    from . import _numba_qp
+
+    out = g.new_empty(g.shape)
+    _launch(_numba_qp.basic_solve_kernel, g.shape[0], 64, LU.detach().numpy(), _np(g), _np(out))
+    return out

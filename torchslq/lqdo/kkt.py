@@ -31,6 +31,9 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from .._backend import can_use_compiled
+from .._backend.dispatch import basic_solve_compiled, reduced_setup_compiled
+
 __all__ = ["KKT_METHODS", "Inequalities", "FullKKT", "ReducedKKT", "newton_system"]
 
 KKT_METHODS = ("auto", "full", "reduced")
@@ -235,11 +238,31 @@ class ReducedKKT:
         LU, perm = lu
         self.f, self.ineq = f, ineq
         self.basic, self.free = perm[:, :me], perm[:, me:]
+        self.LU, self.me = LU, me
+        self.mg = ineq.mg
+        self.bidx = ineq.bidx  # the variables with a bound in some element
+        self.r = r
+        self.re = f.new_zeros(B, me)
+        self.compiled = H.dtype == torch.float64 and B > 0 and can_use_compiled(LU, H, b, ineq.G)
+        if self.compiled:
+            # the same formulas per element in one compiled loop, reading LU in place
+            self.Z, self.z0, self.HZ, self.ZHZ, self.C, self.Hz = reduced_setup_compiled(
+                LU, perm, H, b, ineq.G, self.bidx
+            )
+        else:
+            self._setup(H, f, b, LU, perm)
+        self.mc = self.C.shape[1]
+        self.eye = torch.eye(r + self.mc, dtype=H.dtype, device=H.device)
+
+    def _setup(self, H: Tensor, f: Tensor, b: Tensor, LU: Tensor, perm: Tensor) -> None:
+        """``Z``, ``z0``, ``HZ``, ``Z'HZ``, ``C`` and ``H z0`` as batched torch ops."""
+        B, n, me = LU.shape
+        r = self.r
+        ineq = self.ineq
         # the square LU of the basic rows, L1 U, with its pivoting already applied
         # (column-major, as LAPACK takes it: the slice of LU is not, and each solve with
         # it copied it, 6 ms a time at (256, 72, 72))
         self.LU1 = LU[:, :me, :].mT.contiguous().mT
-        self.ident = torch.arange(1, me + 1, dtype=torch.int32, device=H.device).expand(B, me)
         # Z in the permuted rows, [-L1^{-T} L2'; I], scattered back to z's order, and the
         # basic solution y1 = L1^{-T} U^{-T} b, from one triangular solve
         # (trsm reads only the triangle named: no triu copy)
@@ -257,16 +280,10 @@ class ReducedKKT:
         self.HZ = H @ self.Z
         self.ZHZ = self.Z.mT @ self.HZ
         self.Hz = _rowmv(H, self.z0)
-        self.mg = ineq.mg
-        self.bidx = ineq.bidx  # the variables with a bound in some element
         parts = [ineq.G @ self.Z] if ineq.mg else []
         if self.bidx.numel():
             parts.append(self.Z[:, self.bidx, :])
         self.C = torch.cat(parts, 1) if parts else H.new_zeros(B, 0, r)
-        mc = self.C.shape[1]
-        self.r, self.mc = r, mc
-        self.eye = torch.eye(r + mc, dtype=H.dtype, device=H.device)
-        self.re = f.new_zeros(B, me)
 
     def start(self) -> Tensor:
         return self.z0
@@ -353,8 +370,12 @@ class ReducedKKT:
 
     def multipliers(self, z: Tensor, lam: Tensor, t: Tensor | None) -> Tensor:
         g = self.Hz + self.f if t is None else self.Hz + self.f + t
-        gb = torch.gather(g, 1, self.basic).unsqueeze(-1)
-        return -torch.linalg.lu_solve(self.LU1, self.ident, gb).squeeze(-1)
+        gb = torch.gather(g, 1, self.basic)
+        if self.compiled:
+            return basic_solve_compiled(self.LU, gb.contiguous())
+        B, me = gb.shape
+        ident = torch.arange(1, me + 1, dtype=torch.int32, device=g.device).expand(B, me)
+        return -torch.linalg.lu_solve(self.LU1, ident, gb.unsqueeze(-1)).squeeze(-1)
 
 
 def _permutation(piv: Tensor, n: int) -> Tensor:
