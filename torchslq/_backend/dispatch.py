@@ -1012,7 +1012,7 @@ def reduced_ip_compiled(
         c(ineq.G), c(f), c(h), c(ineq.eu), c(ineq.el), i64(ineq.uidx), i64(ineq.lidx),
         i64(ineq.upos), i64(ineq.lpos), i64(ineq.bidx), c(scale_d), c(scale_i), float(tol),
         int(max_iter), float(reg), _np(z), _np(kkt.Hz), _np(s), _np(mu), _np(done), _np(handoff),
-        _np(iters),
+        _np(iters), _numba_qp.witness_r(kkt.Z.shape[2]),
     )  # fmt: skip
     return done, handoff, iters
 
@@ -1037,6 +1037,7 @@ def reduced_setup_compiled(
     _launch(
         _numba_qp.reduced_setup_kernel, B, 512, LUn, _np(perm.to(torch.int64)), _np(H), _np(b),
         _np(G), _np(bidx.to(torch.int64)), _np(Z), _np(z0), _np(HZ), _np(ZHZ), _np(C), _np(Hz),
+        _numba_qp.witness_r(r),
     )  # fmt: skip
     return Z, z0, HZ, ZHZ, C, Hz
 
