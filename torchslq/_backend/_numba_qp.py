@@ -26,7 +26,6 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-
 # the degrees of freedom up to which the kernels are compiled for their number
 WITNESS_MAX_R = 16
 
