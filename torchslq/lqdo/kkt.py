@@ -28,6 +28,7 @@ QP gets the same kind of (saddle-point) step from either.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 from torch import Tensor
 
@@ -383,8 +384,6 @@ def _permutation(piv: Tensor, n: int) -> Tensor:
     from LAPACK's sequential row interchanges ``piv (B, k)`` (1-based): ``k`` batched
     swaps in numpy (a few microseconds each, where a torch indexing op costs tens)
     instead of building the ``(B, n, n)`` permutation matrix."""
-    import numpy as np
-
     j = piv.cpu().numpy().astype(np.int64) - 1
     B, k = j.shape
     perm = np.tile(np.arange(n), (B, 1))
@@ -395,6 +394,19 @@ def _permutation(piv: Tensor, n: int) -> Tensor:
         perm[:, i] = perm[rows, ji]
         perm[rows, ji] = pi
     return torch.from_numpy(perm).to(piv.device)
+
+
+def _lu_factor(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """``torch.linalg.lu_factor_ex(M)``; on the CPU in float64 into numpy's memory (a
+    large block from the system, on huge pages: see :func:`.qp._scatter`), column-major
+    as LAPACK writes it."""
+    if M.is_cpu and M.dtype == torch.float64 and M.numel() >= 1 << 16:
+        B, n, k = M.shape
+        LU = torch.from_numpy(np.empty((B, k, n))).mT
+        piv = torch.empty(B, min(n, k), dtype=torch.int32)
+        info = torch.empty(B, dtype=torch.int32)
+        return torch.linalg.lu_factor_ex(M, out=(LU, piv, info))
+    return torch.linalg.lu_factor_ex(M)
 
 
 def newton_system(
@@ -421,7 +433,7 @@ def newton_system(
     # the reduced method stalled with non-finite weights where the full one converged
     if method == "auto" and (r + ineq.mg + nb > 0.6 * (n + me) or A.dtype != torch.float64):
         return FullKKT(H, f, A, b, ineq)
-    LU, piv, info = torch.linalg.lu_factor_ex(A.mT)
+    LU, piv, info = _lu_factor(A.mT)
     perm = _permutation(piv, n)
     diag = LU.diagonal(dim1=-2, dim2=-1).abs()
     # (amax and amin: a third of aminmax's time on this CPU build)
