@@ -890,9 +890,6 @@ def lq_data_clean(pieces: tuple[np.ndarray, ...], x0: np.ndarray) -> bool:
     return bool(_gain_kernels().data_clean_kernel(pieces, x0))
 
 
-_GAIN_OUTPUTS = ("Kk", "P", "p", "L", "s", "failed", "x", "u", "lam", "cost", "finite")
-
-
 def lq_gain_solve(
     pieces: tuple[np.ndarray, ...], data_batch: int, x0: np.ndarray, T: int
 ) -> dict[str, np.ndarray]:
@@ -937,7 +934,10 @@ def lq_gain_solve(
             gain.rollout_value_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, Pn, pn, sn,
             x0, xn, un, lamn, costn, finiten, nt, mt,
         )  # fmt: skip
-    return dict(zip(_GAIN_OUTPUTS, out, strict=True))
+    return {
+        "Kk": Kkn, "P": Pn, "p": pn, "L": Ln, "s": sn, "failed": failedn, "x": xn, "u": un,
+        "lam": lamn, "cost": costn, "finite": finiten,
+    }  # fmt: skip
 
 
 def lq_gain_gradients(

@@ -586,6 +586,8 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, batch: torch.Size, inputs: tuple) ->
     status = t(np.zeros(nb, np.int64) if f.all() else np.where(f, 0, _NON_FINITE))
     if len(shape) != 1:  # (unbatched, or several batch dims)
         status = status.reshape(shape)
+    if len(shape) == 1 and data_batch == nb:  # (the common case: no reshape, no expand)
+        full = t
     if torch.is_grad_enabled() and _any_requires_grad(data):
         x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
     else:
