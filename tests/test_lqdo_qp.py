@@ -431,3 +431,23 @@ def test_compiled_reduced_setup_equals_the_torch_setup_and_the_definitions():
         lam = got.multipliers(z, None, None)
         g = (H @ z[..., None])[..., 0] + f + (A.mT @ lam[..., None])[..., 0]
         torch.testing.assert_close(g, torch.zeros_like(g), rtol=0, atol=1e-9)
+
+
+def test_newton_system_keeps_the_graph_of_inputs_that_require_grad():
+    """Built on tensors that require grad, the reduced system is built by torch ops
+    that record the graph (the compiled set-up and the LU into preallocated memory are
+    for the solver's no-grad forward), with the same values as without a graph; large
+    enough (``B n me >= 2^16``) that the no-grad path takes both."""
+    from torchslq.lqdo import kkt
+
+    H, f, A, b, G, h, *_, lb, ub = known_qp(B=40, n=48, me=40, mi=3, bounds=True)
+    ineq = kkt.Inequalities(G, lb, ub)
+    with torch.no_grad():
+        ref = kkt.newton_system(H, f, A, b, ineq, "reduced")
+    Ag = A.clone().requires_grad_(True)
+    got = kkt.newton_system(H, f, Ag, b, ineq, "reduced")
+    assert got.z0.requires_grad and not got.compiled
+    torch.testing.assert_close(got.z0.detach(), ref.z0, rtol=0, atol=1e-12)
+    torch.testing.assert_close(got.ZHZ.detach(), ref.ZHZ, rtol=0, atol=1e-12)
+    (gA,) = torch.autograd.grad(got.z0.sum(), Ag)
+    assert torch.isfinite(gA).all() and gA.abs().sum() > 0

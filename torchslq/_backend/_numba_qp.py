@@ -17,8 +17,12 @@ its pivots' signs are known; an element whose pivots break that (a QP not convex
 constraints' null space) stops and is handed over, like a stalled one, to the full
 Newton system on torch ops, which continues from its iterate.
 
-The per-QP set-up (the LU of ``A'``, ``Z``, ``Z'HZ``, ``HZ``, ``C``) stays in
-``ReducedKKT``: it is batched LAPACK work, efficient on torch.
+The per-QP set-up from the LU factors of ``A'`` (batched LAPACK, on torch) is per
+element too (:func:`reduced_setup_kernel`: ``Z``, ``z0``, ``HZ``, ``Z'HZ``, ``C``, ``H
+z0``, reading the factors in place where the torch set-up copied ``L1 U`` for its
+triangular solves), and so are the multipliers of ``A z = b`` at the end
+(:func:`basic_solve_kernel`). The kernels are compiled for the QP's number of degrees
+of freedom ``r`` up to :data:`WITNESS_MAX_R` (:func:`witness_r`).
 """
 
 from __future__ import annotations

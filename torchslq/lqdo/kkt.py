@@ -400,7 +400,8 @@ def _lu_factor(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
     """``torch.linalg.lu_factor_ex(M)``; on the CPU in float64 into numpy's memory (a
     large block from the system, on huge pages: see :func:`.qp._scatter`), column-major
     as LAPACK writes it."""
-    if M.is_cpu and M.dtype == torch.float64 and M.numel() >= 1 << 16:
+    graph = torch.is_grad_enabled() and M.requires_grad  # (out= records no graph)
+    if M.is_cpu and M.dtype == torch.float64 and M.numel() >= 1 << 16 and not graph:
         B, n, k = M.shape
         LU = torch.from_numpy(np.empty((B, k, n))).mT
         piv = torch.empty(B, min(n, k), dtype=torch.int32)
