@@ -40,6 +40,7 @@ import numpy as np
 from ._numba_gemm import acc_tn
 from ._numba_kernels import (  # noqa: F401 (size_witness re-exported)
     _affine_step,
+    _cholesky,
     _controls,
     _idx,
     finite_gains,
@@ -701,22 +702,17 @@ def _all_positive_definite(R):
     """Whether the symmetric part of every ``R[b, t] (m, m)`` has a Cholesky factor
     (every pivot positive, as LAPACK's ``potrf`` decides; ``R`` finite)."""
     m = R.shape[2]
+    sym = np.empty((m, m), R.dtype)
     L = np.empty((m, m), R.dtype)
+    whole = np.zeros(m, dtype=np.bool_)  # (_cholesky's rows to skip: none)
     for b in range(R.shape[0]):
         for t in range(R.shape[1]):
             Rt = R[b, t]
-            for j in range(m):
-                d = Rt[j, j]
-                for k in range(j):
-                    d -= L[j, k] * L[j, k]
-                if not d > 0.0:
-                    return False
-                L[j, j] = math.sqrt(d)
-                for i in range(j + 1, m):
-                    v = 0.5 * (Rt[i, j] + Rt[j, i])
-                    for k in range(j):
-                        v -= L[i, k] * L[j, k]
-                    L[i, j] = v / L[j, j]
+            for i in range(m):
+                for j in range(i + 1):
+                    sym[i, j] = 0.5 * (Rt[i, j] + Rt[j, i])
+            if not _cholesky(sym, 0.0, whole, L):
+                return False
     return True
 
 

@@ -179,15 +179,8 @@ def adjoint_kernel(b0, b1, F, Kk, Vh, L, gx, gu, dx, du, dlam):
                 qu[i] = s
             kt = du[b, t]
             for i in range(m):
-                s = -qu[i]
-                for j in range(i):
-                    s -= Lt[i, j] * kt[j]
-                kt[i] = s / Lt[i, i]
-            for i in range(m - 1, -1, -1):
-                s = kt[i]
-                for j in range(i + 1, m):
-                    s -= Lt[j, i] * kt[j]
-                kt[i] = s / Lt[i, i]
+                kt[i] = -qu[i]
+            cholesky_solve(Lt, kt)
             # v_t = gx_t + A'v_{t+1} + K'qu
             for i in range(n):
                 s = gx[bg, t, i]
@@ -409,6 +402,23 @@ def _cholesky(A, r, cl, Lb):
                 s2 -= Lb[i, k] * Lb[j, k]
             Lb[i, j] = s2 / d
     return True
+
+
+@numba.njit(cache=True, nogil=True, _nrt=False, inline="always")
+def cholesky_solve(Lb, x):
+    """``x := (Lb Lb')^{-1} x`` in place, ``Lb (k, k)`` lower (:func:`_cholesky`'s
+    factor; its lower triangle is read), ``x (k,)``: forward then back substitution."""
+    k = x.shape[0]
+    for i in range(k):
+        s = x[i]
+        for j in range(i):
+            s -= Lb[i, j] * x[j]
+        x[i] = s / Lb[i, i]
+    for i in range(k - 1, -1, -1):
+        s = x[i]
+        for j in range(i + 1, k):
+            s -= Lb[j, i] * x[j]
+        x[i] = s / Lb[i, i]
 
 
 @numba.njit(cache=True, nogil=True, _nrt=False)

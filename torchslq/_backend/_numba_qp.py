@@ -30,6 +30,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from ._numba_kernels import _cholesky, cholesky_solve
+
 # the degrees of freedom up to which the kernels are compiled for their number
 WITNESS_MAX_R = 16
 
@@ -336,6 +338,8 @@ def reduced_setup_kernel(b0, b1, LU, perm, H, rb, G, bidx, Z, z0, HZ, ZHZ, C, Hz
     mg, nb = G.shape[1], bidx.shape[0]
     S = np.empty((me, r + 1))
     ZtZ = np.empty((r, r))
+    Lz = np.empty((r, r))
+    whole = np.zeros(r, dtype=np.bool_)  # (_cholesky's rows to skip: none)
     w = np.empty(r)
     # (the triangular solves right-looking and the products as sums of outer products:
     # every multiply-add in an inner loop goes to another accumulator, where dot
@@ -383,27 +387,8 @@ def reduced_setup_kernel(b0, b1, LU, perm, H, rb, G, bidx, Z, z0, HZ, ZHZ, C, Hz
                 w[a] += za * zj
                 for c in range(a + 1):
                     ZtZ[a, c] += za * Ze[j, c]
-        for j in range(r):
-            d = ZtZ[j, j]
-            for k in range(j):
-                d -= ZtZ[j, k] * ZtZ[j, k]
-            d = np.sqrt(d)
-            ZtZ[j, j] = d
-            for i in range(j + 1, r):
-                acc = ZtZ[i, j]
-                for k in range(j):
-                    acc -= ZtZ[i, k] * ZtZ[j, k]
-                ZtZ[i, j] = acc / d
-        for i in range(r):
-            acc = w[i]
-            for k in range(i):
-                acc -= ZtZ[i, k] * w[k]
-            w[i] = acc / ZtZ[i, i]
-        for i in range(r - 1, -1, -1):
-            acc = w[i]
-            for k in range(i + 1, r):
-                acc -= ZtZ[k, i] * w[k]
-            w[i] = acc / ZtZ[i, i]
+        _cholesky(ZtZ, 0.0, whole, Lz)  # (Z has an identity block: Z'Z >= I)
+        cholesky_solve(Lz, w)
         for j in range(n):
             acc = 0.0
             for a in range(r):
