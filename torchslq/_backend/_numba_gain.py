@@ -687,14 +687,17 @@ def _adjoint_gain_rows(
                 dx[i] = dxn[i]
 
 
-@numba.njit(cache=True, nogil=True, _nrt=False)
+@numba.njit(cache=True, nogil=True, _nrt=False, fastmath={"reassoc"})
 def _all_finite(a):
-    """Whether every entry of the C-contiguous array ``a`` is finite."""
+    """Whether every entry of the C-contiguous array ``a`` is finite: the sum of
+    ``v - v`` is 0 exactly when every ``v`` is finite (NaN for a NaN or an infinity,
+    in any order of summation: the sum may be reassociated, so that it vectorises)."""
     flat = a.reshape(a.size)
+    acc = 0.0
     for i in range(flat.size):
-        if not math.isfinite(flat[i]):
-            return False
-    return True
+        v = flat[i]
+        acc += v - v
+    return acc == 0.0
 
 
 @numba.njit(cache=True, nogil=True)
