@@ -12,6 +12,7 @@ import torch
 
 from torchslq.lqdo import LQDOProblem, transcribe
 from torchslq.lqdo.backends import qp_solve, solve_dense, solve_sparse
+from torchslq.lqdo.qp import DenseQP
 
 pytestmark = pytest.mark.usefixtures("float64_default")
 
@@ -451,3 +452,41 @@ def test_newton_system_keeps_the_graph_of_inputs_that_require_grad():
     torch.testing.assert_close(got.ZHZ.detach(), ref.ZHZ, rtol=0, atol=1e-12)
     (gA,) = torch.autograd.grad(got.z0.sum(), Ag)
     assert torch.isfinite(gA).all() and gA.abs().sum() > 0
+
+
+@pytest.mark.parametrize("kkt_method", ["reduced", "full"])
+def test_warm_start_from_a_nearby_qp_reaches_its_solution_in_fewer_iterations(kkt_method, backend):
+    """The dense interior point started from the previous quasilinearization QP's
+    solution (``IPStart``; the crane PS10 with active bounds, the second QP from the
+    first's solution): on both Newton systems and both backends it reaches the solution
+    of the cold start and Clarabel's, in fewer iterations; an element given
+    ``ok = False`` starts cold and gets exactly the cold start's result."""
+    from torchslq.lqdo import cases
+
+    B = 4
+    g = torch.Generator().manual_seed(1)
+    x0 = torch.tensor([0.0, 22.0, 0.0, 0.0, -1.0, 0.0]).repeat(B, 1)
+    x0[:, 0] += 0.5 * (2 * torch.rand(B, generator=g) - 1)
+    crane = cases.container_crane()
+    crane.initial = x0.clone()
+    tr = transcribe(crane, "PS", nodes=10)
+    z1 = cases.crane_initial_guess(tr, B)
+    first = solve_dense(tr.qp(z1), kkt=kkt_method)
+    assert (first.status == 0).all()
+    qp2 = tr.qp(first.z.detach())
+    cold = solve_dense(qp2, kkt=kkt_method)
+    warm = solve_dense(qp2, kkt=kkt_method, warm=first.start)
+    ref = solve_sparse(qp2, solver="clarabel", tol=1e-10)
+    assert (cold.status == 0).all() and (warm.status == 0).all()
+    assert warm.iterations < cold.iterations
+    torch.testing.assert_close(warm.value, cold.value, rtol=1e-6, atol=0)
+    torch.testing.assert_close(warm.value, ref.value, rtol=1e-6, atol=0)
+    torch.testing.assert_close(warm.z, ref.z, rtol=0, atol=1e-2)
+    half = replace(first.start, ok=torch.tensor([True, False, True, False]))
+    mixed = solve_dense(qp2, kkt=kkt_method, warm=half)
+    assert torch.equal(mixed.z[1::2], cold.z[1::2])
+    torch.testing.assert_close(mixed.value[::2], warm.value[::2], rtol=1e-6, atol=0)
+    H, f, A, b, G, h, *_ = known_qp(B=4)  # another problem: 6 variables
+    other = DenseQP(H=H, f=f, A=A, b=b, G=G, h=h, c=torch.zeros(4))
+    with pytest.raises(ValueError, match="warm is for QPs of 80 variables"):
+        solve_dense(other, warm=first.start)

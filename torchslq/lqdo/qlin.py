@@ -49,7 +49,7 @@ from torch import Tensor
 from ..solvers.core import Advance, ElementState, LoopSettings, Measure, iterate, shared
 from ..solvers.options import check_int, check_real
 from ..status import Status
-from .backends import QPSolution, solve
+from .backends import IPStart, QPSolution, solve
 from .qp import SparseQP
 from .transcription import Transcription
 
@@ -82,6 +82,11 @@ class _State(ElementState):
     inside: Tensor = None  # (B,) bool, the last step was inside the trust region
     lam: Tensor = None  # (B, me) the last QP's multipliers (hessian="lagrangian")
     mu: Tensor = None  # (B, mi)
+    # the dense backend's warm start for the next QP (backends.IPStart): the bounds'
+    # multipliers per variable (B, n) and whether the last QP gave one (B,)
+    ip_mu_lb: Tensor = None
+    ip_mu_ub: Tensor = None
+    ip_ok: Tensor = None
     qp_time: Tensor = shared(None)  # (1,) accumulated QP solve seconds
 
 
@@ -152,9 +157,18 @@ class _Rule:
             qp = replace(qp, lb=lb, ub=ub)
         return qp
 
-    def _solve(self, qp: SparseQP) -> QPSolution:
+    def _solve(self, qp: SparseQP, state: _State | None = None) -> QPSolution:
+        """The QP; with ``state`` on the dense backend, warm-started from its iterate and
+        its last QP's multipliers where that QP gave them (``backends.IPStart``)."""
         t0 = time.perf_counter()
-        sol = solve(qp, self.o.backend, **self.o.qp_options)
+        options = self.o.qp_options
+        if state is not None and self.o.backend == "dense" and bool(state.ip_ok.any()):
+            warm = IPStart(
+                z=state.z, mu_g=state.mu, mu_lb=state.ip_mu_lb, mu_ub=state.ip_mu_ub,
+                ok=state.ip_ok,
+            )  # fmt: skip
+            options = dict(options, warm=warm)
+        sol = solve(qp, self.o.backend, **options)
         self.qp_seconds += time.perf_counter() - t0
         return sol
 
@@ -174,7 +188,7 @@ class _Rule:
         before = self.qp_seconds
         trust = o.safeguard == "trust_region"
         qp = self._qp(state, state.radius if trust else None)
-        sol = self._solve(qp)
+        sol = self._solve(qp, state)
         qp_ok = sol.status == int(Status.CONVERGED)
         end = torch.where(
             qp_ok | ~running,
@@ -233,6 +247,13 @@ class _Rule:
             mu=torch.where(qp_ok[:, None], sol.mu, state.mu),
             qp_time=qp_t,
         )
+        if sol.start is not None:  # (the dense backend)
+            new = replace(
+                new,
+                ip_mu_lb=torch.where(qp_ok[:, None], sol.start.mu_lb, state.ip_mu_lb),
+                ip_mu_ub=torch.where(qp_ok[:, None], sol.start.mu_ub, state.ip_mu_ub),
+                ip_ok=qp_ok & sol.start.ok,
+            )
         return Advance(state=new, accept=accept, step=alpha, end=end)
 
     def _merit(self, z: Tensor, rho: Tensor) -> Tensor:
@@ -310,7 +331,9 @@ class Quasilinearization:
         tol: the stopping test ``|v(x^k) - v(x^{k-1})| <= tol max(1, |v|)``.
         max_iter: Algorithm 1's ``k_max``.
         backend: ``"clarabel"`` (default), ``"osqp"`` (sparse CPU solvers) or ``"dense"``
-            (the batched torch interior point, CPU or GPU).
+            (the batched torch interior point, CPU or GPU; each QP after the first is
+            warm-started from the iterate and the last QP's multipliers,
+            :class:`~torchslq.lqdo.backends.IPStart`).
         safeguard: None (the paper's Algorithm 1) or ``"merit"`` (see the module docstring).
         feas_tol: constraint violation required to stop with the safeguard.
         qp_options: passed to the QP backend (e.g. ``tol``).
@@ -390,6 +413,9 @@ class Quasilinearization:
             inside=torch.ones(B, dtype=torch.bool, device=z0.device),
             lam=z0.new_zeros(B, tr.me),
             mu=z0.new_zeros(B, tr.mi),
+            ip_mu_lb=torch.zeros_like(z0),
+            ip_mu_ub=torch.zeros_like(z0),
+            ip_ok=torch.zeros(B, dtype=torch.bool, device=z0.device),
             qp_time=torch.zeros((), dtype=torch.float64),
         )
         settings = LoopSettings(
