@@ -425,6 +425,19 @@ def test_compiled_reduced_setup_equals_the_torch_setup_and_the_definitions():
         parts = [ineq.G @ Z, Z[:, ineq.bidx, :]]
         torch.testing.assert_close(got.C, torch.cat(parts, 1), rtol=0, atol=1e-12)
         torch.testing.assert_close(got.Hz, (H @ z0[..., None])[..., 0], rtol=0, atol=1e-12)
+        # with a target (a warm start's iterate) z0 is the point of A z = b nearest it
+        t = torch.randn(f.shape, generator=torch.Generator().manual_seed(3), dtype=f.dtype)
+        old = set_compiled(False)
+        try:
+            ref_t = kkt.newton_system(H, f, A, b, ineq, "reduced", target=t)
+        finally:
+            set_compiled(old)
+        got_t = kkt.newton_system(H, f, A, b, ineq, "reduced", target=t)
+        torch.testing.assert_close(got_t.z0, ref_t.z0, rtol=0, atol=1e-12)
+        torch.testing.assert_close((A @ got_t.z0[..., None])[..., 0], b, rtol=0, atol=1e-12)
+        ztd = (Z.mT @ (got_t.z0 - t)[..., None])[..., 0]
+        torch.testing.assert_close(ztd, torch.zeros_like(ztd), rtol=0, atol=1e-12)
+        torch.testing.assert_close(got_t.Hz, (H @ got_t.z0[..., None])[..., 0], rtol=0, atol=1e-12)
         # multipliers at the reduced minimiser z = z0 + Z w, Z'(H z + f) = 0
         w = torch.linalg.solve(Z.mT @ H @ Z, -(Z.mT @ (H @ z0[..., None] + f[..., None])))
         z = z0 + (Z @ w)[..., 0]

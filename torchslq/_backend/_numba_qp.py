@@ -316,7 +316,7 @@ def reduced_ip_kernel(
 
 
 @numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_model="numpy")
-def reduced_setup_kernel(b0, b1, LU, perm, H, rb, G, bidx, Z, z0, HZ, ZHZ, C, Hz, rt):
+def reduced_setup_kernel(b0, b1, LU, perm, H, rb, G, bidx, target, Z, z0, HZ, ZHZ, C, Hz, rt):
     """The null-space set-up of ``ReducedKKT`` (its formulas, in its order) for the
     elements ``b0 <= e < b1``, from the LU factors of ``A'``.
 
@@ -325,12 +325,15 @@ def reduced_setup_kernel(b0, b1, LU, perm, H, rb, G, bidx, Z, z0, HZ, ZHZ, C, Hz
             ``L = [L1; L2]`` unit lower below the diagonal, ``U`` on and above it;
             perm ``(B, n)``: row ``i`` of ``L U`` is row ``perm[i]`` of ``A'``;
             H ``(B, n, n)``, rb ``(B, me)``: the QP's Hessian and ``A z = b``'s right
-            side; G ``(B, mg, n)``; bidx ``(nb,)``: the bounded variables.
+            side; G ``(B, mg, n)``; bidx ``(nb,)``: the bounded variables;
+            target ``(B, n)``: the point whose projection onto ``A z = b`` is ``z0``
+            (0: the least-norm point; a warm start's iterate).
         Z ``(B, n, r)``, z0 ``(B, n)``, HZ ``(B, n, r)``, ZHZ ``(B, r, r)``,
             C ``(B, mg + nb, r)``, Hz ``(B, n)``: outputs; ``Z`` the basis
-            ``[-L1^{-T} L2'; I]`` in ``z``'s order, ``z0`` the least-norm point with
-            ``A z0 = b`` (``U'^{-1} b`` then ``L1^{-T}`` on the basic variables, minus
-            its part in ``range(Z)``), ``C = [G Z; Z[bidx]]``, ``Hz = H z0``.
+            ``[-L1^{-T} L2'; I]`` in ``z``'s order, ``z0`` the point with ``A z0 = b``
+            nearest ``target`` (``U'^{-1} b`` then ``L1^{-T}`` on the basic variables,
+            minus the part of its difference from ``target`` in ``range(Z)``),
+            ``C = [G Z; Z[bidx]]``, ``Hz = H z0``.
         rt: :func:`witness_r`.
     """
     n, me = LU.shape[1], LU.shape[2]
@@ -375,13 +378,13 @@ def reduced_setup_kernel(b0, b1, LU, perm, H, rb, G, bidx, Z, z0, HZ, ZHZ, C, Hz
             ze[j] = 0.0
         for i in range(me):
             ze[p[i]] = S[i, r]
-        # least norm on z0 + range(Z): z0 - Z (Z'Z)^{-1} Z'z0 (Cholesky of Z'Z)
+        # nearest target on z0 + range(Z): z0 - Z (Z'Z)^{-1} Z'(z0 - target)
         for a in range(r):
             w[a] = 0.0
             for c in range(r):
                 ZtZ[a, c] = 0.0
         for j in range(n):
-            zj = ze[j]
+            zj = ze[j] - target[e, j]
             for a in range(r):
                 za = Ze[j, a]
                 w[a] += za * zj

@@ -1018,13 +1018,14 @@ def reduced_ip_compiled(
 
 
 def reduced_setup_compiled(
-    LU: Tensor, perm: Tensor, H: Tensor, b: Tensor, G: Tensor, bidx: Tensor
+    LU: Tensor, perm: Tensor, H: Tensor, b: Tensor, G: Tensor, bidx: Tensor, target: Tensor
 ) -> tuple[Tensor, ...]:
     """``ReducedKKT``'s null-space set-up per element in one compiled loop
     (:func:`._numba_qp.reduced_setup_kernel`), for the float64 CPU path of
     :class:`torchslq.lqdo.kkt.ReducedKKT`: ``(Z, z0, HZ, ZHZ, C, Hz)`` from the LU
     factors ``LU (B, n, me)`` of ``A'`` and their row order ``perm (B, n)``, ``H (B, n,
-    n)``, ``b (B, me)``, ``G (B, mg, n)`` and the bounded variables ``bidx``."""
+    n)``, ``b (B, me)``, ``G (B, mg, n)`` and the bounded variables ``bidx``; ``z0`` is
+    the point of ``A z = b`` nearest ``target (B, n)``."""
     from . import _numba_qp
 
     B, n, me = LU.shape
@@ -1036,8 +1037,8 @@ def reduced_setup_compiled(
     # an element's set-up is some 10^5 multiply-adds: weighted as 512 steps of an LQ pass
     _launch(
         _numba_qp.reduced_setup_kernel, B, 512, LUn, _np(perm.to(torch.int64)), _np(H), _np(b),
-        _np(G), _np(bidx.to(torch.int64)), _np(Z), _np(z0), _np(HZ), _np(ZHZ), _np(C), _np(Hz),
-        _numba_qp.witness_r(r),
+        _np(G), _np(bidx.to(torch.int64)), _np(target.contiguous()), _np(Z), _np(z0), _np(HZ),
+        _np(ZHZ), _np(C), _np(Hz), _numba_qp.witness_r(r),
     )  # fmt: skip
     return Z, z0, HZ, ZHZ, C, Hz
 

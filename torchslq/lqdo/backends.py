@@ -472,19 +472,14 @@ def _iterate(kkt, ineq, f, b, h, tol, max_iter, start, scales):
     return z, lam, s, mu, done, handoff, it
 
 
-def _warm(kkt, ineq, H, z, h, warm: IPStart) -> tuple[Tensor, Tensor, Tensor]:
+def _warm(kkt, ineq, z, h, warm: IPStart) -> tuple[Tensor, Tensor, Tensor]:
     """``(z, s, mu)`` of the warm start ``warm`` where ``warm.ok``, else the cold start
-    ``z`` (``kkt.start()``) with unit multipliers; on the reduced system ``z`` is moved
-    onto ``A z = b`` (``z0 + Z w``, ``w`` the least-squares fit of ``warm.z``) and
-    ``kkt.Hz`` follows it."""
+    with unit multipliers; ``z = kkt.start()``, which on the reduced system is already
+    ``warm.z`` moved onto ``A z = b`` (:func:`_warm_target`), and on the full one is
+    replaced by ``warm.z``."""
     ok = warm.ok
-    zw = warm.z
-    if isinstance(kkt, ReducedKKT):
-        Z = kkt.Z
-        w = torch.linalg.solve(Z.mT @ Z, Z.mT @ (zw - z).unsqueeze(-1))
-        zw = z + (Z @ w).squeeze(-1)
-        kkt.Hz = torch.where(ok[:, None], (H @ zw.unsqueeze(-1)).squeeze(-1), kkt.Hz)
-    z = torch.where(ok[:, None], zw, z)
+    if not isinstance(kkt, ReducedKKT):
+        z = torch.where(ok[:, None], warm.z, z)
     mi = ineq.m
     if not mi:
         return z, z.new_ones(z.shape[0], 0), z.new_ones(z.shape[0], 0)
@@ -493,6 +488,14 @@ def _warm(kkt, ineq, H, z, h, warm: IPStart) -> tuple[Tensor, Tensor, Tensor]:
     s = torch.where(ok[:, None], (h - ineq.mv(z)).clamp_min(WARM_SLACK_FLOOR), s_cold)
     mu = torch.where(ok[:, None], mu_w.clamp_min(WARM_MU_FLOOR), torch.ones_like(s))
     return z, s, mu
+
+
+def _warm_target(warm: IPStart | None) -> Tensor | None:
+    """The reduced system's ``target`` (:func:`kkt.newton_system`): ``warm.z`` where
+    ``warm.ok``, else 0 (the least-norm point of a cold start)."""
+    if warm is None:
+        return None
+    return torch.where(warm.ok[:, None], warm.z, 0.0)
 
 
 def _start_of(z: Tensor, mu: Tensor, ineq, ok: Tensor) -> IPStart:
@@ -516,7 +519,7 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None, warm=None
     ops (:func:`_iterate`)."""
     B = f.shape[0]
     me, mi = A.shape[1], ineq.m
-    kkt = newton_system(H, f, A, b, ineq, method)
+    kkt = newton_system(H, f, A, b, ineq, method, _warm_target(warm))
     if start is not None:
         z, lam, s, mu = start
     else:
@@ -525,7 +528,7 @@ def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None, warm=None
         s = f.new_ones(B, mi)
         mu = f.new_ones(B, mi)
         if warm is not None:
-            z, s, mu = _warm(kkt, ineq, H, z, h, warm)
+            z, s, mu = _warm(kkt, ineq, z, h, warm)
         elif mi:
             s = (h - ineq.mv(z)).clamp_min(1.0)
     scale_d = 1 + f.abs().amax(-1)

@@ -233,7 +233,10 @@ class ReducedKKT:
     ``lam = -U^{-1} L1^{-1} (P'g)_1`` for ``g = Hz + f + G_all' mu``: then
     ``P'rd = [0; Z'g]``, so ``Z'g`` is its whole size."""
 
-    def __init__(self, H: Tensor, f: Tensor, A: Tensor, b: Tensor, ineq: Inequalities, lu) -> None:
+    def __init__(
+        self, H: Tensor, f: Tensor, A: Tensor, b: Tensor, ineq: Inequalities, lu,
+        target: Tensor | None = None,
+    ) -> None:  # fmt: skip
         B, me, n = A.shape
         r = n - me
         LU, perm = lu
@@ -244,18 +247,22 @@ class ReducedKKT:
         self.bidx = ineq.bidx  # the variables with a bound in some element
         self.r = r
         self.re = f.new_zeros(B, me)
+        # the start z0: the point of A z = b nearest target (0: the least-norm point)
+        target = torch.zeros_like(f) if target is None else target
         self.compiled = H.dtype == torch.float64 and B > 0 and can_use_compiled(LU, H, b, ineq.G)
         if self.compiled:
             # the same formulas per element in one compiled loop, reading LU in place
             self.Z, self.z0, self.HZ, self.ZHZ, self.C, self.Hz = reduced_setup_compiled(
-                LU, perm, H, b, ineq.G, self.bidx
+                LU, perm, H, b, ineq.G, self.bidx, target
             )
         else:
-            self._setup(H, f, b, LU, perm)
+            self._setup(H, f, b, LU, perm, target)
         self.mc = self.C.shape[1]
         self.eye = torch.eye(r + self.mc, dtype=H.dtype, device=H.device)
 
-    def _setup(self, H: Tensor, f: Tensor, b: Tensor, LU: Tensor, perm: Tensor) -> None:
+    def _setup(
+        self, H: Tensor, f: Tensor, b: Tensor, LU: Tensor, perm: Tensor, target: Tensor
+    ) -> None:  # fmt: skip
         """``Z``, ``z0``, ``HZ``, ``Z'HZ``, ``C`` and ``H z0`` as batched torch ops."""
         B, n, me = LU.shape
         r = self.r
@@ -274,9 +281,9 @@ class ReducedKKT:
         Zy = torch.cat([-sol[:, :, :r], eye.expand(B, r, r)], 1)
         self.Z = torch.empty_like(Zy).scatter_(1, perm.unsqueeze(-1).expand(B, n, r), Zy)
         z0 = torch.zeros_like(f).scatter_(1, self.basic, sol[:, :, r])
-        # least norm on z0 + range(Z): z0 - Z (Z'Z)^{-1} Z'z0
+        # nearest target on z0 + range(Z): z0 - Z (Z'Z)^{-1} Z'(z0 - target)
         ZtZ = self.Z.mT @ self.Z
-        w0 = torch.linalg.solve(ZtZ, self.Z.mT @ z0.unsqueeze(-1))
+        w0 = torch.linalg.solve(ZtZ, self.Z.mT @ (z0 - target).unsqueeze(-1))
         self.z0 = z0 - (self.Z @ w0).squeeze(-1)
         self.HZ = H @ self.Z
         self.ZHZ = self.Z.mT @ self.HZ
@@ -411,10 +418,12 @@ def _lu_factor(M: Tensor) -> tuple[Tensor, Tensor, Tensor]:
 
 
 def newton_system(
-    H: Tensor, f: Tensor, A: Tensor, b: Tensor, ineq: Inequalities, method: str = "auto"
-) -> FullKKT | ReducedKKT:
+    H: Tensor, f: Tensor, A: Tensor, b: Tensor, ineq: Inequalities, method: str = "auto",
+    target: Tensor | None = None,
+) -> FullKKT | ReducedKKT:  # fmt: skip
     """The solver of (*) for ``H (B, n, n)``, ``f (B, n)``, ``A (B, me, n)``,
-    ``b (B, me)``.
+    ``b (B, me)``; ``target (B, n)``: where the reduced system's start ``z0`` is the
+    point of ``A z = b`` nearest it (None: the least-norm point; a warm start).
 
     ``method``: ``"full"``, ``"reduced"`` or ``"auto"`` (reduced where ``0 < me < n``,
     ``A`` has full row rank in every element and the reduced system, of size
@@ -446,4 +455,4 @@ def newton_system(
         if method == "reduced":
             raise ValueError("the reduced method needs A of full row rank in every element")
         return FullKKT(H, f, A, b, ineq)
-    return ReducedKKT(H, f, A, b, ineq, (LU, perm))
+    return ReducedKKT(H, f, A, b, ineq, (LU, perm), target)
