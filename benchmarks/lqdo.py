@@ -129,8 +129,11 @@ def main(argv: list[str] | None = None) -> int:
         "## Batched against one-by-one",
         "",
         "Per-problem wall time of one batched call (the dense interior point) and of solving "
-        "the same problems one at a time (first problems of the batch), same run; best of 3 "
-        "batched calls and of 2 passes over the single problems, each after a warm-up. The "
+        "the same problems one at a time (first problems of the batch), same run. The "
+        "co-design rows: best of 3 batched calls and of 3 passes over the single problems, "
+        "each after a warm-up; the crane rows: the batched call and a pass over the single "
+        "problems with each backend in turn, three rounds after a warm-up of each, best of "
+        "each (the machine's speed drifts; measured in blocks the ratio took the drift). The "
         "crane's batch runs on the reduced Newton system (`kkt='auto'`; on the CPU in float64 "
         "its iterations are one compiled loop per element); "
         "`per_problem_batched_full_kkt_ms` is the same batch on the full KKT matrix "

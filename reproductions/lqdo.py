@@ -128,6 +128,23 @@ def _timed(fn: Callable[[], Any], repeat: int) -> tuple[Any, float]:
     return out, best
 
 
+def _interleaved(fns: Sequence[Callable[[], Any]], rounds: int) -> list[tuple[Any, float]]:
+    """``(output, best wall time)`` of each of ``fns``, after a warm-up run of each, over
+    ``rounds`` rounds that run every one in turn (the sparse solvers' kept structures
+    cleared before each run)."""
+    for fn in fns:
+        fn()
+    best = [math.inf] * len(fns)
+    outs: list[Any] = [None] * len(fns)
+    for _ in range(rounds):
+        for k, fn in enumerate(fns):
+            _backends.clear_sparse_caches()
+            t0 = time.perf_counter()
+            outs[k] = fn()
+            best[k] = min(best[k], time.perf_counter() - t0)
+    return list(zip(outs, best, strict=True))
+
+
 def _row(table, case, label, v, iters, status, t, extra=None) -> dict[str, Any]:
     pv, pi, pt = PAPER.get((table, case, label), (None, None, None))
     if "+" in label.split("-", 1)[0]:  # safeguarded rows: compared with the paper's IP rows
@@ -452,7 +469,21 @@ def batched(B: int = 256, n_single: int = 16) -> list:
         qlin = Quasilinearization(backend="dense", qp_options={"kkt": kkt})
         return qlin.solve(trb, cases.crane_initial_guess(trb, B))
 
-    rb, tb = _timed(batch_solve, 3)
+    def singles(backend):
+        out = []
+        for i in range(n_single):
+            tri = crane_with(x0[i : i + 1])
+            out.append(
+                Quasilinearization(backend=backend).solve(tri, cases.crane_initial_guess(tri))
+            )
+        return out
+
+    # the batch and the one-by-one passes in turn, three rounds, best of each: a shared
+    # machine's speed drifts over seconds, and measured in blocks one after the other
+    # the ratio took the drift between the blocks
+    (rb, tb), (rs_dense, ts_dense), (rs_clar, ts_clar) = _interleaved(
+        [batch_solve, lambda: singles("dense"), lambda: singles("clarabel")], 3
+    )
     # the same batch on the full KKT matrix (the reduced Newton system is what "auto"
     # takes here: kkt.newton_system), once
     t0 = time.perf_counter()
@@ -467,18 +498,7 @@ def batched(B: int = 256, n_single: int = 16) -> list:
     finally:
         set_compiled(old)
     torch_equal = bool(torch.allclose(rt.objective, rb.objective, rtol=1e-6, atol=0))
-    for backend in ("dense", "clarabel"):
-
-        def singles(backend=backend):
-            out = []
-            for i in range(n_single):
-                tri = crane_with(x0[i : i + 1])
-                out.append(
-                    Quasilinearization(backend=backend).solve(tri, cases.crane_initial_guess(tri))
-                )
-            return out
-
-        rs, ts = _timed(singles, 2)
+    for backend, rs, ts in (("dense", rs_dense, ts_dense), ("clarabel", rs_clar, ts_clar)):
         ok = all(
             abs(float(rs[i].objective[0]) - float(rb.objective[i])) < 1e-6 for i in range(n_single)
         )
