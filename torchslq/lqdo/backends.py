@@ -484,8 +484,8 @@ def _warm(kkt, ineq, z, h, warm: IPStart) -> tuple[Tensor, Tensor, Tensor]:
     if not mi:
         return z, z.new_ones(z.shape[0], 0), z.new_ones(z.shape[0], 0)
     mu_w = torch.cat([warm.mu_g, warm.mu_ub[:, ineq.uidx], warm.mu_lb[:, ineq.lidx]], 1)
-    s_cold = (h - ineq.mv(z)).clamp_min(1.0)
-    s = torch.where(ok[:, None], (h - ineq.mv(z)).clamp_min(WARM_SLACK_FLOOR), s_cold)
+    slack = h - ineq.mv(z)
+    s = torch.where(ok[:, None], slack.clamp_min(WARM_SLACK_FLOOR), slack.clamp_min(1.0))
     mu = torch.where(ok[:, None], mu_w.clamp_min(WARM_MU_FLOOR), torch.ones_like(s))
     return z, s, mu
 
