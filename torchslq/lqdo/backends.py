@@ -498,12 +498,13 @@ def _warm_target(warm: IPStart | None) -> Tensor | None:
     return torch.where(warm.ok[:, None], warm.z, 0.0)
 
 
-def _start_of(z: Tensor, mu: Tensor, ineq, ok: Tensor) -> IPStart:
-    """The :class:`IPStart` of a solution: ``mu (B, mi)`` in the rows of ``ineq``."""
+def _bound_multipliers(z: Tensor, mu: Tensor, ineq) -> tuple[Tensor, Tensor]:
+    """``(mu_lb, mu_ub)``, ``(B, n)`` each (0 where a variable has no such bound), from
+    ``mu (B, mi)`` in the rows of ``ineq``: an :class:`IPStart`'s bound multipliers."""
     mg, nu = ineq.mg, ineq.nu
     mu_ub = torch.zeros_like(z).index_copy(1, ineq.uidx, mu[:, mg : mg + nu])
     mu_lb = torch.zeros_like(z).index_copy(1, ineq.lidx, mu[:, mg + nu :])
-    return IPStart(z=z, mu_g=mu[:, :mg], mu_lb=mu_lb, mu_ub=mu_ub, ok=ok)
+    return mu_lb, mu_ub
 
 
 def _ip(H, f, A, b, ineq, h, tol, max_iter, method="auto", start=None, warm=None):
@@ -580,13 +581,13 @@ class _QPFunction(torch.autograd.Function):
         ctx.save_for_backward(Hs, A, G, z, lam, mu, s, lb, ub)
         ctx.mg = G.shape[1]
         iters = torch.tensor(it)
-        # every row's multipliers, for the next QP's warm start
-        mu_all = mu.detach().clone()
-        ctx.mark_non_differentiable(status, iters, mu_all)
-        return z, lam, mu[:, : G.shape[1]], status, iters, mu_all
+        # the bounds' multipliers per variable, for the next QP's warm start
+        mu_lb, mu_ub = _bound_multipliers(z.detach(), mu.detach(), ineq)
+        ctx.mark_non_differentiable(status, iters, mu_lb, mu_ub)
+        return z, lam, mu[:, : G.shape[1]], status, iters, mu_lb, mu_ub
 
     @staticmethod
-    def backward(ctx, gz, glam, gmu, _gst, _git, _gmu_all):
+    def backward(ctx, gz, glam, gmu, _gst, _git, _gmu_lb, _gmu_ub):
         Hs, A, G, z, lam, mu, s, lb, ub = ctx.saved_tensors
         ineq = Inequalities(G, lb, ub)
         G = ineq.dense()  # with the bounds' rows
@@ -724,14 +725,11 @@ def solve_dense(
             f"(batch {d.f.shape[0]})"
         )
     # a SparseQP holds the full symmetric Hessian: no symmetrisation of the dense one
-    z, lam, mu, status, iters, mu_all = _qp_solve_iters(
+    z, lam, mu, status, iters, mu_lb, mu_ub = _qp_solve_iters(
         d.H, d.f, d.A, d.b, d.G, d.h, lb, ub, tol, max_iter, kkt, symmetric=sparse, warm=warm
     )
-    lbf = torch.full_like(d.f, -float("inf")) if lb is None else lb.to(d.f).expand_as(d.f)
-    ubf = torch.full_like(d.f, float("inf")) if ub is None else ub.to(d.f).expand_as(d.f)
-    start = _start_of(
-        z.detach(), mu_all, Inequalities(d.G, lbf, ubf), status == int(Status.CONVERGED)
-    )
+    ok = status == int(Status.CONVERGED)
+    start = IPStart(z=z.detach(), mu_g=mu.detach(), mu_lb=mu_lb, mu_ub=mu_ub, ok=ok)
     if sparse:
         value = qp.objective(z)
     else:

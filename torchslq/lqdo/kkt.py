@@ -242,7 +242,7 @@ class ReducedKKT:
         LU, perm = lu
         self.f, self.ineq = f, ineq
         self.basic, self.free = perm[:, :me], perm[:, me:]
-        self.LU, self.me = LU, me
+        self.LU = LU
         self.mg = ineq.mg
         self.bidx = ineq.bidx  # the variables with a bound in some element
         self.r = r
