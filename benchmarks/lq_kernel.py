@@ -1033,7 +1033,8 @@ def _ms(r) -> str:
         return "-"
     if r.get("time_s") is None:
         return r.get("status", "-")
-    s = f"{r['time_s'] * 1e3:.1f}" if r["time_s"] >= 0.01 else f"{r['time_s'] * 1e3:.2f}"
+    t = r["time_s"]
+    s = f"{t * 1e3:.1f}" if t >= 0.01 else f"{t * 1e3:.2f}" if t >= 1e-3 else f"{t * 1e3:.3f}"
     return s + ("" if r.get("check_ok", True) else " (CHECK FAILED)")
 
 

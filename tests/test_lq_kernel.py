@@ -613,7 +613,7 @@ def _homogeneous_only(monkeypatch):
 
 
 @pytest.mark.parametrize("grad", [False, True])
-@pytest.mark.parametrize("shape", ["batched", "shared_data", "unbatched", "broadcast"])
+@pytest.mark.parametrize("shape", ["batched", "shared_data", "mixed", "unbatched", "broadcast"])
 def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad, monkeypatch):
     """On the CPU ``lqr_solve`` runs the gain-form kernels straight from the data, with or
     without a graph. Every output equals the homogeneous path's (the kernels switched
@@ -627,6 +627,8 @@ def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad,
     args = random_problem(seed=21, bsz=3, T=7, n=4, m=2)
     if shape == "shared_data":  # one problem's data for three initial states
         args = {k: (v if k == "x0" else v[:1]) for k, v in args.items()}
+    if shape == "mixed":  # some pieces shared by the batch, the others per element
+        args = {k: (v[:1] if k in ("B", "R", "q") else v) for k, v in args.items()}
     if shape == "unbatched":
         args = {k: v[0] for k, v in args.items()}
     if shape == "broadcast":  # no batch dim, a time dim of 1, a constant matrix
@@ -669,6 +671,49 @@ def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad,
     first = (lambda t: t) if shape == "unbatched" else (lambda t: t[0])
     torch.testing.assert_close(first(fast.x).detach(), x, rtol=1e-9, atol=1e-10)
     torch.testing.assert_close(first(fast.cost).detach(), cost, rtol=1e-9, atol=1e-10)
+
+
+def test_one_pass_input_arrays_equal_the_general_path():
+    """``lqr_solve``'s common call takes its kernels' arrays in one pass
+    (``plain_gain_pieces``): for per-element, shared and mixed data they are the general
+    path's (``lq_gain_pieces``, ``_gain_inputs``), with the same data batch; any other
+    call (a stride-0 or non-contiguous piece, a batch that is neither 1 nor x0's, mixed
+    dtypes, x0 not ``(B, n)``) is left to the general path (None)."""
+    import torchslq.lq.solve as solve_mod
+    from torchslq._backend import dispatch
+
+    if not dispatch.compiled_available():
+        pytest.skip("numba kernels not importable")
+    args = random_problem(seed=5, bsz=3, T=4, n=3, m=2)
+    order = ("A", "B", "Q", "R", "x0", "q", "r", "S", "c")
+
+    def pieces(a):
+        return (a["A"], a["B"], a.get("c"), a["Q"], a["R"], a.get("S"), a.get("q"), a.get("r"))
+
+    shared = {k: (v if k == "x0" else v[:1]) for k, v in args.items()}
+    mixed = {k: (v[:1] if k in ("A", "S") else v) for k, v in args.items()}
+    no_terms = {k: v for k, v in args.items() if k in ("A", "B", "Q", "R", "x0")}
+    grad = {k: v.clone().requires_grad_(True) for k, v in args.items()}
+    for case in (args, shared, mixed, no_terms, grad):
+        got = dispatch.plain_gain_pieces(pieces(case), case["x0"])
+        assert got is not None
+        batch = torch.Size([3])
+        want = solve_mod._gain_inputs(*(case.get(k) for k in order), batch)
+        assert got[1] == want[1]  # the data batch: 1 where shared
+        np.testing.assert_array_equal(got[2], want[2])
+        for a, b in zip(got[0], want[0], strict=True):
+            assert a.shape == b.shape and a.dtype == b.dtype
+            np.testing.assert_array_equal(a, b)
+    assert dispatch.plain_gain_pieces(pieces(shared), shared["x0"])[1] == 1
+    declined = [
+        {**args, "Q": args["Q"][:1].expand(3, -1, -1, -1)},  # stride 0
+        {**args, "A": args["A"].transpose(-1, -2)},  # not contiguous
+        {**args, "B": args["B"][:2]},  # a batch of 2 against 3
+        {**args, "r": args["r"].float()},  # another dtype
+        {**args, "x0": args["x0"][0]},  # unbatched x0
+    ]
+    for case in declined:
+        assert dispatch.plain_gain_pieces(pieces(case), case["x0"]) is None
 
 
 @pytest.mark.all_sizes

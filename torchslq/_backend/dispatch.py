@@ -813,14 +813,19 @@ def _one_time_step(t: Tensor, tail: int) -> Tensor:
 _EMPTY_PIECES: dict = {}  # numpy dtype -> the kernels' (never written) empty pieces
 
 
+def _empty_pieces(npd) -> tuple[np.ndarray, ...]:
+    """The kernels' empty pieces of a numpy dtype (kept: built anew they cost a
+    microsecond each at B = 1)."""
+    empty = _EMPTY_PIECES[npd] = tuple(np.zeros((0,) * d, dtype=npd) for d in PIECE_NDIMS)
+    return empty
+
+
 def _piece_arrays(pieces: tuple, batch, dtype: torch.dtype) -> tuple[np.ndarray, ...]:
     """The LQ data ``(A, B, c, Q, R, S, q, r)`` (each with a time dim; ``c, S, q, r``
     may be None) as the kernels' ``pieces``: arrays ``(1 or prod(batch), 1 or steps,
     ...)``, an absent piece an empty array."""
     npd = _np_dtype(dtype)
-    empty = _EMPTY_PIECES.get(npd)
-    if empty is None:  # (kept: built anew they cost a microsecond each at B = 1)
-        empty = _EMPTY_PIECES[npd] = tuple(np.zeros((0,) * d, dtype=npd) for d in PIECE_NDIMS)
+    empty = _EMPTY_PIECES.get(npd) or _empty_pieces(npd)
     nb = math.prod(batch)
     out = []
     for p, d, none in zip(pieces, PIECE_NDIMS, empty, strict=True):
@@ -862,6 +867,49 @@ def lq_gain_pieces(pieces: tuple, batch: torch.Size) -> tuple[tuple[np.ndarray, 
     arrays = _piece_arrays(pieces, (1,) if shared else batch, pieces[0].dtype)
     return arrays, 1 if shared else math.prod(batch)
 
+
+def plain_gain_pieces(
+    pieces: tuple, x0: Tensor
+) -> tuple[tuple[np.ndarray, ...], int, np.ndarray] | None:
+    """:func:`lq_gain_pieces` and :func:`can_use_compiled` (``differentiable=True``) in
+    one pass for the common call, None for any other (the general path then decides):
+    ``x0 (B, n)`` and every piece with one batch dim of 1 or ``B`` and its time dim,
+    contiguous, on the CPU, in ``x0``'s float dtype. Returns ``(arrays, data_batch,
+    x0)`` as numpy arrays. (At ``B = 1`` the general path's separate passes over the
+    nine tensors cost about a third of a ``(4, 1)``, ``T = 100`` solve.)"""
+    if x0.ndim != 2 or not x0.is_cpu or not compiled_available():
+        return None
+    dtype = x0.dtype
+    npd = _NP_DTYPES.get(dtype)
+    if npd is None:
+        return None
+    nb = x0.shape[0]
+    empty = _EMPTY_PIECES.get(npd) or _empty_pieces(npd)
+    shared = True
+    out = []
+    for p, d, none in zip(pieces, PIECE_NDIMS, empty, strict=True):
+        if p is None:
+            out.append(none)
+            continue
+        if p.ndim != d or p.dtype != dtype or not p.is_cpu or not p.is_contiguous():
+            return None
+        b = p.shape[0]
+        if b != 1:
+            if b != nb:
+                return None
+            shared = False
+        out.append((p.detach() if p.requires_grad else p).numpy())
+    # (as can_use_compiled: torch.func's wrappers and torch.compile's fake tensors take
+    # the torch path)
+    if torch.compiler.is_compiling() or torch._C._functorch.peek_interpreter_stack() is not None:
+        return None
+    if _kernels() is None or not x0.is_contiguous():
+        return None
+    # data shared by the batch: one Riccati pass serves all
+    return tuple(out), 1 if shared else nb, (x0.detach() if x0.requires_grad else x0).numpy()
+
+
+_NP_DTYPES = {torch.float64: np.float64, torch.float32: np.float32}
 
 _GAIN_PLANS: dict = {}  # (n, m, switches) -> _gain_plan's tuple
 
@@ -922,7 +970,8 @@ def lq_gain_solve(
         np.empty(nb, np.bool_),
     )
     Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten = out
-    if _threads(max(nb, data_batch), T) == 1:  # one launch instead of three
+    work = max(nb, data_batch)
+    if work * T < 2 * MIN_STEPS_PER_THREAD or _threads(work, T) == 1:  # one launch, not three
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
         with_slp(passes.gain_solve_kernel, pieces, x0, *out, nt, mt)
     else:

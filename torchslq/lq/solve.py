@@ -38,6 +38,7 @@ from .._backend.dispatch import (
     lq_gain_gradients,
     lq_gain_pieces,
     lq_gain_solve,
+    plain_gain_pieces,
 )
 from .._shapes import broadcast_shapes
 from ..status import Status
@@ -319,6 +320,30 @@ def _check_tensor(
             )
     if not t.is_floating_point():
         raise TypeError(f"{name} must be a floating-point tensor, got {t.dtype}")
+
+
+def _plain_arguments(A, B, Q, R, x0, q, r, S, c, T: int, n: int, m: int) -> bool:
+    """Whether every argument is a tensor of the common call's shape (one batch dim and
+    the time dim given: ``A (B|1, T, n, n)``, ``x0 (B, n)``, ...), in ``A``'s float
+    dtype, on the CPU: what :func:`_check_tensor` and :func:`_check_common_dtype_device`
+    pass, decided without their per-argument steps (at ``B = 1`` those cost as much as a
+    small solve). False sends a call to them, for their messages."""
+    dtype = A.dtype
+    if dtype is not torch.float64 and dtype is not torch.float32:
+        return False
+    if not isinstance(x0, Tensor) or Q is None or R is None:
+        return False
+    if x0.shape[1:] != (n,) or x0.dtype != dtype or not x0.is_cpu:
+        return False
+    for t, shape in (
+        (A, (T, n, n)), (B, (T, n, m)), (Q, (T + 1, n, n)), (R, (T, m, m)), (q, (T + 1, n)),
+        (r, (T, m)), (S, (T, m, n)), (c, (T, n)),
+    ):  # fmt: skip
+        if t is None:
+            continue
+        if not isinstance(t, Tensor) or t.shape[1:] != shape or t.dtype != dtype or not t.is_cpu:
+            return False
+    return True
 
 
 def _check_common_dtype_device(**args: Tensor | None) -> None:
@@ -661,18 +686,19 @@ def lqr_solve(
         if not torch.is_tensor(B) or B.ndim < 2:
             raise ValueError(f"B must have shape (B, T, n, m), got {getattr(B, 'shape', type(B))}")
         m = B.shape[-1]
-        _check_tensor("A", A, 3, (n, n), None)
-        _check_tensor("B", B, 3, (n, m), T)
-        _check_tensor("Q", Q, 2, (n, n), T + 1)
-        _check_tensor("R", R, 2, (m, m), T)
-        _check_tensor("x0", x0, 1, (n,), None)
-        _check_tensor("q", q, 1, (n,), T + 1)
-        _check_tensor("r", r, 1, (m,), T)
-        _check_tensor("S", S, 2, (m, n), T)
-        _check_tensor("c", c, 1, (n,), T)
-        if T == 0:
-            raise ValueError("A has a horizon of T = 0 steps; need T >= 1")
-        _check_common_dtype_device(A=A, B=B, Q=Q, R=R, x0=x0, q=q, r=r, S=S, c=c)
+        if T == 0 or not _plain_arguments(A, B, Q, R, x0, q, r, S, c, T, n, m):
+            _check_tensor("A", A, 3, (n, n), None)
+            _check_tensor("B", B, 3, (n, m), T)
+            _check_tensor("Q", Q, 2, (n, n), T + 1)
+            _check_tensor("R", R, 2, (m, m), T)
+            _check_tensor("x0", x0, 1, (n,), None)
+            _check_tensor("q", q, 1, (n,), T + 1)
+            _check_tensor("r", r, 1, (m,), T)
+            _check_tensor("S", S, 2, (m, n), T)
+            _check_tensor("c", c, 1, (n,), T)
+            if T == 0:
+                raise ValueError("A has a horizon of T = 0 steps; need T >= 1")
+            _check_common_dtype_device(A=A, B=B, Q=Q, R=R, x0=x0, q=q, r=r, S=S, c=c)
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     m = B.shape[-1]
@@ -685,14 +711,19 @@ def lqr_solve(
     c = with_time(c, 1, T)
 
     # on the CPU: the gain-form kernels' arrays of the data (None where they do not apply)
-    gain_inputs = None
+    # (the common call's in one pass: plain_gain_pieces)
+    gain_inputs = None if method == "scan" else plain_gain_pieces((A, B, c, Q, R, S, q, r), x0)
+    if gain_inputs is not None:
+        batch = torch.Size((x0.shape[0],))
     if validate:
-        try:
-            batch = _batch_shape(A, B, Q, R, x0, q, r, S, c)
-        except RuntimeError as err:
-            raise ValueError(f"batch dimensions of the arguments do not broadcast: {err}") from err
-        if method != "scan":
-            gain_inputs = _gain_inputs(A, B, Q, R, x0, q, r, S, c, batch)
+        if gain_inputs is None:
+            try:
+                batch = _batch_shape(A, B, Q, R, x0, q, r, S, c)
+            except RuntimeError as err:
+                msg = f"batch dimensions of the arguments do not broadcast: {err}"
+                raise ValueError(msg) from err
+            if method != "scan":
+                gain_inputs = _gain_inputs(A, B, Q, R, x0, q, r, S, c, batch)
         if gain_inputs is not None:  # the same check, compiled, on the kernels' arrays
             faulty = not lq_data_clean(gain_inputs[0], gain_inputs[2])
         else:
