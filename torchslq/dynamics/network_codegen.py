@@ -65,6 +65,7 @@ from .graph_jacobian import (
     hessian_blocks,
     xu_hessian,
 )
+from .network_chains import find_chains, function_lines, reverse_rules
 from .network_reverse import write_jacobians
 
 __all__ = ["network_step", "network_jacobians", "network_hessians"]
@@ -247,6 +248,11 @@ class _Writer:
         #: node -> how it was computed, for the reverse sweep
         #: (:mod:`torchslq.dynamics.network_reverse`)
         self.rules: dict[fx.Node, tuple] = {}
+        #: an activation node -> its numba template (``"_tanh({})"``), for the blocked
+        #: layer chains (:mod:`torchslq.dynamics.network_chains`)
+        self.forms: dict[fx.Node, str] = {}
+        #: node -> the range of :attr:`lines` that computes it (the inputs' under None)
+        self.spans: dict[fx.Node | None, tuple[int, int]] = {}
 
     def param(self, root: nn.Module, source: tuple[str, str]) -> int:
         """Append the parameters ``source`` names (:func:`_parameter`) to the array (once
@@ -432,9 +438,11 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
             w.emit(f"for i in range({width}):")
             w.emit(f"{v}[i] = {name}[i]", 2)
     imports: list[str] = []
+    w.spans[None] = (0, len(w.lines))
     for nd in program.nodes:
         if nd.op in ("placeholder", "output", "get_attr"):
             continue
+        w.spans[nd] = (len(w.lines), -1)  # (closed below, after its branch)
         width = env[nd].shape[-1]
         args = nd.args
         if nd.op == "call_module":
@@ -479,6 +487,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 a = w.operand(args[0], width, env, root)
                 w.elementwise(nd, width, lambda j, t=template, a=a: t.format(a(j)))
                 w.rules[nd] = ("activation", args[0], _activation_slope(mod))
+                w.forms[nd] = template
         elif (p := _power_exponent(nd)) is not None:
             a = w.operand(args[0], width, env, root)
             if p == 2:
@@ -523,11 +532,13 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
             t = _METHOD_ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
             w.rules[nd] = ("activation", args[0], (_SLOPES[t], _CURVES[t]))
+            w.forms[nd] = t
         elif nd.op == "call_function" and nd.target in _ELEMENTWISE:
             a = w.operand(args[0], width, env, root)
             t = _ELEMENTWISE[nd.target]
             w.elementwise(nd, width, lambda j, t=t, a=a: t.format(a(j)))
             w.rules[nd] = ("activation", args[0], (_SLOPES[t], _CURVES[t]))
+            w.forms[nd] = t
         elif nd.target is operator.neg:
             a = w.operand(args[0], width, env, root)
             w.elementwise(nd, width, lambda j, a=a: f"(-{a(j)})")
@@ -543,6 +554,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
                 w.rules[nd] = ("product" if op == "*" else "quotient", first, a, second, b)
         else:
             raise _Unsupported(f"{nd.op} {nd.target}")
+        w.spans[nd] = (w.spans[nd][0], len(w.lines))
     if not _var(program.output) or w.widths[program.output] != n:
         raise _Unsupported("the output is not a state")
     forward = list(w.lines)  # the nodes' code, for the Jacobians' function
@@ -575,37 +587,40 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
         ]
     )
     w.jacobian_subs = w.hessian_subs = None
-    for kind, weights in (
-        ("jacobians", None),
-        ("hessians", lambda t: w.param(root, ("weight", t))),
-    ):
+    forward_lines = w.lines
+    w.lines = forward  # (the spans index the nodes' code, without the output's)
+    weights_t = lambda t: w.param(root, ("weight", t))  # noqa: E731
+    weight_rows = lambda t: w.param(root, ("weight_rows", t))  # noqa: E731
+    for kind, weights in (("jacobians", None), ("hessians", weights_t)):
         if program.elementwise > MAX_DERIVATIVE_NODES[kind]:
             continue  # its compilation would cost more than it saves
+        hessians = kind == "hessians"
+        # wide layer chains in blocks of rows (the Jacobians only)
+        chains = [] if hessians else find_chains(program, w, n, weights_t, weight_rows)
         try:
             sweep, subs = write_jacobians(
-                w, program, root, n, m, NARROW, _new_array,
-                lambda target: w.param(root, ("weight_rows", target)), weights,
+                w, program, root, n, m, NARROW, _new_array, weight_rows, weights,
+                reverse_rules(w, chains) if chains else None,
             )  # fmt: skip
         except (_Unsupported, KeyError):
             continue  # not written: the graph path differentiates
-        hessians = kind == "hessians"
         S = "".join(f"S{k}a, S{k}b, {f'S{k}h, ' if hessians else ''}" for k in range(len(subs)))
-        body += "\n".join(
-            [
-                "",
-                "",
-                _DECORATOR,
-                f"def {kind}(r0, r1, X, U, p, {S}A, B{', H' if hessians else ''}):",
+        header = f"def {kind}(r0, r1, X, U, p, {S}A, B{', H' if hessians else ''}):"
+        if chains:
+            lines = function_lines(chains, w, program, n, sweep, header)
+        else:
+            lines = [
+                header,
                 f"    work = np.empty((8, {n}))",
                 "    for r in range(r0, r1):",
                 "        x = X[r]",
                 "        u = U[r]",
                 *("    " + line for line in forward),
                 *sweep,
-                "",
             ]
-        )
+        body += "\n".join(["", "", _DECORATOR, *lines, ""])
         setattr(w, f"{kind[:-1]}_subs", subs)
+    w.lines = forward_lines
     return body, w
 
 

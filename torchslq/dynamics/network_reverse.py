@@ -158,6 +158,19 @@ class _Sweep:
                     f"{g}[{_at(j, k, 'i', 0)}] += gs{_name(j)}_0 * p[{wr + o * k} + i]", base + 1
                 )
 
+    def chain(self, src: str, rule: tuple) -> None:
+        """``G_a += G_y J[row]`` for a layer chain's output ``y`` on its input ``a``, ``J
+        (rows, wo, k)`` the chain's Jacobian of the block
+        (:mod:`torchslq.dynamics.network_chains`)."""
+        _, c, a, wo = rule
+        k = self.w.widths[a]
+        g, _ = self.grad(a)
+        self.emit(f"for j in range({self.n}):")
+        self.emit(f"for o in range({wo}):", 1)
+        self.emit(f"gs = {src}[j * {wo} + o]", 2)
+        self.emit(f"for i in range({k}):", 2)
+        self.emit(f"{g}[j * {k} + i] += gs * JC{c}[ii, o, i]", 3)
+
     def sub_index(self, target: str) -> int:
         """The argument index of a Dynamics submodule's arrays (one per submodule)."""
         if target not in self.subs:
@@ -426,16 +439,19 @@ def _at(j, width: int, i, offset=0) -> str:
 
 
 def write_jacobians(
-    w, program, root, n: int, m: int, narrow: int, new_array, weight_rows, weights=None
-):
+    w, program, root, n: int, m: int, narrow: int, new_array, weight_rows, weights=None,
+    rules=None,
+):  # fmt: skip
     """The lines of the generated ``jacobians`` function's sweep (to follow the step's
     forward lines in the row loop) and the Dynamics submodules whose Jacobians it takes
     as arguments (targets, in order). ``w`` is the forward writer after the step's nodes;
     ``weight_rows(target)`` the offset of a layer's weight rows in ``p``. With
     ``weights(target)`` (the offset of its transposed weight, the step's), the lines of
     the ``hessians`` function instead: also every output's Hessian into ``H[r]`` (and
-    each submodule's Hessians taken as a third argument). Raises :class:`_Unsupported`
-    for what it does not write."""
+    each submodule's Hessians taken as a third argument). ``rules``: the writer's rules
+    with changes (a layer chain's, :func:`torchslq.dynamics.network_chains.reverse_rules`;
+    None: ``w.rules``). Raises :class:`_Unsupported` for what it does not write."""
+    rules = w.rules if rules is None else rules
     second = weights is not None
     sweep = _Second(w, n, m, narrow, new_array) if second else _Sweep(w, n, narrow, new_array)
     if second:
@@ -459,7 +475,7 @@ def write_jacobians(
     for nd in reversed(program.nodes):
         if nd.op in ("placeholder", "output", "get_attr") or nd not in sweep.G:
             continue
-        rule = w.rules.get(nd)
+        rule = rules.get(nd)
         if rule is None:
             raise _Unsupported(f"no reverse rule for {nd.op} {nd.target}")
         width = w.widths[nd]
@@ -493,5 +509,7 @@ def _apply(sweep: _Sweep, nd: fx.Node, rule: tuple, src: tuple, inputs: tuple, w
     elif kind == "submodule":
         _, a, b = rule
         sweep.submodule(nd, src[0], inputs, (a, b))
+    elif kind == "chain":
+        sweep.chain(src[0], rule)
     else:  # pragma: no cover - every rule the writer records is handled above
         raise _Unsupported(kind)

@@ -1,0 +1,129 @@
+"""A learned model's wide layer chains differentiated in blocks of rows
+(torchslq.dynamics.network_chains): which chains are taken, and the generated Jacobians
+with them against torch.func's per-row Jacobians and against the row sweep alone."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from test_graph_jacobian import data, mlp, reference
+from torch import nn
+
+import torchslq as ts
+from torchslq.dynamics import network_chains, network_codegen
+from torchslq.dynamics.graph_jacobian import _program, _root
+
+pytestmark = [pytest.mark.codegen, pytest.mark.network_derivatives]
+
+F64 = torch.float64
+
+
+class Activated(ts.Dynamics):
+    """A chain that starts with an activation and has a layer without a bias, on the
+    state alone; its output is the model's output."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        torch.manual_seed(4)
+        self.net = nn.Sequential(
+            nn.Linear(4, 20), nn.SiLU(), nn.Linear(20, 18, bias=False), nn.ReLU(),
+            nn.Linear(18, 4),
+        ).to(F64)  # fmt: skip
+        self.b = nn.Linear(1, 4).to(F64)
+
+    def forward(self, x, u):
+        return x + self.net(torch.sigmoid(x)) + self.b(u)
+
+
+class Stacked(ts.Dynamics):
+    """Two chains, the second on the first's output (scaled): only the first is taken."""
+
+    state_dim, control_dim = 4, 2
+
+    def __init__(self):
+        super().__init__()
+        self.first = mlp(nn.Tanh(), nn.Tanh(), k=6, out=4, seed=5)
+        self.second = mlp(nn.Tanh(), nn.Tanh(), k=4, out=4, seed=6)
+
+    def forward(self, x, u):
+        h = self.first(torch.cat([x, u], -1))
+        return x + 0.1 * self.second(0.5 * h)
+
+
+def _chains(model) -> list:
+    """The chains the generated Jacobians take for ``model``."""
+    program = _program(model)
+    _, w = network_codegen._write(program, _root(model), model.state_dim, model.control_dim, F64)
+    return network_chains.find_chains(
+        program, w, model.state_dim,
+        lambda t: w.param(_root(model), ("weight", t)),
+        lambda t: w.param(_root(model), ("weight_rows", t)),
+    )  # fmt: skip
+
+
+def _jacobians(model, x, u):
+    with torch.no_grad():
+        return network_codegen.network_jacobians(model, x, u)
+
+
+MODELS = {
+    "residual-tanh": (lambda: ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2), 2, 5),
+    "activated": (Activated, 1, 6),  # (the sigmoid and five layers)
+    "stacked": (Stacked, 2, 5),
+}
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_blocked_chains_equal_autodiff_and_the_row_sweep(name, monkeypatch):
+    """At row counts below, at and across the block size the Jacobians with the chains
+    in blocks are torch.func's, and the row sweep's (chains off) to rounding."""
+    make, m, nodes = MODELS[name]
+    model = make()
+    chains = _chains(model)
+    assert len(chains) == 1 and len(chains[0].nodes) == nodes  # (Stacked: the first only)
+    rows = network_chains.BLOCK_ROWS
+    for lead in ((1,), (rows,), (rows + 1,), (3, rows - 7)):
+        x, u = data(lead=lead, m=m, scale=1.0, seed=len(lead) + lead[-1])
+        got = _jacobians(model, x, u)
+        assert got is not None
+        A_ref, B_ref = reference(model, x, u)
+        assert float(A_ref.abs().max()) > 1e-2 and float(B_ref.abs().max()) > 1e-3
+        torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
+        torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+    monkeypatch.setattr(network_chains, "enabled", False)
+    rows_only = make()  # (a new model: its text and function are written without chains)
+    rows_only.load_state_dict(model.state_dict())
+    assert _chains(rows_only) == []
+    A_rows, B_rows = _jacobians(rows_only, x, u)
+    torch.testing.assert_close(got[0], A_rows, rtol=1e-13, atol=1e-14)
+    torch.testing.assert_close(got[1], B_rows, rtol=1e-13, atol=1e-14)
+
+
+def test_chains_not_taken():
+    """Layers narrower than WIDE, or a chain with more outputs than the state (its
+    Jacobian would cost more than the row sweep's n sensitivities), stay in the row
+    sweep; the Jacobians are right either way."""
+    narrow = ts.LearnedDynamics(
+        nn.Sequential(nn.Linear(6, 12), nn.Tanh(), nn.Linear(12, 12), nn.Tanh(), nn.Linear(12, 4))
+        .to(F64), 4, 2,
+    )  # fmt: skip
+
+    class WideOut(ts.Dynamics):
+        state_dim, control_dim = 4, 2
+
+        def __init__(self):
+            super().__init__()
+            self.net = mlp(nn.Tanh(), nn.Tanh(), k=6, out=8, seed=2)
+
+        def forward(self, x, u):
+            return x + self.net(torch.cat([x, u], -1))[..., 2:6]
+
+    for model in (narrow, WideOut()):
+        assert _chains(model) == []
+        x, u = data(lead=(40,), m=2, scale=1.0)
+        got = _jacobians(model, x, u)
+        A_ref, B_ref = reference(model, x, u)
+        torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
+        torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)

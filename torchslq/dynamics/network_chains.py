@@ -1,0 +1,331 @@
+"""A learned model's wide layer chains differentiated in blocks of rows.
+
+The generated ``jacobians`` function (:mod:`torchslq.dynamics.network_reverse`) runs the
+step's forward code and the reverse sweep one row at a time. For a chain of wide layers
+(``Linear - tanh - Linear - tanh - Linear`` on ``cat([x, u])``, say) each row then
+reloads every weight for a matrix-vector product: a 5-64-64-4 MLP ran its products at
+5-7 GFMA/s, where a matrix product over rows runs at several times that. Here such a
+chain is taken out of the row loop: rows are handled :data:`BLOCK_ROWS` at a time, and
+for each block
+
+1. the chain's input ``a (rows, k)`` is computed row by row (only the nodes it depends
+   on), into ``CIN``;
+2. the chain's forward pass and its Jacobian ``J = d out / d a (rows, wo, k)`` (``wo``
+   outputs seeded with the identity, swept back: ``G <- G diag(s'(z))`` through an
+   activation, ``G <- G W`` through a layer) run on the whole block, each layer's
+   product one ``np.dot`` (BLAS) over the block's rows;
+3. the row loop runs as before, with the chain's output read from the block and its
+   reverse step ``G_a += G_out J[row]``.
+
+A chain is a sequence of nodes, each a ``nn.Linear`` layer or an activation (a module,
+function or method the step writes) of the one before, each but the last used by the
+next alone, with a layer at least :data:`WIDE` wide on both sides and at most ``n``
+outputs (its Jacobian then costs no more than the row sweep's ``n`` sensitivities). Its
+input must not depend on another chain. The results equal the row sweep's to rounding
+(the products sum in BLAS's order). Needs numba's BLAS (scipy); without it no chain is
+taken. Only the Jacobians use it (not the Hessians' function, not the step).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from torch import fx
+
+from .graph_jacobian import _var
+
+#: the narrowest layer (inputs and outputs) that makes a chain worth a block
+WIDE = 16
+#: rows per block: the block's arrays (a few (32, 64) float64 arrays) stay in L1/L2, and
+#: each product is large enough for BLAS's kernels
+BLOCK_ROWS = 32
+
+
+class Chain(NamedTuple):
+    """A chain of layers and activations (module docstring), numbered ``index``."""
+
+    index: int
+    input: fx.Node
+    output: fx.Node
+    nodes: tuple[fx.Node, ...]
+    #: ``("linear", k, width, weight offset (k, width), row offset (width, k), bias
+    #: offset or None)`` or ``("activation", form, slope, width)``, in forward order
+    ops: tuple[tuple, ...]
+
+
+#: False: no chain is taken (the row sweep alone; to compare the two)
+enabled = True
+
+
+def _blas_available() -> bool:
+    """Whether numba can compile ``np.dot`` (it calls scipy's BLAS)."""
+    try:
+        import scipy.linalg.cython_blas  # noqa: F401
+    except ImportError:
+        return False
+    return True
+
+
+def find_chains(program, w, n: int, weights, weight_rows) -> list[Chain]:
+    """The chains of ``program`` as the forward writer ``w`` wrote it (its ``rules``,
+    ``forms`` and ``widths``); ``weights(target)`` / ``weight_rows(target)``: a layer's
+    offsets in the parameter array (transposed, and as it is)."""
+    if not enabled:
+        return []
+    rules, forms = w.rules, w.forms
+
+    def link(nd):
+        """The node ``nd`` is a chain step on, or None."""
+        rule = rules.get(nd)
+        if rule is None or rule[0] not in ("linear", "activation") or not _var(rule[1]):
+            return None
+        if rule[0] == "activation" and nd not in forms:
+            return None
+        return rule[1]
+
+    def only_user(nd):
+        users = list(nd.users)
+        return users[0] if len(users) == 1 else None
+
+    chains: list[Chain] = []
+    taken: set = set()
+    for nd in program.nodes:
+        prev = link(nd)
+        if nd in taken or prev is None:
+            continue
+        if link(prev) is not None and only_user(prev) is nd:
+            continue  # (inside a chain that starts earlier and was not taken)
+        nodes = [nd]
+        while (nxt := only_user(nodes[-1])) is not None and link(nxt) is nodes[-1]:
+            nodes.append(nxt)
+        taken.update(nodes)
+        ops = []
+        for c in nodes:
+            rule = rules[c]
+            if rule[0] == "linear":
+                k, width = w.widths[rule[1]], w.widths[c]
+                mod_bias = _bias_offset(w, rule[2])
+                ops.append(("linear", k, width, weights(rule[2]), weight_rows(rule[2]), mod_bias))
+            else:
+                ops.append(("activation", forms[c], rule[2][0], w.widths[c]))
+        wide = any(op[0] == "linear" and min(op[1], op[2]) >= WIDE for op in ops)
+        if not wide or w.widths[nodes[-1]] > n:
+            continue
+        if _depends_on(prev, [q for ch in chains for q in ch.nodes]):
+            continue
+        chains.append(Chain(len(chains), prev, nodes[-1], tuple(nodes), tuple(ops)))
+    if chains and not _blas_available():
+        return []
+    return chains
+
+
+def _bias_offset(w, target: str):
+    """The bias's offset in the parameter array (registered by the writer), or None."""
+    return w.offsets.get(("bias", target))
+
+
+def _depends_on(node: fx.Node, nodes: list) -> bool:
+    """Whether ``node`` is one of ``nodes`` or computed from one."""
+    seen, stack, targets = set(), [node], set(nodes)
+    while stack:
+        q = stack.pop()
+        if q in targets:
+            return True
+        if q in seen or not isinstance(q, fx.Node):
+            continue
+        seen.add(q)
+        stack.extend(a for a in q.all_input_nodes)
+    return False
+
+
+def _ancestors(nodes: list) -> set:
+    seen, stack = set(), list(nodes)
+    while stack:
+        q = stack.pop()
+        if q in seen:
+            continue
+        seen.add(q)
+        stack.extend(q.all_input_nodes)
+    return seen
+
+
+def _arrays(chain: Chain, rows: str) -> list[str]:
+    """Allocations of a chain's block arrays for ``rows`` rows."""
+    c, k, wo = chain.index, _width_in(chain), _width_out(chain)
+    lines = [f"CIN{c} = np.empty(({rows}, {k}))"]
+    for i, op in enumerate(chain.ops):
+        width = op[2] if op[0] == "linear" else op[3]
+        lines.append(f"Z{c}_{i} = np.empty(({rows}, {width}))")
+    lines.append(f"G{c}_{len(chain.ops)} = np.empty(({rows} * {wo}, {wo}))")
+    for i, op in enumerate(chain.ops):
+        if op[0] == "linear":
+            lines.append(f"G{c}_{i} = np.empty(({rows} * {wo}, {op[1]}))")
+    return lines
+
+
+def _width_in(chain: Chain) -> int:
+    op = chain.ops[0]
+    return op[1] if op[0] == "linear" else op[3]
+
+
+def _width_out(chain: Chain) -> int:
+    op = chain.ops[-1]
+    return op[2] if op[0] == "linear" else op[3]
+
+
+def function_lines(
+    chains: list[Chain], w, program, n: int, sweep: list[str], header: str
+) -> list[str]:
+    """The generated ``jacobians`` function with ``chains`` taken out of the row loop
+    (module docstring): its ``def`` line ``header``, the forward writer ``w`` (its lines
+    and ``spans``) of a model with ``n`` states, and the reverse sweep's lines ``sweep``
+    (written with the chains' rules, :func:`reverse_rules`)."""
+    ind = "    "
+    out = [header, f"{ind}work = np.empty((8, {n}))"]
+    for ch in chains:  # the weights as 2-d arrays, for np.dot
+        for i, op in enumerate(ch.ops):
+            if op[0] == "linear":
+                _, k, width, woff, wr, _ = op
+                out.append(
+                    f"{ind}W{ch.index}_{i} = np.ascontiguousarray(p[{woff}:{woff + k * width}])"
+                    f".reshape(({k}, {width}))"
+                )
+                out.append(
+                    f"{ind}V{ch.index}_{i} = np.ascontiguousarray(p[{wr}:{wr + k * width}])"
+                    f".reshape(({width}, {k}))"
+                )
+        out += [ind + line for line in _arrays(ch, str(BLOCK_ROWS))]
+    out.append(f"{ind}for b0 in range(r0, r1, {BLOCK_ROWS}):")
+    out.append(f"{ind * 2}rb = min({BLOCK_ROWS}, r1 - b0)")
+    out.append(f"{ind * 2}if rb != {BLOCK_ROWS}:  # (the last block)")
+    for ch in chains:
+        out += [ind * 3 + line for line in _arrays(ch, "rb")]
+    # 1. the chains' inputs, row by row
+    chained = {q for ch in chains for q in ch.nodes}
+    needed = _ancestors([ch.input for ch in chains])
+    out += _row_loop(ind * 2)
+    lines = w.lines
+    a, b = w.spans[None]
+    body = list(lines[a:b])
+    for nd in program.nodes:
+        if nd in needed and nd in w.spans and nd not in chained:
+            a, b = w.spans[nd]
+            body += lines[a:b]
+    for ch in chains:
+        body += _store(w, ch)
+    out += [ind * 2 + line for line in body]
+    # 2. the chains on the block
+    for ch in chains:
+        out += [ind * 2 + line for line in _block(ch)]
+    # 3. the rows, the chains' outputs read from the block
+    out += _row_loop(ind * 2)
+    a, b = w.spans[None]
+    body = list(lines[a:b])
+    outputs = {ch.output: ch for ch in chains}
+    for nd in program.nodes:
+        if nd not in w.spans:
+            continue
+        if nd in outputs:
+            body += _read(w, outputs[nd])
+        elif nd not in chained:
+            a, b = w.spans[nd]
+            body += lines[a:b]
+    out += [ind * 2 + line for line in body]
+    out += [ind + line for line in sweep]
+    return out
+
+
+def _row_loop(indent: str) -> list[str]:
+    return [
+        f"{indent}for ii in range(rb):",
+        f"{indent}    r = b0 + ii",
+        f"{indent}    x = X[r]",
+        f"{indent}    u = U[r]",
+    ]
+
+
+def _store(w, ch: Chain) -> list[str]:
+    """The chain's input at the row into ``CIN`` (function-level indent)."""
+    v = w.values[ch.input]
+    c, k = ch.index, w.widths[ch.input]
+    if isinstance(v, list):
+        return [f"    CIN{c}[ii, {q}] = {v[q]}" for q in range(k)]
+    return [f"    for q in range({k}):", f"        CIN{c}[ii, q] = {v}[q]"]
+
+
+def _read(w, ch: Chain) -> list[str]:
+    """The chain's output at the row, under the names the following nodes read."""
+    v = w.values[ch.output]
+    out = f"Z{ch.index}_{len(ch.ops) - 1}"
+    if isinstance(v, list):
+        return [f"    {name} = {out}[ii, {q}]" for q, name in enumerate(v)]
+    return [f"    {v} = {out}[ii]"]
+
+
+def _block(ch: Chain) -> list[str]:
+    """The chain's forward pass and Jacobian on the block (``rb`` rows of ``CIN``)."""
+    c, wo = ch.index, _width_out(ch)
+    lines = []
+    prev = f"CIN{c}"
+    acts = {}  # op index -> (pre-activation array, activation array)
+    for i, op in enumerate(ch.ops):
+        z = f"Z{c}_{i}"
+        if op[0] == "linear":
+            _, _, width, _, _, boff = op
+            lines.append(f"np.dot({prev}, W{c}_{i}, {z})")
+            nxt = ch.ops[i + 1] if i + 1 < len(ch.ops) else None
+            if boff is None and (nxt is None or nxt[0] != "activation"):
+                prev = z
+                continue
+            # the bias and a following activation in one pass over the block
+            lines += ["for ii in range(rb):", f"    for o in range({width}):"]
+            if boff is not None:
+                lines.append(f"        {z}[ii, o] += p[{boff} + o]")
+            if nxt is not None and nxt[0] == "activation":
+                h = f"Z{c}_{i + 1}"
+                lines.append(f"        {h}[ii, o] = {nxt[1].format(f'{z}[ii, o]')}")
+        elif i == 0 or ch.ops[i - 1][0] != "linear":  # (else written with its layer)
+            _, form, _, width = op
+            lines += [
+                "for ii in range(rb):",
+                f"    for o in range({width}):",
+                f"        {z}[ii, o] = {form.format(f'{prev}[ii, o]')}",
+            ]
+        if op[0] == "activation":
+            acts[i] = (prev, z)
+        prev = z
+    # J = d out / d CIN: the identity swept back
+    g = f"G{c}_{len(ch.ops)}"
+    lines += [
+        "for ii in range(rb):",
+        f"    for o in range({wo}):",
+        f"        for q in range({wo}):",
+        f"            {g}[ii * {wo} + o, q] = 1.0 if o == q else 0.0",
+    ]
+    for i in range(len(ch.ops) - 1, -1, -1):
+        op = ch.ops[i]
+        if op[0] == "linear":
+            nxt = f"G{c}_{i}"
+            lines.append(f"np.dot({g}, V{c}_{i}, {nxt})")
+            g = nxt
+        else:
+            _, _, slope, width = op
+            a, h = acts[i]
+            s = slope.format(a=f"{a}[ii, q]", h=f"{h}[ii, q]")
+            lines += [  # (the slope again for each output: a contiguous inner loop)
+                "for ii in range(rb):",
+                f"    for o in range({wo}):",
+                f"        for q in range({width}):",
+                f"            {g}[ii * {wo} + o, q] *= {s}",
+            ]
+    lines.append(f"JC{c} = {g}.reshape((rb, {wo}, {_width_in(ch)}))")
+    return lines
+
+
+def reverse_rules(w, chains: list[Chain]) -> dict:
+    """The writer's rules with each chain's output stepping straight to its input
+    (``("chain", index, input, outputs)``)."""
+    rules = dict(w.rules)
+    for ch in chains:
+        rules[ch.output] = ("chain", ch.index, ch.input, _width_out(ch))
+    return rules
