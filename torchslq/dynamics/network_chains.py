@@ -28,6 +28,7 @@ taken. Only the Jacobians use it (not the Hessians' function, not the step).
 
 from __future__ import annotations
 
+import re
 from typing import NamedTuple
 
 from torch import fx
@@ -138,6 +139,22 @@ def _depends_on(node: fx.Node, nodes: list) -> bool:
     return False
 
 
+def live_nodes(w, program, text: str) -> set:
+    """The nodes whose values ``text`` (a derivative sweep's lines) reads, and those
+    they are computed from: the forward code the sweep needs. (The rest is dropped from
+    the derivatives' functions: a Dynamics submodule's step, say, whose value no
+    derivative reads, is a call LLVM cannot remove.)"""
+    words = set(re.findall(r"[A-Za-z_]\w*", text))
+    read = []
+    for nd, v in w.values.items():
+        if not isinstance(nd, fx.Node):
+            continue
+        texts = [v] if isinstance(v, str) else v
+        if any(t in words for e in texts for t in re.findall(r"[A-Za-z_]\w*", e)):
+            read.append(nd)
+    return _ancestors(read)
+
+
 def _ancestors(nodes: list) -> set:
     seen, stack = set(), list(nodes)
     while stack:
@@ -217,13 +234,14 @@ def function_lines(
     # 2. the chains on the block
     for ch in chains:
         out += [ind * 2 + line for line in _block(ch)]
-    # 3. the rows, the chains' outputs read from the block
+    # 3. the rows, the chains' outputs read from the block (the nodes the sweep reads)
     out += _row_loop(ind * 2)
     a, b = w.spans[None]
     body = list(lines[a:b])
     outputs = {ch.output: ch for ch in chains}
+    live = live_nodes(w, program, "\n".join(sweep))
     for nd in program.nodes:
-        if nd not in w.spans:
+        if nd not in w.spans or nd not in live:
             continue
         if nd in outputs:
             body += _read(w, outputs[nd])

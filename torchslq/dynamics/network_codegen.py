@@ -65,7 +65,7 @@ from .graph_jacobian import (
     hessian_blocks,
     xu_hessian,
 )
-from .network_chains import find_chains, function_lines, reverse_rules
+from .network_chains import find_chains, function_lines, live_nodes, reverse_rules
 from .network_reverse import write_jacobians
 
 __all__ = ["network_step", "network_jacobians", "network_hessians"]
@@ -608,14 +608,17 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
         header = f"def {kind}(r0, r1, X, U, p, {S}A, B{', H' if hessians else ''}):"
         if chains:
             lines = function_lines(chains, w, program, n, sweep, header)
-        else:
+        else:  # the forward code the sweep reads, then the sweep, row by row
+            live = live_nodes(w, program, "\n".join(sweep))
+            spans = [w.spans[nd] for nd in program.nodes if nd in live and nd in w.spans]
+            needed = [w.spans[None], *spans]
             lines = [
                 header,
                 f"    work = np.empty((8, {n}))",
                 "    for r in range(r0, r1):",
                 "        x = X[r]",
                 "        u = U[r]",
-                *("    " + line for line in forward),
+                *("    " + line for a, b in needed for line in forward[a:b]),
                 *sweep,
             ]
         body += "\n".join(["", "", _DECORATOR, *lines, ""])
