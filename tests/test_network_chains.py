@@ -1,12 +1,13 @@
 """A learned model's wide layer chains differentiated in blocks of rows
 (torchslq.dynamics.network_chains): which chains are taken, and the generated Jacobians
-with them against torch.func's per-row Jacobians and against the row sweep alone."""
+and Hessians with them against torch.func's per-row derivatives and against the row
+sweep alone."""
 
 from __future__ import annotations
 
 import pytest
 import torch
-from test_graph_jacobian import data, mlp, reference
+from test_graph_jacobian import data, mlp, reference, reference_hessians
 from torch import nn
 
 import torchslq as ts
@@ -127,3 +128,28 @@ def test_chains_not_taken():
         A_ref, B_ref = reference(model, x, u)
         torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
         torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_blocked_chains_hessians_equal_nested_autodiff(name, monkeypatch):
+    """Every output's Hessian with the chains in blocks (their tangents pushed forward
+    and each activation's curvature on the block) is torch.func's (jacfwd over jacrev)
+    across the block size, and the row sweep's (chains off) to rounding."""
+    make, m, _ = MODELS[name]
+    model = make()
+    x, u = data(lead=(network_chains.BLOCK_ROWS + 5,), m=m, scale=1.0, seed=3)
+    with torch.no_grad():
+        got = network_codegen.network_hessians(model, x, u)
+    assert got is not None
+    H_ref = reference_hessians(model, x, u)
+    assert max(float(h.abs().max()) for h in H_ref) > 1e-3  # curvature to get right
+    torch.testing.assert_close(got[0], reference(model, x, u)[0], rtol=1e-12, atol=1e-13)
+    for h, h_ref in zip(got[2], H_ref, strict=True):
+        torch.testing.assert_close(h, h_ref, rtol=1e-10, atol=1e-12)
+    monkeypatch.setattr(network_chains, "enabled", False)
+    rows_only = make()
+    rows_only.load_state_dict(model.state_dict())
+    with torch.no_grad():
+        rows = network_codegen.network_hessians(rows_only, x, u)
+    for h, h_rows in zip(got[2], rows[2], strict=True):
+        torch.testing.assert_close(h, h_rows, rtol=1e-12, atol=1e-14)

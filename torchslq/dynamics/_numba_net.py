@@ -228,3 +228,25 @@ def softplus_curve(a, beta, threshold):
         return 0.0
     s = 1.0 / (1.0 + math.exp(-z))
     return beta * s * (1.0 - s)
+
+
+@numba.njit(nogil=True, cache=True, fastmath={"contract", "reassoc"}, error_model="numpy")
+def chain_curvature(rb, k, wo, C, TZ, HC):
+    """``HC[i, o] += TZ_i' diag(C_io) TZ_i`` for the rows ``i < rb`` of a block: an
+    activation's second-order term in a layer chain's Hessians
+    (:mod:`torchslq.dynamics.network_chains`), ``C (rb * wo, width)`` the outputs'
+    sensitivities times the activation's curvature, ``TZ (rb * k, width)`` the tangents
+    of its input, ``HC (rb, wo, k, k)``. Its own function for ``reassoc``: each entry is
+    a sum over the layer's width, which LLVM vectorises only when it may reorder it
+    (the row sweep's sums keep their order)."""
+    width = C.shape[1]
+    for i in range(rb):
+        for c in range(k):
+            for d in range(c + 1):
+                for o in range(wo):
+                    acc = 0.0
+                    for q in range(width):
+                        acc += C[i * wo + o, q] * TZ[i * k + c, q] * TZ[i * k + d, q]
+                    HC[i, o, c, d] += acc
+                    if d != c:
+                        HC[i, o, d, c] += acc

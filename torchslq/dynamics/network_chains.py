@@ -50,7 +50,8 @@ class Chain(NamedTuple):
     output: fx.Node
     nodes: tuple[fx.Node, ...]
     #: ``("linear", k, width, weight offset (k, width), row offset (width, k), bias
-    #: offset or None)`` or ``("activation", form, slope, width)``, in forward order
+    #: offset or None)`` or ``("activation", form, slope, width, curvature)``, in
+    #: forward order
     ops: tuple[tuple, ...]
 
 
@@ -108,7 +109,7 @@ def find_chains(program, w, n: int, weights, weight_rows) -> list[Chain]:
                 mod_bias = _bias_offset(w, rule[2])
                 ops.append(("linear", k, width, weights(rule[2]), weight_rows(rule[2]), mod_bias))
             else:
-                ops.append(("activation", forms[c], rule[2][0], w.widths[c]))
+                ops.append(("activation", forms[c], rule[2][0], w.widths[c], rule[2][1]))
         wide = any(op[0] == "linear" and min(op[1], op[2]) >= WIDE for op in ops)
         if not wide or w.widths[nodes[-1]] > n:
             continue
@@ -166,18 +167,31 @@ def _ancestors(nodes: list) -> set:
     return seen
 
 
-def _arrays(chain: Chain, rows: str) -> list[str]:
-    """Allocations of a chain's block arrays for ``rows`` rows."""
+def _arrays(chain: Chain, rows: str, hessians: bool) -> list[str]:
+    """Allocations of a chain's block arrays for ``rows`` rows (with ``hessians``, the
+    tangents' and the outputs' Hessians' too)."""
     c, k, wo = chain.index, _width_in(chain), _width_out(chain)
     lines = [f"CIN{c} = np.empty(({rows}, {k}))"]
     for i, op in enumerate(chain.ops):
-        width = op[2] if op[0] == "linear" else op[3]
-        lines.append(f"Z{c}_{i} = np.empty(({rows}, {width}))")
+        lines.append(f"Z{c}_{i} = np.empty(({rows}, {_width(op)}))")
     lines.append(f"G{c}_{len(chain.ops)} = np.empty(({rows} * {wo}, {wo}))")
     for i, op in enumerate(chain.ops):
         if op[0] == "linear":
             lines.append(f"G{c}_{i} = np.empty(({rows} * {wo}, {op[1]}))")
+    if hessians:
+        lines.append(f"TI{c} = np.empty(({rows} * {k}, {k}))")
+        for i, op in enumerate(chain.ops):
+            lines.append(f"TZ{c}_{i} = np.empty(({rows} * {k}, {_width(op)}))")
+        lines.append(f"HC{c} = np.empty(({rows}, {wo}, {k}, {k}))")
+        for i, op in enumerate(chain.ops):
+            if op[0] == "activation":
+                lines.append(f"CV{c}_{i} = np.empty(({rows} * {wo}, {op[3]}))")
     return lines
+
+
+def _width(op: tuple) -> int:
+    """An op's output width."""
+    return op[2] if op[0] == "linear" else op[3]
 
 
 def _width_in(chain: Chain) -> int:
@@ -191,12 +205,14 @@ def _width_out(chain: Chain) -> int:
 
 
 def function_lines(
-    chains: list[Chain], w, program, n: int, sweep: list[str], header: str
-) -> list[str]:
+    chains: list[Chain], w, program, n: int, sweep: list[str], header: str,
+    hessians: bool = False,
+) -> list[str]:  # fmt: skip
     """The generated ``jacobians`` function with ``chains`` taken out of the row loop
     (module docstring): its ``def`` line ``header``, the forward writer ``w`` (its lines
     and ``spans``) of a model with ``n`` states, and the reverse sweep's lines ``sweep``
-    (written with the chains' rules, :func:`reverse_rules`)."""
+    (written with the chains' rules, :func:`reverse_rules`); with ``hessians``, the
+    ``hessians`` function's (the chains' outputs' Hessians too)."""
     ind = "    "
     out = [header, f"{ind}work = np.empty((8, {n}))"]
     for ch in chains:  # the weights as 2-d arrays, for np.dot
@@ -211,12 +227,12 @@ def function_lines(
                     f"{ind}V{ch.index}_{i} = np.ascontiguousarray(p[{wr}:{wr + k * width}])"
                     f".reshape(({width}, {k}))"
                 )
-        out += [ind + line for line in _arrays(ch, str(BLOCK_ROWS))]
+        out += [ind + line for line in _arrays(ch, str(BLOCK_ROWS), hessians)]
     out.append(f"{ind}for b0 in range(r0, r1, {BLOCK_ROWS}):")
     out.append(f"{ind * 2}rb = min({BLOCK_ROWS}, r1 - b0)")
     out.append(f"{ind * 2}if rb != {BLOCK_ROWS}:  # (the last block)")
     for ch in chains:
-        out += [ind * 3 + line for line in _arrays(ch, "rb")]
+        out += [ind * 3 + line for line in _arrays(ch, "rb", hessians)]
     # 1. the chains' inputs, row by row
     chained = {q for ch in chains for q in ch.nodes}
     needed = _ancestors([ch.input for ch in chains])
@@ -233,7 +249,7 @@ def function_lines(
     out += [ind * 2 + line for line in body]
     # 2. the chains on the block
     for ch in chains:
-        out += [ind * 2 + line for line in _block(ch)]
+        out += [ind * 2 + line for line in _block(ch, hessians)]
     # 3. the rows, the chains' outputs read from the block (the nodes the sweep reads)
     out += _row_loop(ind * 2)
     a, b = w.spans[None]
@@ -280,9 +296,12 @@ def _read(w, ch: Chain) -> list[str]:
     return [f"    {v} = {out}[ii]"]
 
 
-def _block(ch: Chain) -> list[str]:
-    """The chain's forward pass and Jacobian on the block (``rb`` rows of ``CIN``)."""
-    c, wo = ch.index, _width_out(ch)
+def _block(ch: Chain, hessians: bool) -> list[str]:
+    """The chain's forward pass and Jacobian on the block (``rb`` rows of ``CIN``); with
+    ``hessians`` also every output's Hessian ``HC (rb, wo, k, k)``: the tangents ``T =
+    d node / d CIN`` pushed forward, and each activation adding ``T_z' diag(G s''(z))
+    T_z`` in the sweep back (``G`` the outputs' sensitivities to its value)."""
+    c, wo, k = ch.index, _width_out(ch), _width_in(ch)
     lines = []
     prev = f"CIN{c}"
     acts = {}  # op index -> (pre-activation array, activation array)
@@ -303,7 +322,7 @@ def _block(ch: Chain) -> list[str]:
                 h = f"Z{c}_{i + 1}"
                 lines.append(f"        {h}[ii, o] = {nxt[1].format(f'{z}[ii, o]')}")
         elif i == 0 or ch.ops[i - 1][0] != "linear":  # (else written with its layer)
-            _, form, _, width = op
+            _, form, _, width, _ = op
             lines += [
                 "for ii in range(rb):",
                 f"    for o in range({width}):",
@@ -312,6 +331,37 @@ def _block(ch: Chain) -> list[str]:
         if op[0] == "activation":
             acts[i] = (prev, z)
         prev = z
+    tangents = {}  # activation index -> the tangent array of its input
+    if hessians:
+        t = f"TI{c}"
+        lines += [
+            "for ii in range(rb):",
+            f"    for c in range({k}):",
+            f"        for q in range({k}):",
+            f"            {t}[ii * {k} + c, q] = 1.0 if c == q else 0.0",
+        ]
+        for i, op in enumerate(ch.ops):
+            tz = f"TZ{c}_{i}"
+            if op[0] == "linear":
+                lines.append(f"np.dot({t}, W{c}_{i}, {tz})")
+            else:
+                a, h = acts[i]
+                slope = op[2].format(a=f"{a}[ii, q]", h=f"{h}[ii, q]")
+                lines += [
+                    "for ii in range(rb):",
+                    f"    for c in range({k}):",
+                    f"        for q in range({op[3]}):",
+                    f"            {tz}[ii * {k} + c, q] = {t}[ii * {k} + c, q] * {slope}",
+                ]
+                tangents[i] = t
+            t = tz
+        lines += [
+            "for ii in range(rb):",
+            f"    for o in range({wo}):",
+            f"        for c in range({k}):",
+            f"            for d in range({k}):",
+            f"                HC{c}[ii, o, c, d] = 0.0",
+        ]
     # J = d out / d CIN: the identity swept back
     g = f"G{c}_{len(ch.ops)}"
     lines += [
@@ -327,8 +377,18 @@ def _block(ch: Chain) -> list[str]:
             lines.append(f"np.dot({g}, V{c}_{i}, {nxt})")
             g = nxt
         else:
-            _, _, slope, width = op
+            _, _, slope, width, curve = op
             a, h = acts[i]
+            if hessians and curve != "0.0":  # (G: the sensitivities to the activation)
+                cv = f"CV{c}_{i}"
+                term = curve.format(a=f"{a}[ii, q]", h=f"{h}[ii, q]")
+                lines += [
+                    "for ii in range(rb):",
+                    f"    for o in range({wo}):",
+                    f"        for q in range({width}):",
+                    f"            {cv}[ii * {wo} + o, q] = {g}[ii * {wo} + o, q] * {term}",
+                    f"_chain_curvature(rb, {k}, {wo}, {cv}, {tangents[i]}, HC{c})",
+                ]
             s = slope.format(a=f"{a}[ii, q]", h=f"{h}[ii, q]")
             lines += [  # (the slope again for each output: a contiguous inner loop)
                 "for ii in range(rb):",
@@ -345,5 +405,7 @@ def reverse_rules(w, chains: list[Chain]) -> dict:
     (``("chain", index, input, outputs)``)."""
     rules = dict(w.rules)
     for ch in chains:
+        for nd in ch.nodes:  # (their values are not computed in the rows)
+            rules.pop(nd, None)
         rules[ch.output] = ("chain", ch.index, ch.input, _width_out(ch))
     return rules

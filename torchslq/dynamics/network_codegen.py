@@ -118,6 +118,7 @@ from torchslq.dynamics._numba_net import softplus_curve as _softplus_curve
 from torchslq.dynamics._numba_net import softplus_slope as _softplus_slope
 from torchslq.dynamics._numba_net import stack_array as _stack
 from torchslq.dynamics._numba_net import tanh as _tanh
+from torchslq.dynamics._numba_net import chain_curvature as _chain_curvature
 """
 
 # structure digest -> the loaded step function and Jacobians' function (or None)
@@ -595,8 +596,8 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
         if program.elementwise > MAX_DERIVATIVE_NODES[kind]:
             continue  # its compilation would cost more than it saves
         hessians = kind == "hessians"
-        # wide layer chains in blocks of rows (the Jacobians only)
-        chains = [] if hessians else find_chains(program, w, n, weights_t, weight_rows)
+        # wide layer chains in blocks of rows
+        chains = find_chains(program, w, n, weights_t, weight_rows)
         try:
             sweep, subs = write_jacobians(
                 w, program, root, n, m, NARROW, _new_array, weight_rows, weights,
@@ -607,7 +608,7 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
         S = "".join(f"S{k}a, S{k}b, {f'S{k}h, ' if hessians else ''}" for k in range(len(subs)))
         header = f"def {kind}(r0, r1, X, U, p, {S}A, B{', H' if hessians else ''}):"
         if chains:
-            lines = function_lines(chains, w, program, n, sweep, header)
+            lines = function_lines(chains, w, program, n, sweep, header, hessians)
         else:  # the forward code the sweep reads, then the sweep, row by row
             live = live_nodes(w, program, "\n".join(sweep))
             spans = [w.spans[nd] for nd in program.nodes if nd in live and nd in w.spans]

@@ -269,6 +269,15 @@ class _Second(_Sweep):
             elif kind in _ELEMENTWISE:
                 for a, span, scale, a_off, off in _elementwise_terms(w, nd, rule):
                     self.push(nd, a, span, scale, doff=off, soff=a_off)
+            elif kind == "chain":  # T_y = T_a J' (J the chain's Jacobian at the row)
+                _, c, a, wo = rule
+                t, ta, ka = self.tangent(nd), self.T[a], w.widths[a]
+                self.emit(f"for c in range({k}):")
+                self.emit(f"for o in range({wo}):", 1)
+                self.emit("acc = 0.0", 2)
+                self.emit(f"for i in range({ka}):", 2)
+                self.emit(f"acc += {ta}[c * {ka} + i] * JC{c}[ii, o, i]", 3)
+                self.emit(f"{t}[c * {wo} + o] = acc", 2)
             elif kind == "submodule":  # on (x, u): its Jacobians' columns
                 idx = self.sub_index(nd.target)
                 t = self.tangent(nd)
@@ -336,6 +345,8 @@ class _Second(_Sweep):
                 each(lambda i: f"(2.0 * {h(i)} / ({b_text(i)} * {b_text(i)}))", b, b, False)
                 if _var(a):
                     each(lambda i: f"(-1.0 / ({b_text(i)} * {b_text(i)}))", a, b, True)
+        elif kind == "chain":
+            self._chain_curvature(rule, g)
         elif kind == "submodule":
             idx, k = self.sub_index(nd.target), self.k
             self.emit(f"for j in range({self.n}):")
@@ -344,6 +355,37 @@ class _Second(_Sweep):
             self.emit(f"for c in range({k}):", 2)
             self.emit(f"for d in range({k}):", 3)
             self.emit(f"hz[(j * {k} + c) * {k} + d] += gs * S{idx}h[r, o, c, d]", 4)
+
+    def _chain_curvature(self, rule: tuple, g: str) -> None:
+        """A layer chain's second-order term: ``hz_j += T_a' (sum_o G_jo H_o) T_a``, ``H
+        (rows, wo, ka, ka)`` every output's Hessian in the chain's input, of the block
+        (:mod:`torchslq.dynamics.network_chains`)."""
+        _, c, a, wo = rule
+        ta, ka, k, n = self.T[a], self.w.widths[a], self.k, self.n
+        self.count += 1
+        M, P = f"cm{self.count}", f"cp{self.count}"
+        self.emit(f"{M} = {self.new_array(ka * ka)}")
+        self.emit(f"{P} = {self.new_array(k * ka)}")
+        self.emit(f"for j in range({n}):")
+        self.emit(f"for q in range({ka * ka}):", 1)
+        self.emit(f"{M}[q] = 0.0", 2)
+        self.emit(f"for o in range({wo}):", 1)
+        self.emit(f"gs = {g}[j * {wo} + o]", 2)
+        self.emit(f"for i in range({ka}):", 2)
+        self.emit(f"for l in range({ka}):", 3)
+        self.emit(f"{M}[i * {ka} + l] += gs * HC{c}[ii, o, i, l]", 4)
+        self.emit(f"for c in range({k}):", 1)  # P = T_a M
+        self.emit(f"for l in range({ka}):", 2)
+        self.emit("acc = 0.0", 3)
+        self.emit(f"for i in range({ka}):", 3)
+        self.emit(f"acc += {ta}[c * {ka} + i] * {M}[i * {ka} + l]", 4)
+        self.emit(f"{P}[c * {ka} + l] = acc", 3)
+        self.emit(f"for c in range({k}):", 1)  # hz_j += P T_a'
+        self.emit(f"for d in range({k}):", 2)
+        self.emit("acc = 0.0", 3)
+        self.emit(f"for l in range({ka}):", 3)
+        self.emit(f"acc += {P}[c * {ka} + l] * {ta}[d * {ka} + l]", 4)
+        self.emit(f"hz[(j * {k} + c) * {k} + d] += acc", 3)
 
 
 #: the rules whose derivatives are entrywise (:func:`_elementwise_terms`)
@@ -389,6 +431,8 @@ def _arguments(rule: tuple) -> list:
         return [rule[1], rule[3]]
     if kind == "cat":
         return list(rule[1])
+    if kind == "chain":
+        return [rule[2]]
     return [rule[1]] if kind != "submodule" else [rule[1], rule[2]]
 
 
@@ -404,6 +448,8 @@ def _tangents_needed(program, rules: dict) -> set:
             seeds.append(rule[1])
         elif rule[0] in ("product", "quotient"):
             seeds += [rule[1], rule[3]]
+        elif rule[0] == "chain":
+            seeds.append(rule[2])
     needed: set = set()
     while seeds:
         nd = seeds.pop()
@@ -463,7 +509,7 @@ def write_jacobians(
                 and tuple(rule[1:]) != tuple(program.inputs)
             ):
                 raise _Unsupported("a Dynamics submodule on other nodes than (x, u)")
-        sweep.forward_tangents(program, tuple(program.inputs), w.rules, weights)
+        sweep.forward_tangents(program, tuple(program.inputs), rules, weights)
         size = n * sweep.k * sweep.k
         sweep.emit(f"hz = {new_array(size)}")
         sweep.emit(f"for q in range({size}):")
