@@ -70,42 +70,22 @@ def _jacobians(model, x, u):
 
 
 MODELS = {
-    "residual-tanh": (lambda: ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2), 2, 5),
-    "activated": (Activated, 1, 6),  # (the sigmoid and five layers)
-    "stacked": (Stacked, 2, 5),
+    "residual-tanh": (lambda: ts.LearnedDynamics(mlp(nn.Tanh(), nn.Tanh()), 4, 2), 2),
+    "activated": (Activated, 1),
 }
 
 
-@pytest.mark.parametrize("name", list(MODELS))
-def test_blocked_chains_equal_autodiff_and_the_row_sweep(name, monkeypatch):
-    """At row counts below, at and across the block size the Jacobians with the chains
-    in blocks are torch.func's, and the row sweep's (chains off) to rounding."""
-    make, m, nodes = MODELS[name]
-    model = make()
-    chains = _chains(model)
-    assert len(chains) == 1 and len(chains[0].nodes) == nodes  # (Stacked: the first only)
-    rows = network_chains.BLOCK_ROWS
-    for lead in ((1,), (rows,), (rows + 1,), (3, rows - 7)):
-        x, u = data(lead=lead, m=m, scale=1.0, seed=len(lead) + lead[-1])
-        got = _jacobians(model, x, u)
-        assert got is not None
-        A_ref, B_ref = reference(model, x, u)
-        assert float(A_ref.abs().max()) > 1e-2 and float(B_ref.abs().max()) > 1e-3
-        torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
-        torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
-    monkeypatch.setattr(network_chains, "enabled", False)
-    rows_only = make()  # (a new model: its text and function are written without chains)
-    rows_only.load_state_dict(model.state_dict())
-    assert _chains(rows_only) == []
-    A_rows, B_rows = _jacobians(rows_only, x, u)
-    torch.testing.assert_close(got[0], A_rows, rtol=1e-13, atol=1e-14)
-    torch.testing.assert_close(got[1], B_rows, rtol=1e-13, atol=1e-14)
-
-
-def test_chains_not_taken():
-    """Layers narrower than WIDE, or a chain with more outputs than the state (its
-    Jacobian would cost more than the row sweep's n sensitivities), stay in the row
-    sweep; the Jacobians are right either way."""
+def test_which_chains_are_taken():
+    """A chain runs from an activation or layer to the last node used by the next alone;
+    a chain on another chain's output, layers narrower than WIDE and more outputs than
+    states are not taken (the row sweep keeps them)."""
+    (chain,) = _chains(MODELS["residual-tanh"][0]())
+    assert len(chain.nodes) == 5 and [op[0] for op in chain.ops][::2] == ["linear"] * 3
+    (chain,) = _chains(Activated())  # the sigmoid and the five layers
+    assert [op[0] for op in chain.ops] == ["activation", "linear"] * 3
+    assert chain.ops[3][-1] is None  # (the layer without a bias)
+    (chain,) = _chains(Stacked())  # the first only
+    assert chain.input.target is torch.cat
     narrow = ts.LearnedDynamics(
         nn.Sequential(nn.Linear(6, 12), nn.Tanh(), nn.Linear(12, 12), nn.Tanh(), nn.Linear(12, 4))
         .to(F64), 4, 2,
@@ -121,23 +101,44 @@ def test_chains_not_taken():
         def forward(self, x, u):
             return x + self.net(torch.cat([x, u], -1))[..., 2:6]
 
-    for model in (narrow, WideOut()):
-        assert _chains(model) == []
-        x, u = data(lead=(40,), m=2, scale=1.0)
-        got = _jacobians(model, x, u)
-        A_ref, B_ref = reference(model, x, u)
-        torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
-        torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+    assert _chains(narrow) == [] and _chains(WideOut()) == []
 
 
 @pytest.mark.parametrize("name", list(MODELS))
-def test_blocked_chains_hessians_equal_nested_autodiff(name, monkeypatch):
-    """Every output's Hessian with the chains in blocks (their tangents pushed forward
-    and each activation's curvature on the block) is torch.func's (jacfwd over jacrev)
-    across the block size, and the row sweep's (chains off) to rounding."""
-    make, m, _ = MODELS[name]
+def test_blocked_chains_equal_autodiff(name, monkeypatch):
+    """At row counts below, at and across the block size the Jacobians with the chains
+    in blocks are torch.func's; for the residual MLP also the row sweep's (chains off)
+    to rounding. (Each model compiles its functions: a few, for the suite's time.)"""
+    make, m = MODELS[name]
     model = make()
-    x, u = data(lead=(network_chains.BLOCK_ROWS + 5,), m=m, scale=1.0, seed=3)
+    assert len(_chains(model)) == 1
+    rows = network_chains.BLOCK_ROWS
+    for lead in ((1,), (rows,), (rows + 1,), (3, rows - 7)):
+        x, u = data(lead=lead, m=m, scale=1.0, seed=len(lead) + lead[-1])
+        got = _jacobians(model, x, u)
+        assert got is not None
+        A_ref, B_ref = reference(model, x, u)
+        assert float(A_ref.abs().max()) > 1e-2 and float(B_ref.abs().max()) > 1e-3
+        torch.testing.assert_close(got[0], A_ref, rtol=1e-12, atol=1e-13)
+        torch.testing.assert_close(got[1], B_ref, rtol=1e-12, atol=1e-13)
+    if name != "residual-tanh":
+        return
+    monkeypatch.setattr(network_chains, "enabled", False)
+    rows_only = make()  # (a new model: its text and function are written without chains)
+    rows_only.load_state_dict(model.state_dict())
+    assert _chains(rows_only) == []
+    A_rows, B_rows = _jacobians(rows_only, x, u)
+    torch.testing.assert_close(got[0], A_rows, rtol=1e-13, atol=1e-14)
+    torch.testing.assert_close(got[1], B_rows, rtol=1e-13, atol=1e-14)
+
+
+def test_blocked_chains_hessians_equal_nested_autodiff():
+    """Every output's Hessian with a chain in blocks (its tangents pushed forward and
+    each activation's curvature on the block: a sigmoid first, SiLU, ReLU without
+    curvature) is torch.func's (jacfwd over jacrev), across the block size. (The
+    learned models of tests/test_network_codegen.py check other activations' chains.)"""
+    model = Activated()
+    x, u = data(lead=(network_chains.BLOCK_ROWS + 5,), m=1, scale=1.0, seed=3)
     with torch.no_grad():
         got = network_codegen.network_hessians(model, x, u)
     assert got is not None
@@ -146,10 +147,3 @@ def test_blocked_chains_hessians_equal_nested_autodiff(name, monkeypatch):
     torch.testing.assert_close(got[0], reference(model, x, u)[0], rtol=1e-12, atol=1e-13)
     for h, h_ref in zip(got[2], H_ref, strict=True):
         torch.testing.assert_close(h, h_ref, rtol=1e-10, atol=1e-12)
-    monkeypatch.setattr(network_chains, "enabled", False)
-    rows_only = make()
-    rows_only.load_state_dict(model.state_dict())
-    with torch.no_grad():
-        rows = network_codegen.network_hessians(rows_only, x, u)
-    for h, h_rows in zip(got[2], rows[2], strict=True):
-        torch.testing.assert_close(h, h_rows, rtol=1e-12, atol=1e-14)
