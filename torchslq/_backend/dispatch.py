@@ -134,8 +134,14 @@ def can_use_compiled(*tensors: Tensor, differentiable: bool = False) -> bool:
     for t in tensors:  # (is_cpu: t.device.type builds a device object, 6x the cost)
         if not t.is_cpu or t.dtype != dtype or (grad and t.requires_grad):
             return False
-    # inside torch.func transforms tensors are wrappers without storage for numpy, and
-    # under torch.compile tracing they are fake: the torch path is what gets traced
+    return _kernels_apply_here()
+
+
+def _kernels_apply_here() -> bool:
+    """Whether the compiled kernels can be called in the current context and are
+    loadable: inside torch.func transforms tensors are wrappers without storage for
+    numpy, and under torch.compile tracing they are fake (the torch path is what gets
+    traced)."""
     if torch.compiler.is_compiling():
         return False
     if torch._C._functorch.peek_interpreter_stack() is not None:
@@ -810,6 +816,9 @@ def _one_time_step(t: Tensor, tail: int) -> Tensor:
     return t
 
 
+#: the numpy dtype of each torch dtype the kernels take (None for the others)
+NP_FLOAT_DTYPES = {torch.float64: np.float64, torch.float32: np.float32}
+
 _EMPTY_PIECES: dict = {}  # numpy dtype -> the kernels' (never written) empty pieces
 
 
@@ -880,7 +889,7 @@ def plain_gain_pieces(
     if x0.ndim != 2 or not x0.is_cpu or not compiled_available():
         return None
     dtype = x0.dtype
-    npd = _NP_DTYPES.get(dtype)
+    npd = NP_FLOAT_DTYPES.get(dtype)
     if npd is None:
         return None
     nb = x0.shape[0]
@@ -899,17 +908,11 @@ def plain_gain_pieces(
                 return None
             shared = False
         out.append((p.detach() if p.requires_grad else p).numpy())
-    # (as can_use_compiled: torch.func's wrappers and torch.compile's fake tensors take
-    # the torch path)
-    if torch.compiler.is_compiling() or torch._C._functorch.peek_interpreter_stack() is not None:
-        return None
-    if _kernels() is None or not x0.is_contiguous():
+    if not x0.is_contiguous() or not _kernels_apply_here():
         return None
     # data shared by the batch: one Riccati pass serves all
     return tuple(out), 1 if shared else nb, (x0.detach() if x0.requires_grad else x0).numpy()
 
-
-_NP_DTYPES = {torch.float64: np.float64, torch.float32: np.float32}
 
 _GAIN_PLANS: dict = {}  # (n, m, switches) -> _gain_plan's tuple
 

@@ -188,6 +188,12 @@ assert int(Status.CONVERGED) == 0  # lq_status relies on it
 _NON_FINITE = int(Status.NON_FINITE)
 
 
+def _finite_status(f: np.ndarray) -> Tensor:
+    """``CONVERGED`` where the numpy flags ``f`` are set, else ``NON_FINITE`` (all finite
+    the common case: numpy's where costs microseconds)."""
+    return torch.from_numpy(np.zeros(f.shape, np.int64) if f.all() else np.where(f, 0, _NON_FINITE))
+
+
 def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
     """Per-element :class:`torchslq.Status` of an LQ solve from ``(B,)`` bool masks:
     ``NOT_POSITIVE_DEFINITE`` where ``failed`` (some ``Quu`` not PD; None: nowhere),
@@ -195,10 +201,7 @@ def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
     # CONVERGED is 0: one product instead of a where over two scalars (which allocates
     # both as tensors; it counts at B = 1), on the CPU on numpy's flags (cheaper still)
     if finite.is_cpu:
-        f = finite.numpy()  # (all finite the common case: numpy's where costs microseconds)
-        status = torch.from_numpy(
-            np.zeros(f.shape, np.int64) if f.all() else np.where(f, 0, _NON_FINITE)
-        )
+        status = _finite_status(finite.numpy())
     else:
         status = (~finite).long() * int(Status.NON_FINITE)
     return (
@@ -607,8 +610,7 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, batch: torch.Size, inputs: tuple) ->
             return e if len(shape) == 1 else e.reshape(shape + a.shape[1:])
         return t(a if len(shape) == 1 else a.reshape(shape + a.shape[1:]))
 
-    f = sol["finite"]  # (lq_status's rule on numpy's flags: cheaper at B = 1)
-    status = t(np.zeros(nb, np.int64) if f.all() else np.where(f, 0, _NON_FINITE))
+    status = _finite_status(sol["finite"])  # (lq_status's rule, on numpy's flags)
     if len(shape) != 1:  # (unbatched, or several batch dims)
         status = status.reshape(shape)
     if len(shape) == 1 and data_batch == nb:  # (the common case: no reshape, no expand)

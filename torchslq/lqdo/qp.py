@@ -23,18 +23,16 @@ import numpy as np
 import torch
 from torch import Tensor
 
+from .._backend.dispatch import NP_FLOAT_DTYPES
 from .kkt import Inequalities
 
 __all__ = ["SparseQP", "DenseQP"]
 
 
-_NUMPY_DTYPES = {torch.float64: np.float64, torch.float32: np.float32}
-
-
 def _scatter(idx: Tensor, val: Tensor, m: int, n: int) -> Tensor:
     """Dense ``(B, m, n)`` from a shared pattern ``idx (2, nnz)`` and values ``(B, nnz)``."""
     B = val.shape[0]
-    npd = _NUMPY_DTYPES.get(val.dtype) if val.is_cpu else None
+    npd = NP_FLOAT_DTYPES.get(val.dtype) if val.is_cpu else None
     if npd is not None and B * m * n >= 1 << 16:
         # numpy's zeroed memory on the CPU: a large block comes from the system already
         # zero, on huge pages, and is faulted in a page at a time where it is written;
