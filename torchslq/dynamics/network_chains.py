@@ -200,8 +200,7 @@ def _width_in(chain: Chain) -> int:
 
 
 def _width_out(chain: Chain) -> int:
-    op = chain.ops[-1]
-    return op[2] if op[0] == "linear" else op[3]
+    return _width(chain.ops[-1])
 
 
 def function_lines(

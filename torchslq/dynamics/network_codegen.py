@@ -592,12 +592,13 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
     w.lines = forward  # (the spans index the nodes' code, without the output's)
     weights_t = lambda t: w.param(root, ("weight", t))  # noqa: E731
     weight_rows = lambda t: w.param(root, ("weight_rows", t))  # noqa: E731
+    chains = None  # wide layer chains in blocks of rows (found once, for both functions)
     for kind, weights in (("jacobians", None), ("hessians", weights_t)):
         if program.elementwise > MAX_DERIVATIVE_NODES[kind]:
             continue  # its compilation would cost more than it saves
         hessians = kind == "hessians"
-        # wide layer chains in blocks of rows
-        chains = find_chains(program, w, n, weights_t, weight_rows)
+        if chains is None:
+            chains = find_chains(program, w, n, weights_t, weight_rows)
         try:
             sweep, subs = write_jacobians(
                 w, program, root, n, m, NARROW, _new_array, weight_rows, weights,

@@ -163,13 +163,19 @@ class _Sweep:
         (rows, wo, k)`` the chain's Jacobian of the block
         (:mod:`torchslq.dynamics.network_chains`)."""
         _, c, a, wo = rule
-        k = self.w.widths[a]
+        self.times_jacobian(a, src, wo, f"JC{c}[ii, o, i]")
+
+    def times_jacobian(self, a: fx.Node, src: str, width: int, entry: str) -> None:
+        """``G_a += G_y J`` for a node ``y`` (``width`` wide, sensitivity array ``src``)
+        whose Jacobian in its argument ``a`` is given per row: ``entry`` the text of
+        ``J[o, i]`` (a layer chain's block array, a submodule's Jacobian array)."""
         g, _ = self.grad(a)
+        k = self.w.widths[a]
         self.emit(f"for j in range({self.n}):")
-        self.emit(f"for o in range({wo}):", 1)
-        self.emit(f"gs = {src}[j * {wo} + o]", 2)
+        self.emit(f"for o in range({width}):", 1)
+        self.emit(f"gs = {src}[j * {width} + o]", 2)
         self.emit(f"for i in range({k}):", 2)
-        self.emit(f"{g}[j * {k} + i] += gs * JC{c}[ii, o, i]", 3)
+        self.emit(f"{g}[j * {k} + i] += gs * {entry}", 3)
 
     def sub_index(self, target: str) -> int:
         """The argument index of a Dynamics submodule's arrays (one per submodule)."""
@@ -185,13 +191,7 @@ class _Sweep:
         idx = self.sub_index(nd.target)
         width = self.w.widths[nd]
         for a, name in zip(args, (f"S{idx}a", f"S{idx}b"), strict=True):
-            g, _ = self.grad(a)
-            k = self.w.widths[a]
-            self.emit(f"for j in range({self.n}):")
-            self.emit(f"for o in range({width}):", 1)
-            self.emit(f"gs = {src}[j * {width} + o]", 2)
-            self.emit(f"for i in range({k}):", 2)
-            self.emit(f"{g}[j * {k} + i] += gs * {name}[r, o, i]", 3)
+            self.times_jacobian(a, src, width, f"{name}[r, o, i]")
 
 
 class _Second(_Sweep):
