@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torchslq as ts
+import torchslq.systems  # noqa: F401 (ts.systems)
 from torchslq._backend import dispatch
 from torchslq.costs.quadratic import compiled_cost_evaluation
 from torchslq.dynamics.rollout import compiled_step_of, rollout, rollout_closed_loop
@@ -36,8 +37,33 @@ def _cost(B: int, g: torch.Generator, per_element: bool) -> ts.QuadraticCost:
     return ts.QuadraticCost(Q=Q, R=0.05 * torch.eye(1, dtype=F64), Qf=50 * Qf, x_ref=x_ref)
 
 
-def _search_inputs(B: int, g: torch.Generator, cost: ts.QuadraticCost):
-    dyn = _cartpole()
+class _ResidualCartPole(ts.Dynamics):
+    """The cart-pole step plus a small learned residual (a 5-32-32-4 tanh MLP): a model
+    whose step has a function on many rows at once (its wide layers as matrix products
+    over the rows, :func:`torchslq._backend.model_fns.register_rows`)."""
+
+    state_dim, control_dim = 4, 1
+
+    def __init__(self):
+        super().__init__()
+        torch.manual_seed(7)
+        self.physics = _cartpole()
+        self.net = torch.nn.Sequential(
+            torch.nn.Linear(5, 32), torch.nn.Tanh(), torch.nn.Linear(32, 32), torch.nn.Tanh(),
+            torch.nn.Linear(32, 4),
+        ).to(F64)  # fmt: skip
+        with torch.no_grad():
+            self.net[-1].weight.mul_(0.01)
+
+    def forward(self, x, u):
+        return self.physics(x, u) + self.net(torch.cat([x, u], -1))
+
+
+MODELS = {"cartpole": _cartpole, "learned": _ResidualCartPole}
+
+
+def _search_inputs(B: int, g: torch.Generator, cost: ts.QuadraticCost, model: str = "cartpole"):
+    dyn = MODELS[model]()
     x0 = 0.1 * torch.randn(B, 4, generator=g, dtype=F64)
     u = (0.5 * torch.randn(B, T, 1, generator=g, dtype=F64)).clamp(-0.5, 0.7)  # inside the bounds
     x = rollout(dyn, x0, u)
@@ -120,6 +146,56 @@ def test_fused_search_equals_the_batched_search(per_element, bounded, quadratic)
         assert float(u_new[ok].min()) == -0.6 and float(u_new[ok].max()) == 0.8
 
 
+@pytest.mark.codegen
+@pytest.mark.parametrize("bounded", [False, True])
+def test_fused_search_on_many_rows_equals_the_batched_search(bounded, monkeypatch):
+    """With a learned model's step on many rows at once (the elements' trials side by
+    side, one call per time step) the fused search takes the steps and flags of the
+    batched search on the one-row step, its costs and trajectories to rounding (the
+    wide layers' products sum in BLAS's order)."""
+    from torchslq._backend.model_fns import rows_step
+
+    B = 9
+    g = torch.Generator().manual_seed(5)
+    cost = _cost(B, g, per_element=True)
+    dyn, x, u, K, k, slope, curvature, active = _search_inputs(B, g, cost, "learned")
+    for b, factor in ((4, 40.0), (6, 15.0), (7, 100.0)):  # long steps: backtracking
+        k[b] *= factor
+        slope[b] *= factor
+    lo = hi = None
+    if bounded:
+        lo = torch.full((B, T, 1), -0.6, dtype=F64)
+        hi = torch.full((B, T, 1), 0.8, dtype=F64)
+    with torch.no_grad(), compiled_cost_evaluation():
+        assert B >= dispatch.MIN_BLOCK_ROWS and rows_step(compiled_step_of(dyn)[0]) is not None
+        J0 = cost(x, u)
+        trials = TrialRecorder()
+
+        def evaluate(alphas):
+            x0c = x[:, 0].expand(alphas.shape[0], B, 4)
+            xc, uc = rollout_closed_loop(dyn, x0c, x, u, K, k, alphas, lo, hi)
+            trials.record(alphas, xc, uc)
+            return cost(xc, uc)
+
+        with monkeypatch.context() as one_row:  # the reference on the one-row step
+            one_row.setattr(dispatch, "MIN_BLOCK_ROWS", 10**9)
+            ref = armijo_search(evaluate, J0, slope, c1=0.4, active=active, skip_settled=True)
+        x_ref, u_ref = trials.select(ref[0])
+        grid = 0.5 ** torch.arange(20, dtype=F64)
+        out = dispatch.armijo_rollout_compiled(
+            *compiled_step_of(dyn), x, u, K, k, lo, hi, grid, J0, slope, None, 0.4,
+            ROUNDOFF_NOISE * torch.finfo(F64).eps, active, cost.compiled_terms(x, u),
+        )  # fmt: skip
+    alpha, J, ok, x_new, u_new = out
+    assert torch.equal(alpha, ref[0]) and torch.equal(ok, ref[2])
+    torch.testing.assert_close(J, ref[1], rtol=1e-13, atol=0.0)
+    torch.testing.assert_close(x_new[ok], x_ref[ok], rtol=1e-12, atol=1e-13)
+    torch.testing.assert_close(u_new[ok], u_ref[ok], rtol=1e-12, atol=1e-13)
+    # the cases the inputs were built for happened, and steps of several sizes
+    assert bool(ok[2]) and float(alpha[2]) == 1.0 and not bool(ok[3])
+    assert len(set(alpha[ok].tolist())) >= 2
+
+
 def _count_fused(monkeypatch) -> list[bool]:
     """Record, for every line search from now on, whether it ran fused."""
     calls: list[bool] = []
@@ -164,6 +240,36 @@ def test_solves_with_the_fused_search_equal_the_torch_search(solver, monkeypatch
     assert torch.equal(r_fused.iterations, r_torch.iterations)
     assert torch.equal(r_fused.u, r_torch.u) and torch.equal(r_fused.x, r_torch.x)
     assert bool(r_fused.converged.all())
+
+
+@pytest.mark.codegen
+def test_solve_on_many_rows_equals_the_one_row_step(monkeypatch):
+    """A learned model's ILQR solve with its step on many rows at once (the fused
+    searches and the rollouts) takes the iterations of the solve on its one-row step,
+    with the same statuses and, to rounding, the same solution."""
+    from torchslq._backend import _numba_search
+
+    B = 6
+    g = torch.Generator().manual_seed(1)
+    problem = ts.Problem(_ResidualCartPole(), _cost(B, g, per_element=True), 30)
+    x0 = torch.zeros(B, 4, dtype=F64)
+    x0[:, 1] = 0.3 * torch.randn(B, generator=g, dtype=F64)
+    solver = ts.ILQR(max_iter=200, tol=1e-6, progress=False)
+    launches = []
+    kernel = _numba_search.armijo_rows_kernel
+    monkeypatch.setattr(
+        _numba_search, "armijo_rows_kernel", lambda *a: launches.append(1) or kernel(*a)
+    )
+    on_rows = solver.solve(problem, x0)
+    monkeypatch.setattr(dispatch, "MIN_BLOCK_ROWS", 10**9)
+    taken = len(launches)
+    one_row = solver.solve(problem, x0)
+    assert taken > 10 and len(launches) == taken  # every search on rows, then none
+    assert int(on_rows.converged.sum()) >= B - 1  # (one stalls, on either step)
+    assert torch.equal(on_rows.status, one_row.status)
+    assert torch.equal(on_rows.iterations, one_row.iterations)
+    torch.testing.assert_close(on_rows.u, one_row.u, rtol=1e-9, atol=1e-10)
+    torch.testing.assert_close(on_rows.cost, one_row.cost, rtol=1e-12, atol=0.0)
 
 
 def test_fused_search_not_taken_where_it_does_not_apply(monkeypatch):

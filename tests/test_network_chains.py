@@ -1,16 +1,18 @@
-"""A learned model's wide layer chains differentiated in blocks of rows
-(torchslq.dynamics.network_chains): which chains are taken, and the generated Jacobians
-and Hessians with them against torch.func's per-row derivatives and against the row
-sweep alone."""
+"""A learned model's wide layer chains in blocks of rows
+(torchslq.dynamics.network_chains): which chains are taken; the generated Jacobians and
+Hessians with them against torch.func's per-row derivatives and against the row sweep
+alone; the step on many rows at once against forward."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 from test_graph_jacobian import data, mlp, reference, reference_hessians
 from torch import nn
 
 import torchslq as ts
+from torchslq._backend import model_fns
 from torchslq.dynamics import network_chains, network_codegen
 from torchslq.dynamics.graph_jacobian import _program, _root
 
@@ -147,3 +149,31 @@ def test_blocked_chains_hessians_equal_nested_autodiff():
     torch.testing.assert_close(got[0], reference(model, x, u)[0], rtol=1e-12, atol=1e-13)
     for h, h_ref in zip(got[2], H_ref, strict=True):
         torch.testing.assert_close(h, h_ref, rtol=1e-10, atol=1e-12)
+
+
+def test_step_on_many_rows_equals_forward():
+    """The step on many rows at once (the chain's layers as matrix products over blocks
+    of rows, registered for the model's step: model_fns.register_rows) is forward's to
+    rounding at row counts below, at and across the block size, and writes only the
+    rows it is given; a model without a chain has none (its one-row step serves)."""
+    model = Activated()
+    with torch.no_grad():
+        step, params = model.compiled_step()
+    rows_fn = model_fns.rows_step(step)
+    assert rows_fn is not None
+    size = network_chains.BLOCK_ROWS
+    for R in (1, size, size + 1, 2 * size + 3):
+        x, u = data(lead=(R,), m=1, scale=1.0, seed=R)
+        r0 = 0 if R == 1 else 2
+        out = np.full((R, 4), np.nan)
+        rows_fn(r0, R, x.numpy(), u.numpy(), params, out)
+        with torch.no_grad():
+            ref = model(x, u)
+        torch.testing.assert_close(torch.from_numpy(out[r0:]), ref[r0:], rtol=1e-13, atol=1e-14)
+        assert np.isnan(out[:r0]).all()
+    narrow = ts.LearnedDynamics(
+        nn.Sequential(nn.Linear(5, 12), nn.Tanh(), nn.Linear(12, 4)).to(F64), 4, 1
+    )
+    with torch.no_grad():
+        step, _ = narrow.compiled_step()
+    assert model_fns.rows_step(step) is None

@@ -1081,6 +1081,59 @@ def _closed_loop_rows(r0, r1, step, rhs, mode, p, x0, xn, K, lo, hi, skip, u, x,
 
 
 @numba.njit(nogil=True, cache=True)
+def closed_loop_rows_kernel(r0, r1, rows_fn, p, x0, xn, K, lo, hi, skip, u, x):
+    """:func:`closed_loop_rollout_kernel` with the model's step on many rows at once
+    (``rows_fn(r0, r1, X, U, p, OUT)``, :func:`torchslq._backend.model_fns.register_rows`):
+    the rows ``r0 <= r < r1`` rolled out side by side, one call of ``rows_fn`` per time
+    step (the same rollouts; the step's values agree with the one-row step's to
+    rounding)."""
+    nr, n, m = r1 - r0, x.shape[2], u.shape[2]
+    rows = np.empty(nr, dtype=np.int64)
+    X = np.empty((nr, n), dtype=x.dtype)
+    U = np.empty((nr, m), dtype=x.dtype)
+    OUT = np.empty((nr, n), dtype=x.dtype)
+    count = 0
+    for r in range(r0, r1):
+        if skip.shape[0] > 0 and skip[r]:
+            for j in range(n):
+                x[r, 0, j] = x0[r, j]
+            x[r, 1:, :] = np.nan
+        else:
+            rows[count] = r
+            count += 1
+    _closed_loop_row_set(rows, count, rows_fn, p, x0, xn, K, lo, hi, u, x, X, U, OUT)
+
+
+@numba.njit(nogil=True, cache=True, _nrt=False)
+def _closed_loop_row_set(rows, count, rows_fn, p, x0, xn, K, lo, hi, u, x, X, U, OUT):
+    """The closed-loop rollouts of the rows ``rows[:count]`` (as
+    :func:`_closed_loop_rows`'s, ``b = r % B``), all of them one time step after
+    another: each step's states and controls (the feedback added,
+    :func:`_feedback_row`) gathered into ``X``, ``U``, the model's ``rows_fn`` on them,
+    ``OUT`` scattered into the next states."""
+    B, T, n, m = xn.shape[0], u.shape[1], x.shape[2], u.shape[2]
+    for i in range(count):
+        r = rows[i]
+        for j in range(n):
+            x[r, 0, j] = x0[r, j]
+    for t in range(T):
+        for i in range(count):
+            r = rows[i]
+            xr = x[r, t]
+            ur = u[r, t]
+            _feedback_row(xr, xn, K, lo, hi, r % B, t, ur)
+            for j in range(n):
+                X[i, j] = xr[j]
+            for j in range(m):
+                U[i, j] = ur[j]
+        rows_fn(0, count, X, U, p, OUT)
+        for i in range(count):
+            r = rows[i]
+            for j in range(n):
+                x[r, t + 1, j] = OUT[i, j]
+
+
+@numba.njit(nogil=True, cache=True)
 def step_rows_kernel(r0, r1, step, rhs, mode, p, x, u, out):
     """``out[r] = f(x[r], u[r])`` for rows ``r0 <= r < r1`` (``x (R, n)``, ``u (R, m)``,
     ``out (R, n)``; ``f`` as in :func:`closed_loop_rollout_kernel`): one call of a

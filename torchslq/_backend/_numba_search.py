@@ -10,7 +10,10 @@ turn, each rolled out (:func:`._numba_kernels._closed_loop_rows`, the rollout
 kernel's loop) and costed (:func:`._numba_cost.quadratic_cost_row`) until one passes. The
 steps, costs and trajectories are those of ``armijo_search`` (whose batched passes
 return what serial backtracking returns), bit for bit: the same operations in the same
-order.
+order. For a model whose step has a function on many rows at once (a learned model's
+wide layers as matrix products, :func:`torchslq._backend.model_fns.register_rows`),
+:func:`armijo_rows_kernel` makes the same search with the elements' trials side by
+side, one call of that function per time step.
 """
 
 from __future__ import annotations
@@ -19,7 +22,7 @@ import numba
 import numpy as np
 
 from ._numba_cost import quadratic_cost_row
-from ._numba_kernels import _closed_loop_rows
+from ._numba_kernels import _closed_loop_row_set, _closed_loop_rows
 
 
 @numba.njit(nogil=True, cache=True)
@@ -110,3 +113,100 @@ def _armijo_rows(
                 alpha[b] = grid[0]
                 J[b] = J_first
                 ok[b] = True
+
+
+@numba.njit(nogil=True, cache=True)
+def armijo_rows_kernel(
+    b0, b1, rows_fn, p, xbar, ubar, K, k, lo, hi, grid, J0, slope, curv, quadratic, c1,
+    roundoff, active, xr, ur, Q, QT, R, stage_states, x, u, alpha, J, ok,
+):  # fmt: skip
+    """:func:`armijo_rollout_kernel` with the model's step on many rows at once
+    (``rows_fn(r0, r1, X, U, p, OUT)``, :func:`torchslq._backend.model_fns.register_rows`:
+    a learned model's wide layers as matrix products over the rows): each trial is
+    rolled out for all the elements ``b0 <= b < b1`` still searching together, one call
+    of ``rows_fn`` per time step, instead of one element after another. The same trials,
+    tests and outputs (the step's values agree with the one-row step's to rounding)."""
+    nb, n, m = b1 - b0, x.shape[2], u.shape[2]
+    X = np.empty((nb, n), dtype=x.dtype)
+    U = np.empty((nb, m), dtype=x.dtype)
+    OUT = np.empty((nb, n), dtype=x.dtype)
+    searching = np.empty(nb, dtype=np.int64)
+    J_first = np.empty(nb, dtype=J.dtype)
+    _armijo_row_sets(
+        b0, b1, rows_fn, p, xbar, ubar, K, k, lo, hi, grid, J0, slope, curv, quadratic, c1,
+        roundoff, active, xr, ur, Q, QT, R, stage_states, x, u, alpha, J, ok, X, U, OUT,
+        searching, J_first,
+    )  # fmt: skip
+
+
+@numba.njit(nogil=True, cache=True, _nrt=False)
+def _armijo_row_sets(
+    b0, b1, rows_fn, p, xbar, ubar, K, k, lo, hi, grid, J0, slope, curv, quadratic, c1,
+    roundoff, active, xr, ur, Q, QT, R, stage_states, x, u, alpha, J, ok, X, U, OUT,
+    searching, J_first,
+):  # fmt: skip
+    """The loop of :func:`armijo_rows_kernel`: ``searching[:count]`` the elements whose
+    search goes on, ``J_first[b - b0]`` an element's cost at the first trial."""
+    inf = np.inf
+    count = 0
+    for b in range(b0, b1):
+        alpha[b] = 0.0
+        J[b] = J0[b]
+        ok[b] = False
+        if active[b]:
+            searching[count] = b
+            count += 1
+    for j in range(grid.shape[0]):
+        if count == 0:
+            break
+        a = grid[j]
+        _rows_trial(searching, count, a, rows_fn, p, xbar, ubar, K, k, lo, hi, x, u, X, U, OUT)
+        left = 0
+        for i in range(count):
+            b = searching[i]
+            Jj = quadratic_cost_row(x[b], u[b], b, xr, ur, Q, QT, R, stage_states)
+            if np.isnan(Jj):
+                Jj = inf  # a trial that blew up is never chosen
+            if j == 0:
+                J_first[b - b0] = Jj
+            model = a * slope[b]
+            if quadratic:
+                model = model + 0.5 * a * a * curv[b]
+            if Jj <= J0[b] + c1 * model:
+                alpha[b] = a
+                J[b] = Jj
+                ok[b] = True
+            else:
+                searching[left] = b
+                left += 1
+        count = left
+    # the decrease is below rounding: the full step, if it is no worse than J0
+    left = 0
+    for i in range(count):
+        b = searching[i]
+        tol = roundoff * max(abs(J0[b]), 1.0)
+        if abs(slope[b]) <= tol and J_first[b - b0] <= J0[b] + tol:
+            searching[left] = b
+            left += 1
+    if left > 0:
+        _rows_trial(searching, left, grid[0], rows_fn, p, xbar, ubar, K, k, lo, hi, x, u, X, U, OUT)
+        for i in range(left):
+            b = searching[i]
+            alpha[b] = grid[0]
+            J[b] = J_first[b - b0]
+            ok[b] = True
+
+
+@numba.njit(nogil=True, cache=True, _nrt=False)
+def _rows_trial(searching, count, a, rows_fn, p, xbar, ubar, K, k, lo, hi, x, u, X, U, OUT):
+    """The feedback rollouts with step ``a`` of the elements ``searching[:count]`` into
+    ``x``, ``u`` (as :func:`_trial`'s): the feedforward ``ū + a k`` written into ``u``,
+    then :func:`._numba_kernels._closed_loop_row_set` from ``x̄_0``."""
+    T, m = u.shape[1], u.shape[2]
+    for i in range(count):
+        b = searching[i]
+        for t in range(T):
+            for q in range(m):
+                u[b, t, q] = ubar[b, t, q] + a * k[b, t, q]
+    x0 = xbar[:, 0]
+    _closed_loop_row_set(searching, count, rows_fn, p, x0, xbar, K, lo, hi, u, x, X, U, OUT)

@@ -54,7 +54,7 @@ from torch import Tensor
 from .._shapes import broadcast_shapes
 from . import gain_codegen, specialisation
 from .gain_codegen import gain_kernels
-from .model_fns import rollout_kernel
+from .model_fns import function_value, rollout_kernel, rows_step
 
 __all__ = [
     "armijo_rollout_compiled",
@@ -162,6 +162,9 @@ def module_needs_grad(module) -> bool:
 # Below this many element-steps per thread a pass is not split (thread hand-off costs
 # tens of microseconds).
 MIN_STEPS_PER_THREAD = 4096
+# From this many rows (or elements of a line search) a model's step on many rows at once
+# (model_fns.register_rows) runs instead of its one-row step.
+MIN_BLOCK_ROWS = 4
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 _pool_pid = 0  # a forked child inherits the pool object but not its threads
@@ -537,7 +540,14 @@ def closed_loop_rollout_compiled(
         if skip is None
         else skip.detach().expand(lead).reshape(R).contiguous().numpy()
     )
-    kernel, fns = rollout_kernel("closed_loop_rollout_kernel", step, un.dtype, params.dtype, R * T)
+    rows_fn = rows_step(step) if R >= MIN_BLOCK_ROWS else None
+    if rows_fn is None:
+        kernel, fns = rollout_kernel(
+            "closed_loop_rollout_kernel", step, un.dtype, params.dtype, R * T
+        )
+    else:  # the rows side by side, the step on all of them at once
+        kernel = _kernels().closed_loop_rows_kernel
+        fns = (function_value(rows_fn, "rows", un.dtype, params.dtype),)
     _launch(
         kernel,
         R,
@@ -595,9 +605,14 @@ def armijo_rollout_compiled(
     alpha, J = torch.empty_like(J0), torch.empty_like(J0)
     ok = torch.empty(Bsz, dtype=torch.bool)
     curv = J0 if curvature is None else curvature  # unread without the quadratic model
-    kernel, fns = rollout_kernel(
-        "armijo_rollout_kernel", step, _np_dtype(x.dtype), params.dtype, Bsz * T, _numba_search
-    )
+    rows_fn = rows_step(step) if Bsz >= MIN_BLOCK_ROWS else None
+    if rows_fn is None:
+        kernel, fns = rollout_kernel(
+            "armijo_rollout_kernel", step, _np_dtype(x.dtype), params.dtype, Bsz * T, _numba_search
+        )
+    else:  # the elements' trials side by side, the step on all their rows at once
+        kernel = _numba_search.armijo_rows_kernel
+        fns = (function_value(rows_fn, "rows", _np_dtype(x.dtype), params.dtype),)
     _, (xr, ur, Q, QT, R), stage_states = cost_terms
     arrays = (x, u, K.expand(Bsz, T, m, n), k, grid, J0, slope, curv)
     _launch(
@@ -635,6 +650,10 @@ def step_rows_compiled(step, params: np.ndarray, x: Tensor, u: Tensor) -> Tensor
     returns ``(R, n)``. Call only where :func:`can_use_compiled` holds."""
     out = torch.empty_like(x)
     xa = _np(x)
+    rows_fn = rows_step(step) if x.shape[0] >= MIN_BLOCK_ROWS else None
+    if rows_fn is not None:  # the model's own function on many rows
+        _launch(rows_fn, x.shape[0], 1, xa, _np(u), params, out.numpy())
+        return out
     kernel, fns = rollout_kernel("step_rows_kernel", step, xa.dtype, params.dtype, x.shape[0])
     _launch(
         kernel,

@@ -20,7 +20,11 @@ the state's dtype, ``P``: the parameters' 1-d array, all C-contiguous):
 * ``rhs(x, u, p, out)``: ``X1, X1, P, X1`` (a continuous model's right-hand side, or a
   discrete model's step written without scratch);
 * ``derivs(x, u, p, fz, H)``: ``X1, X1, P, X2, X3``;
-* ``step(x, u, p, out, work)``: ``X1, X1, P, X1, X2`` (:meth:`torchslq.Dynamics.compiled_step`).
+* ``step(x, u, p, out, work)``: ``X1, X1, P, X1, X2`` (:meth:`torchslq.Dynamics.compiled_step`);
+* ``rows(r0, r1, X, U, p, OUT)``: ``intp, intp, X2, X2, P, X2``: the step on the rows
+  ``r0 <= r < r1`` of ``X``, ``U`` at once (a learned model's wide layers as matrix
+  products over the rows, :func:`torchslq.dynamics.network_chains.step_rows_lines`),
+  registered for its step with :func:`register_rows`.
 
 A step function that wraps a model's ``rhs`` (the RK4 step of a continuous model, a
 generated discrete model's step) is registered with :func:`register_step`, so the
@@ -36,10 +40,18 @@ import numpy as np
 
 from .bound import bound_kernels
 
-__all__ = ["function_value", "register_step", "rollout_kernel", "step_source"]
+__all__ = [
+    "function_value",
+    "register_rows",
+    "register_step",
+    "rollout_kernel",
+    "rows_step",
+    "step_source",
+]
 
 _VALUES: dict = {}  # (fn, role, x dtype, p dtype) -> first-class function value
 _STEPS: dict = {}  # step function -> (rhs, mode)
+_ROWS: dict = {}  # step function -> its function on many rows at once
 
 
 def register_step(step: Any, rhs: Any, mode: int) -> None:
@@ -56,6 +68,20 @@ def step_source(step: Any) -> tuple[Any, int] | None:
         return None
 
 
+def register_rows(step: Any, rows: Any) -> None:
+    """Record ``rows(r0, r1, X, U, p, OUT)`` as ``step`` on many rows at once (``OUT[r] =
+    step(X[r], U[r])`` up to rounding)."""
+    _ROWS[step] = rows
+
+
+def rows_step(step: Any) -> Any:
+    """The function :func:`register_rows` recorded for ``step``, else None."""
+    try:
+        return _ROWS.get(step)
+    except TypeError:  # unhashable
+        return None
+
+
 def _signature(role: str, x_dtype: np.dtype, p_dtype: np.dtype):
     from numba import types
     from numba.np.numpy_support import from_dtype
@@ -67,6 +93,7 @@ def _signature(role: str, x_dtype: np.dtype, p_dtype: np.dtype):
         "rhs": (X1, X1, P, X1),
         "derivs": (X1, X1, P, X2, X3),
         "step": (X1, X1, P, X1, X2),
+        "rows": (types.intp, types.intp, X2, X2, P, X2),
     }[role]
     return types.void(*args)
 

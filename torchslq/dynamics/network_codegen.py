@@ -8,7 +8,10 @@ from its operations declines (:mod:`torchslq.dynamics.codegen`: networks) is wri
 here from the graph :mod:`torchslq.dynamics.graph_jacobian` traces, node by node, as a
 per-row function ``step(x, u, p, out, work)``; the rollouts and the fused line search
 then run it in one kernel call for all rows and steps
-(:func:`torchslq.dynamics.rollout_closed_loop`). Nodes at most :data:`NARROW` wide are
+(:func:`torchslq.dynamics.rollout_closed_loop`); a model with wide layer chains also
+gets ``step_rows``, the step on many rows at once with the chains as matrix products
+(:mod:`torchslq.dynamics.network_chains`), which they then call once per time step for
+all their rows. Nodes at most :data:`NARROW` wide are
 scalar locals (straight-line code), wider ones arrays on the step's stack
 (:func:`~torchslq.dynamics._numba_net.stack_array`: no allocation per call; up to
 :data:`STACK_MAX` entries).
@@ -48,6 +51,7 @@ import torch.nn.functional as F
 from torch import Tensor, fx, nn
 
 from .._backend import _launch
+from .._backend.model_fns import register_rows
 from .._pinned import pinned
 from .base import Dynamics
 from .compiled_rk4 import _rows
@@ -65,7 +69,13 @@ from .graph_jacobian import (
     hessian_blocks,
     xu_hessian,
 )
-from .network_chains import find_chains, function_lines, live_nodes, reverse_rules
+from .network_chains import (
+    find_chains,
+    function_lines,
+    live_nodes,
+    reverse_rules,
+    step_rows_lines,
+)
 from .network_reverse import write_jacobians
 
 __all__ = ["network_step", "network_jacobians", "network_hessians"]
@@ -74,7 +84,7 @@ __all__ = ["network_step", "network_jacobians", "network_hessians"]
 #: also when an activation it inlines changes (numba's cache does not see the callee's
 #: source: version 2 is the branch-free tanh, 3 the branch-free exp, 4 adds the
 #: Jacobians, :mod:`torchslq.dynamics.network_reverse`)
-NETWORK_CODEGEN_VERSION = 4
+NETWORK_CODEGEN_VERSION = 5
 
 # functional and method activations: the numba expression of ``a``
 _ELEMENTWISE = {
@@ -592,13 +602,15 @@ def _write(program, root: nn.Module, n: int, m: int, dtype: torch.dtype) -> tupl
     w.lines = forward  # (the spans index the nodes' code, without the output's)
     weights_t = lambda t: w.param(root, ("weight", t))  # noqa: E731
     weight_rows = lambda t: w.param(root, ("weight_rows", t))  # noqa: E731
-    chains = None  # wide layer chains in blocks of rows (found once, for both functions)
+    # wide layer chains in blocks of rows (found once, for every function)
+    chains = find_chains(program, w, n, weights_t, weight_rows)
+    if chains:  # the step on many rows at once (the rollouts')
+        output = forward_lines[len(forward) :]
+        body += "\n".join(["", "", _DECORATOR, *step_rows_lines(chains, w, program, n, output), ""])
     for kind, weights in (("jacobians", None), ("hessians", weights_t)):
         if program.elementwise > MAX_DERIVATIVE_NODES[kind]:
             continue  # its compilation would cost more than it saves
         hessians = kind == "hessians"
-        if chains is None:
-            chains = find_chains(program, w, n, weights_t, weight_rows)
         try:
             sweep, subs = write_jacobians(
                 w, program, root, n, m, NARROW, _new_array, weight_rows, weights,
@@ -633,8 +645,9 @@ _DECORATOR = '@numba.njit(nogil=True, cache=True, fastmath={"contract"}, error_m
 
 
 def _load(text: str, digest: str, subs: list, in_memory: bool) -> tuple:
-    """The ``step`` and ``jacobians`` (None where not written) of the generated
-    ``text``: from its file in codegen's cache directory (written if absent; numba
+    """The ``step``, ``jacobians`` and ``hessians`` (None where not written) of the
+    generated ``text`` (its ``step_rows``, where written, registered as the step's
+    :func:`~torchslq._backend.model_fns.register_rows`): from its file in codegen's cache directory (written if absent; numba
     caches the compilation beside it), else compiled in memory with the submodules'
     steps ``subs`` as globals (once per process)."""
     from .._backend.source_modules import import_source, write_atomic
@@ -657,7 +670,10 @@ def _load(text: str, digest: str, subs: list, in_memory: bool) -> tuple:
         exec(
             compile(text.replace("cache=True", "cache=False"), f"<network {digest}>", "exec"), scope
         )
-    _LOADED[digest] = loaded = (scope["step"], scope.get("jacobians"), scope.get("hessians"))
+    loaded = (scope["step"], scope.get("jacobians"), scope.get("hessians"))
+    if scope.get("step_rows") is not None:
+        register_rows(scope["step"], scope["step_rows"])
+    _LOADED[digest] = loaded
     return loaded
 
 
