@@ -156,6 +156,7 @@ def test_fused_search_on_many_rows_equals_the_batched_search(bounded, monkeypatc
     from torchslq._backend.model_fns import rows_step
 
     B = 9
+    monkeypatch.setattr(dispatch, "MIN_BLOCK_ROWS", 4)  # (on rows from 4 elements)
     g = torch.Generator().manual_seed(5)
     cost = _cost(B, g, per_element=True)
     dyn, x, u, K, k, slope, curvature, active = _search_inputs(B, g, cost, "learned")
@@ -255,6 +256,7 @@ def test_solve_on_many_rows_equals_the_one_row_step(monkeypatch):
     x0 = torch.zeros(B, 4, dtype=F64)
     x0[:, 1] = 0.3 * torch.randn(B, generator=g, dtype=F64)
     solver = ts.ILQR(max_iter=200, tol=1e-6, progress=False)
+    monkeypatch.setattr(dispatch, "MIN_BLOCK_ROWS", 4)  # (on rows from 4 elements)
     launches = []
     kernel = _numba_search.armijo_rows_kernel
     monkeypatch.setattr(
