@@ -156,21 +156,24 @@ def test_step_on_many_rows_equals_forward():
     of rows, registered for the model's step: model_fns.register_rows) is forward's to
     rounding at row counts below, at and across the block size, and writes only the
     rows it is given; a model without a chain has none (its one-row step serves)."""
-    model = Activated()
-    with torch.no_grad():
-        step, params = model.compiled_step()
-    rows_fn = model_fns.rows_step(step)
-    assert rows_fn is not None
     size = network_chains.BLOCK_ROWS
-    for R in (1, size, size + 1, 2 * size + 3):
-        x, u = data(lead=(R,), m=1, scale=1.0, seed=R)
-        r0 = 0 if R == 1 else 2
-        out = np.full((R, 4), np.nan)
-        rows_fn(r0, R, x.numpy(), u.numpy(), params, out)
+    # a chain on the state that starts with an activation; a chain on [x, u] whose output
+    # feeds a second MLP left in the rows
+    for model, m in ((Activated(), 1), (Stacked(), 2)):
         with torch.no_grad():
-            ref = model(x, u)
-        torch.testing.assert_close(torch.from_numpy(out[r0:]), ref[r0:], rtol=1e-13, atol=1e-14)
-        assert np.isnan(out[:r0]).all()
+            step, params = model.compiled_step()
+        rows_fn = model_fns.rows_step(step)
+        assert rows_fn is not None
+        for R in (1, size, size + 1, 2 * size + 3):
+            x, u = data(lead=(R,), m=m, scale=1.0, seed=R)
+            r0 = 0 if R == 1 else 2
+            out = np.full((R, 4), np.nan)
+            rows_fn(r0, R, x.numpy(), u.numpy(), params, out)
+            with torch.no_grad():
+                ref = model(x, u)
+            got = torch.from_numpy(out[r0:])
+            torch.testing.assert_close(got, ref[r0:], rtol=1e-13, atol=1e-14)
+            assert np.isnan(out[:r0]).all()
     narrow = ts.LearnedDynamics(
         nn.Sequential(nn.Linear(5, 12), nn.Tanh(), nn.Linear(12, 4)).to(F64), 4, 1
     )

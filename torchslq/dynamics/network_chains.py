@@ -164,14 +164,17 @@ def live_nodes(w, program, text: str) -> set:
     return _ancestors(read)
 
 
-def _ancestors(nodes: list) -> set:
+def _ancestors(nodes: list, stop: set = frozenset()) -> set:
+    """``nodes`` and the nodes they are computed from, not looking past those in
+    ``stop``."""
     seen, stack = set(), list(nodes)
     while stack:
         q = stack.pop()
         if q in seen:
             continue
         seen.add(q)
-        stack.extend(q.all_input_nodes)
+        if q not in stop:
+            stack.extend(q.all_input_nodes)
     return seen
 
 
@@ -249,7 +252,9 @@ def step_rows_lines(chains: list[Chain], w, program, n: int, output: list[str]) 
     for ch in chains:
         out += [ind * 2 + line for line in _forward_block(ch)[0]]
     out += _row_loop(ind * 2) + [f"{ind * 3}out = OUT[r]"]
-    live = _ancestors([program.output])
+    # the nodes the output needs, a chain's output read from its block: not the nodes
+    # only its input needs (computed in step 1; a feature map's sin and cos, say)
+    live = _ancestors([program.output], stop={ch.output for ch in chains})
     out += [ind * 2 + line for line in _rows_body(chains, w, program, live) + output]
     return out
 
