@@ -87,6 +87,20 @@ def _search_inputs(B: int, g: torch.Generator, cost: ts.QuadraticCost, model: st
     return dyn, x, u, K, k, slope, curvature, active
 
 
+def _batched_evaluation(dyn, cost, x, u, K, k, lo, hi):
+    """``(evaluate, trials)``: the batched search's evaluator (the closed-loop rollouts
+    of a pass's steps, costed) and the recorder of its trajectories."""
+    trials = TrialRecorder()
+
+    def evaluate(alphas):
+        x0c = x[:, 0].expand(alphas.shape[0], *x[:, 0].shape)
+        xc, uc = rollout_closed_loop(dyn, x0c, x, u, K, k, alphas, lo, hi)
+        trials.record(alphas, xc, uc)
+        return cost(xc, uc)
+
+    return evaluate, trials
+
+
 @pytest.mark.parametrize("per_element", [False, True])
 @pytest.mark.parametrize("bounded", [False, True])
 @pytest.mark.parametrize("quadratic", [False, True])
@@ -109,14 +123,7 @@ def test_fused_search_equals_the_batched_search(per_element, bounded, quadratic)
             gap = (cost(x1, u1)[5] - J0[5]) / 0.4
             slope[5] = torch.minimum(slope[5], gap - 1.0)
             curvature[5] = 3.0 * (gap - slope[5])
-        trials = TrialRecorder()
-
-        def evaluate(alphas):
-            x0c = x[:, 0].expand(alphas.shape[0], B, 4)
-            xc, uc = rollout_closed_loop(dyn, x0c, x, u, K, k, alphas, lo, hi)
-            trials.record(alphas, xc, uc)
-            return cost(xc, uc)
-
+        evaluate, trials = _batched_evaluation(dyn, cost, x, u, K, k, lo, hi)
         # a large c1: the model decrease decides which step passes
         ref = armijo_search(
             evaluate, J0, slope, curvature=curv, c1=0.4, active=active, skip_settled=True,
@@ -170,14 +177,7 @@ def test_fused_search_on_many_rows_equals_the_batched_search(bounded, monkeypatc
     with torch.no_grad(), compiled_cost_evaluation():
         assert B >= dispatch.MIN_BLOCK_ROWS and rows_step(compiled_step_of(dyn)[0]) is not None
         J0 = cost(x, u)
-        trials = TrialRecorder()
-
-        def evaluate(alphas):
-            x0c = x[:, 0].expand(alphas.shape[0], B, 4)
-            xc, uc = rollout_closed_loop(dyn, x0c, x, u, K, k, alphas, lo, hi)
-            trials.record(alphas, xc, uc)
-            return cost(xc, uc)
-
+        evaluate, trials = _batched_evaluation(dyn, cost, x, u, K, k, lo, hi)
         with monkeypatch.context() as one_row:  # the reference on the one-row step
             one_row.setattr(dispatch, "MIN_BLOCK_ROWS", 10**9)
             ref = armijo_search(evaluate, J0, slope, c1=0.4, active=active, skip_settled=True)

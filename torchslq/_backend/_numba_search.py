@@ -73,6 +73,30 @@ def _trial(b, a, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, no_skip, wo
 
 
 @numba.njit(nogil=True, cache=True, _nrt=False)
+def _armijo_test(b, a, x, u, xr, ur, Q, QT, R, stage_states, J0, slope, curv, quadratic, c1):
+    """Element ``b``'s trial of step ``a`` (in ``x[b]``, ``u[b]``): its cost (infinite
+    where NaN: a trial that blew up is never chosen) and whether it passes Armijo's test
+    on the model decrease ``a slope (+ a^2/2 curv where quadratic)``."""
+    Jj = quadratic_cost_row(x[b], u[b], b, xr, ur, Q, QT, R, stage_states)
+    if np.isnan(Jj):
+        Jj = np.inf
+    model = a * slope[b]
+    if quadratic:
+        model = model + 0.5 * a * a * curv[b]
+    return Jj, Jj <= J0[b] + c1 * model
+
+
+@numba.njit(nogil=True, cache=True, _nrt=False)
+def _within_rounding(b, J_first, J0, slope, roundoff):
+    """Whether element ``b``, none of whose trials passed, takes the full step anyway:
+    its predicted decrease is below rounding and the full step's cost ``J_first`` no
+    worse than ``J0`` beyond it (:func:`torchslq.solvers.line_search.armijo_search`'s
+    round-off rule)."""
+    tol = roundoff * max(abs(J0[b]), 1.0)
+    return abs(slope[b]) <= tol and J_first <= J0[b] + tol
+
+
+@numba.njit(nogil=True, cache=True, _nrt=False)
 def _armijo_rows(
     b0, b1, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, grid, J0, slope, curv, quadratic,
     c1, roundoff, active, xr, ur, Q, QT, R, stage_states, x, u, alpha, J, ok, no_skip, work,
@@ -90,23 +114,18 @@ def _armijo_rows(
         for j in range(grid.shape[0]):
             a = grid[j]
             _trial(b, a, step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, no_skip, work)
-            Jj = quadratic_cost_row(x[b], u[b], b, xr, ur, Q, QT, R, stage_states)
-            if np.isnan(Jj):
-                Jj = inf  # a trial that blew up is never chosen
+            Jj, passes = _armijo_test(
+                b, a, x, u, xr, ur, Q, QT, R, stage_states, J0, slope, curv, quadratic, c1
+            )
             if j == 0:
                 J_first = Jj
-            model = a * slope[b]
-            if quadratic:
-                model = model + 0.5 * a * a * curv[b]
-            if Jj <= J0[b] + c1 * model:
+            if passes:
                 alpha[b] = a
                 J[b] = Jj
                 ok[b] = True
                 break
         if not ok[b]:
-            # the decrease is below rounding: the full step, if it is no worse than J0
-            tol = roundoff * max(abs(J0[b]), 1.0)
-            if abs(slope[b]) <= tol and J_first <= J0[b] + tol:
+            if _within_rounding(b, J_first, J0, slope, roundoff):
                 _trial(
                     b, grid[0], step, rhs, mode, p, xbar, ubar, K, k, lo, hi, x, u, no_skip, work
                 )
@@ -147,7 +166,6 @@ def _armijo_row_sets(
 ):  # fmt: skip
     """The loop of :func:`armijo_rows_kernel`: ``searching[:count]`` the elements whose
     search goes on, ``J_first[b - b0]`` an element's cost at the first trial."""
-    inf = np.inf
     count = 0
     for b in range(b0, b1):
         alpha[b] = 0.0
@@ -164,15 +182,12 @@ def _armijo_row_sets(
         left = 0
         for i in range(count):
             b = searching[i]
-            Jj = quadratic_cost_row(x[b], u[b], b, xr, ur, Q, QT, R, stage_states)
-            if np.isnan(Jj):
-                Jj = inf  # a trial that blew up is never chosen
+            Jj, passes = _armijo_test(
+                b, a, x, u, xr, ur, Q, QT, R, stage_states, J0, slope, curv, quadratic, c1
+            )
             if j == 0:
                 J_first[b - b0] = Jj
-            model = a * slope[b]
-            if quadratic:
-                model = model + 0.5 * a * a * curv[b]
-            if Jj <= J0[b] + c1 * model:
+            if passes:
                 alpha[b] = a
                 J[b] = Jj
                 ok[b] = True
@@ -180,12 +195,10 @@ def _armijo_row_sets(
                 searching[left] = b
                 left += 1
         count = left
-    # the decrease is below rounding: the full step, if it is no worse than J0
     left = 0
     for i in range(count):
         b = searching[i]
-        tol = roundoff * max(abs(J0[b]), 1.0)
-        if abs(slope[b]) <= tol and J_first[b - b0] <= J0[b] + tol:
+        if _within_rounding(b, J_first[b - b0], J0, slope, roundoff):
             searching[left] = b
             left += 1
     if left > 0:
