@@ -171,3 +171,60 @@ def test_custom_direction_example_of_the_architecture_page():
     assert result.status_names() == ["converged"] * 4
     torch.testing.assert_close(result.cost, reference.cost, rtol=1e-8, atol=0)
     torch.testing.assert_close(result.u, reference.u, rtol=0, atol=1e-4)
+
+
+def test_state_updated_equals_dataclasses_replace():
+    """ElementState.updated (the loop's copy with some fields changed) makes what
+    dataclasses.replace makes: a new frozen state of the same class, the changed fields
+    new, the others the same objects, the original untouched."""
+    from dataclasses import FrozenInstanceError, replace
+
+    from torchslq.solvers.descent import DescentState
+
+    x, u, J, mu = torch.zeros(2, 3, 1), torch.zeros(2, 2, 1), torch.ones(2), torch.ones(2)
+    state = DescentState(x=x, u=u, J=J, mu=mu, delta=mu)
+    new_mu = torch.full((2,), 3.0)
+    got = state.updated(mu=new_mu, prev_step=J)
+    ref = replace(state, mu=new_mu, prev_step=J)
+    assert type(got) is DescentState and got is not state
+    for f in fields(DescentState):
+        assert getattr(got, f.name) is getattr(ref, f.name), f.name
+    assert state.mu is mu and state.prev_step is None
+    with pytest.raises(FrozenInstanceError):
+        got.mu = mu
+
+
+def test_stall_update_follows_the_rule_per_element():
+    """The stall rule's counters against the rule written per element in plain Python
+    (a run of noise-level accepted steps counts up, restarts at 0 otherwise; stalled
+    after stall_iters of them unless the gradient halved over the run), over iterations
+    with and without noise-level steps (the batched form has a shortcut for the latter)."""
+    from torchslq.solvers.stopping import ROUNDOFF_NOISE, stall_update
+
+    g = torch.Generator().manual_seed(0)
+    B, stall_iters, eps = 6, 3, torch.finfo(torch.float64).eps
+    count, g_ref = torch.zeros(B, dtype=torch.int64), torch.zeros(B, dtype=torch.float64)
+    ref_count, ref_g = [0] * B, [0.0] * B
+    seen = set()
+    for it in range(40):
+        J_old = 10 * torch.rand(B, generator=g, dtype=torch.float64)
+        noise = torch.rand(B, generator=g) < (0.8 if it % 10 < 6 else 0.0)
+        change = torch.where(noise, 0.5 * ROUNDOFF_NOISE * eps * J_old.abs().clamp_min(1.0), 0.1)
+        J_new = J_old - change
+        accept = torch.rand(B, generator=g) < 0.9
+        grad = torch.rand(B, generator=g, dtype=torch.float64) * (0.3 if it % 7 == 0 else 1.0)
+        stalled, count, g_ref = stall_update(count, g_ref, accept, J_old, J_new, grad, stall_iters)
+        for b in range(B):
+            flat = bool(accept[b]) and bool(noise[b])
+            ref_count[b] = ref_count[b] + 1 if flat else 0
+            if ref_count[b] == 1:
+                ref_g[b] = float(grad[b])
+            full = ref_count[b] >= stall_iters
+            assert bool(stalled[b]) == (full and float(grad[b]) > 0.5 * ref_g[b])
+            if full:
+                ref_count[b] = 0
+            assert int(count[b]) == ref_count[b] and float(g_ref[b]) == ref_g[b]
+            seen.add((flat, bool(stalled[b])))
+        seen.add(("any flat", bool((accept & noise).any())))
+    # both paths ran, and elements stalled and did not
+    assert {("any flat", True), ("any flat", False), (True, True), (True, False)} <= seen

@@ -23,7 +23,7 @@ Levenberg-Marquardt ``mu``) lives in the :class:`DescentState`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
@@ -375,7 +375,7 @@ class DescentRule:
         fail = fail.masked_fill(~torch.isfinite(d["slope"]), int(Status.NON_FINITE))
         if "nonfinite" in d:
             fail = fail.masked_fill(d["nonfinite"], int(Status.NON_FINITE))
-        state = replace(state, K=K, k=k)
+        state = state.updated(K=K, k=k)
         return state, Measure(grad_norm=gn, done=done, fail=fail, cost=state.J, direction=d)
 
     def advance(self, problem, state: DescentState, m: Measure, running: Tensor):
@@ -388,11 +388,10 @@ class DescentRule:
             for k, v in (extra[0] if extra else {}).items()
         }
         if state.prev_step is not None:
-            state = replace(state, prev_step=torch.where(ok, alpha, state.prev_step))
+            state = state.updated(prev_step=torch.where(ok, alpha, state.prev_step))
         state, ended = self.direction.after_search(state, running, ok)
         end = torch.where(ended, int(Status.LINE_SEARCH_FAILED), int(Status.RUNNING))
-        state = replace(
-            state,
+        state = state.updated(
             x=torch.where(accept[:, None, None], x_new, state.x),
             u=torch.where(accept[:, None, None], u_new, state.u),
             J=torch.where(accept, J_new, state.J),

@@ -24,7 +24,7 @@ rollout and Armijo on the expected improvement ``α k'Q_u + α²/2 k'Q_uu k``.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, fields
 from typing import TYPE_CHECKING
 
 import torch
@@ -324,7 +324,7 @@ class RegularizedNewton:
         if done is not None:
             d["keep_gains"] = ~done
             d["grad_norm"] = grad_norm
-        return d, replace(state, mu=mu, delta=delta)
+        return d, state.updated(mu=mu, delta=delta)
 
     def _regularized_pass(self, A, B, e, hook, u_bounds, state, running):
         """The Riccati pass with Tassa et al.'s restarts of the running elements whose
@@ -340,7 +340,7 @@ class RegularizedNewton:
         sched = self.schedule
         mu, delta = sched.decrease(state.mu, state.delta, running & ok)
         mu, delta = sched.increase(mu, delta, running & ~ok)
-        return replace(state, mu=mu, delta=delta), running & ~ok & (mu > sched.reg_max)
+        return state.updated(mu=mu, delta=delta), running & ~ok & (mu > sched.reg_max)
 
 
 def _floored(problem: Problem, e, floor: float):
