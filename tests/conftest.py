@@ -44,6 +44,21 @@ def _generated_derivatives_where_tested(request, monkeypatch):
     monkeypatch.setattr(network_codegen, "MAX_DERIVATIVE_NODES", {"jacobians": -1, "hessians": -1})
 
 
+@pytest.fixture(autouse=True)
+def _steps_on_rows_where_tested(request, monkeypatch):
+    """A learned model's step on many rows at once (``step_rows``, on by default from
+    ``dispatch.MIN_BLOCK_ROWS`` rows) only where a test sets that threshold itself: each
+    model's function and the two kernels that call it compile in seconds with a cold
+    cache, and the other modules' learned models are served by the one-row step, which
+    ``tests/test_fused_line_search.py`` checks them against. ``TORCHSLQ_TEST_CODEGEN=1``
+    runs every test with it."""
+    if os.environ.get("TORCHSLQ_TEST_CODEGEN"):
+        return
+    from torchslq._backend import dispatch
+
+    monkeypatch.setattr(dispatch, "MIN_BLOCK_ROWS", 10**9)
+
+
 #: the sizes that keep LQ kernels compiled for their own (n, m) in the suite: the
 #: cart-pole's, the pendulum's and the unicycle's, which most solver tests use
 SPECIALISED_SIZES = ((4, 1), (2, 1), (3, 2))

@@ -21,6 +21,17 @@ def _same(a, b):
         torch.testing.assert_close(a.history[name], b.history[name], rtol=0, atol=0, equal_nan=True)
 
 
+def _same_to_rounding(a, b):
+    """The same iterations, statuses and accepted steps; the rest to rounding."""
+    for name in ("iterations", "status"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert torch.equal(a.history["step"], b.history["step"])
+    for name in ("x", "u", "cost", "grad_norm", "K", "k"):
+        torch.testing.assert_close(
+            getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-12, equal_nan=True, msg=name
+        )
+
+
 @pytest.mark.parametrize(
     "make",
     [
@@ -205,9 +216,12 @@ def test_skipping_settled_trials_changes_no_solve(solver, compact, monkeypatch):
 @pytest.mark.parametrize("solver", ["ddp", "ilqr-bounds", "slq"])
 def test_armijo_passes_change_no_solve(solver, monkeypatch):
     """How many trials each pass rolls out (``armijo_passes``) changes which trials are
-    rolled out, not the solve: the same to the last bit for the CPU default ((1, 3), or
-    (2, 2) while most elements took short steps), all at once after 4 (the other
-    devices' default) and one at a time; the option reaches armijo_search."""
+    rolled out, not the solve: for the CPU default ((1, 3), or (2, 2) while most elements
+    took short steps), all at once after 4 (the other devices' default) and one at a
+    time, the same iterations, statuses and accepted steps, the trajectories to rounding
+    (run alone the solves agree to the last bit; in a full suite run with fresh kernel
+    caches the DDP solves once differed in the last bits); the option reaches
+    armijo_search."""
     import sys
 
     _batched_search_only(monkeypatch)
@@ -234,7 +248,7 @@ def test_armijo_passes_change_no_solve(solver, monkeypatch):
     assert (1, 3) in seen and set(seen) <= {(1, 3), (2, 2)}
     for passes in [(4, None), (1, 1)]:
         seen.clear()
-        _same(make(armijo_passes=passes).solve(problem, x0), default)
+        _same_to_rounding(make(armijo_passes=passes).solve(problem, x0), default)
         assert set(seen) == {passes}
 
 
