@@ -167,6 +167,15 @@ MIN_STEPS_PER_THREAD = 4096
 # products' calls cost more than they save (the fused search on the 5-64-64-4 residual
 # cart-pole: 0.45 against 0.36 ms at 4 elements, even at 12, 1.34x faster at 64).
 MIN_BLOCK_ROWS = 12
+
+
+def _on_rows(step, rows: int):
+    """The model's step on many rows at once (``model_fns.register_rows``) for a pass
+    over ``rows`` rows (or elements), None below :data:`MIN_BLOCK_ROWS` or where the
+    model has none: its one-row step then serves."""
+    return rows_step(step) if rows >= MIN_BLOCK_ROWS else None
+
+
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 _pool_pid = 0  # a forked child inherits the pool object but not its threads
@@ -542,7 +551,7 @@ def closed_loop_rollout_compiled(
         if skip is None
         else skip.detach().expand(lead).reshape(R).contiguous().numpy()
     )
-    rows_fn = rows_step(step) if R >= MIN_BLOCK_ROWS else None
+    rows_fn = _on_rows(step, R)
     if rows_fn is None:
         kernel, fns = rollout_kernel(
             "closed_loop_rollout_kernel", step, un.dtype, params.dtype, R * T
@@ -607,7 +616,7 @@ def armijo_rollout_compiled(
     alpha, J = torch.empty_like(J0), torch.empty_like(J0)
     ok = torch.empty(Bsz, dtype=torch.bool)
     curv = J0 if curvature is None else curvature  # unread without the quadratic model
-    rows_fn = rows_step(step) if Bsz >= MIN_BLOCK_ROWS else None
+    rows_fn = _on_rows(step, Bsz)
     if rows_fn is None:
         kernel, fns = rollout_kernel(
             "armijo_rollout_kernel", step, _np_dtype(x.dtype), params.dtype, Bsz * T, _numba_search
@@ -652,7 +661,7 @@ def step_rows_compiled(step, params: np.ndarray, x: Tensor, u: Tensor) -> Tensor
     returns ``(R, n)``. Call only where :func:`can_use_compiled` holds."""
     out = torch.empty_like(x)
     xa = _np(x)
-    rows_fn = rows_step(step) if x.shape[0] >= MIN_BLOCK_ROWS else None
+    rows_fn = _on_rows(step, x.shape[0])
     if rows_fn is not None:  # the model's own function on many rows
         _launch(rows_fn, x.shape[0], 1, xa, _np(u), params, out.numpy())
         return out
