@@ -22,13 +22,19 @@ def _same(a, b):
 
 
 def _same_to_rounding(a, b):
-    """The same iterations, statuses and accepted steps; the rest to rounding."""
+    """The same iterations, statuses and accepted steps; the rest to rounding. The last
+    feedforward ``k = -Quu^-1 Qu`` comes from a difference of O(1) terms near the
+    solution (``Qu`` about the gradient, below 1e-6), scaled by ``Quu^-1`` (50 here):
+    its rounding is absolute, not relative to its small entries, hence its own absolute
+    tolerance (1e-9, far below what the solve resolves; a suite run with fresh kernel
+    caches once failed 1e-12 on it)."""
     for name in ("iterations", "status"):
         assert torch.equal(getattr(a, name), getattr(b, name)), name
     assert torch.equal(a.history["step"], b.history["step"])
     for name in ("x", "u", "cost", "grad_norm", "K", "k"):
+        atol = 1e-9 if name == "k" else 1e-12
         torch.testing.assert_close(
-            getattr(a, name), getattr(b, name), rtol=1e-9, atol=1e-12, equal_nan=True, msg=name
+            getattr(a, name), getattr(b, name), rtol=1e-9, atol=atol, equal_nan=True, msg=name
         )
 
 
