@@ -59,6 +59,21 @@ def _steps_on_rows_where_tested(request, monkeypatch):
     monkeypatch.setattr(dispatch, "MIN_BLOCK_ROWS", 10**9)
 
 
+@pytest.fixture(autouse=True)
+def _bound_kernels_by_the_test_alone(monkeypatch):
+    """Each test starts with no generated model's bound kernel taken (:mod:`torchslq.
+    _backend.bound`: a pass under ``MIN_ROWS`` rows runs them once a large pass has taken
+    them, in this process or, noted in a ``.taken`` file, an earlier one), so the kernels
+    a test runs depend on its own passes, not on which tests its worker ran before. The
+    bound kernels (the model's functions inlined) agree with the generic ones to
+    rounding, not bit for bit, and some tests compare two paths bitwise."""
+    from torchslq._backend import bound
+
+    monkeypatch.setattr(bound, "_TAKEN", set())
+    monkeypatch.setattr(bound, "_NOTED", {})
+    monkeypatch.setattr(bound, "_taken_file", lambda module: None)
+
+
 #: the sizes that keep LQ kernels compiled for their own (n, m) in the suite: the
 #: cart-pole's, the pendulum's and the unicycle's, which most solver tests use
 SPECIALISED_SIZES = ((4, 1), (2, 1), (3, 2))
