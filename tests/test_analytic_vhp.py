@@ -148,7 +148,8 @@ def test_ddp_with_analytic_second_derivatives_equals_automatic_differentiation()
         a, b = solver.solve(problem, x0), solver.solve(auto, x0)
         assert torch.equal(a.iterations, b.iterations)
         torch.testing.assert_close(a.u, b.u, rtol=1e-7, atol=1e-8)
-        torch.testing.assert_close(a.history["cost"], b.history["cost"], rtol=1e-9, atol=0)
+        # (8 iterations amplify round-off: a clean-clone run saw 1.5e-9 relative)
+        torch.testing.assert_close(a.history["cost"], b.history["cost"], rtol=1e-8, atol=0)
     # a whole solve: the same minimiser (round-off can move the last gradient test
     # across tol by an iteration, or make the Armijo test at the cost's rounding floor
     # halve a last step: seen once, 30 vs 28 iterations, gradients 3e-8 vs 5e-14 there)
