@@ -64,9 +64,10 @@ def _bound_kernels_by_the_test_alone(monkeypatch):
     """Each test starts with no generated model's bound kernel taken (:mod:`torchslq.
     _backend.bound`: a pass under ``MIN_ROWS`` rows runs them once a large pass has taken
     them, in this process or, noted in a ``.taken`` file, an earlier one), so the kernels
-    a test runs depend on its own passes, not on which tests its worker ran before. The
-    bound kernels (the model's functions inlined) agree with the generic ones to
-    rounding, not bit for bit, and some tests compare two paths bitwise."""
+    a test runs depend on its own passes, not on which tests its worker ran before: the
+    bound kernels' results (the model's functions inlined) have been seen to differ from
+    the generic kernels' in the last bit, and one bit can move a long solve by an
+    iteration."""
     from torchslq._backend import bound
 
     monkeypatch.setattr(bound, "_TAKEN", set())

@@ -9,9 +9,10 @@ most of an iteration. Here the whole search of an element is one loop: the trial
 turn, each rolled out (:func:`._numba_kernels._closed_loop_rows`, the rollout
 kernel's loop) and costed (:func:`._numba_cost.quadratic_cost_row`) until one passes. The
 steps, costs and trajectories are those of ``armijo_search`` (whose batched passes
-return what serial backtracking returns), bit for bit: the same operations in the same
-order (where both take the generic kernels or both a generated model's bound ones,
-:mod:`.bound`, whose results differ from the generic kernels' by a few ulp). For a model whose step has a function on many rows at once (a learned model's
+return what serial backtracking returns): the same operations in the same order, so the
+same steps, and costs and trajectories equal to the last bit or two (separately
+compiled kernels' last bits have been seen to differ between processes). For a model
+whose step has a function on many rows at once (a learned model's
 wide layers as matrix products, :func:`torchslq._backend.model_fns.register_rows`),
 :func:`armijo_rows_kernel` makes the same search with the elements' trials side by
 side, one call of that function per time step.
