@@ -101,6 +101,31 @@ def _batched_evaluation(dyn, cost, x, u, K, k, lo, hi):
     return evaluate, trials
 
 
+def _fused_equals_batched(
+    ref, trials, dyn, cost, x, u, K, k, lo, hi, J0, slope, curv, active, atol
+):
+    """The fused search (one kernel call; ``c1 = 0.4``, steps ``2^-j``) on the inputs
+    of the batched search whose result is ``ref`` (its trajectories in ``trials``): the
+    same steps and flags, the costs and trajectories to rounding (``atol`` for these:
+    the same operations in the same order, but in separately compiled kernels, whose
+    last bits have been seen to differ between processes). Returns its outputs ``(alpha,
+    J, ok, x, u)``."""
+    grid = 0.5 ** torch.arange(20, dtype=F64)
+    terms = cost.compiled_terms(x, u)
+    assert terms is not None and compiled_step_of(dyn) is not None
+    out = dispatch.armijo_rollout_compiled(
+        *compiled_step_of(dyn), x, u, K, k, lo, hi, grid, J0, slope, curv, 0.4,
+        ROUNDOFF_NOISE * torch.finfo(F64).eps, active, terms,
+    )  # fmt: skip
+    alpha, J, ok, x_new, u_new = out
+    x_ref, u_ref = trials.select(ref[0])
+    assert torch.equal(alpha, ref[0]) and torch.equal(ok, ref[2])
+    torch.testing.assert_close(J, ref[1], rtol=1e-13, atol=0.0)
+    torch.testing.assert_close(x_new[ok], x_ref[ok], rtol=1e-12, atol=atol)
+    torch.testing.assert_close(u_new[ok], u_ref[ok], rtol=1e-12, atol=atol)
+    return out
+
+
 @pytest.mark.parametrize("per_element", [False, True])
 @pytest.mark.parametrize("bounded", [False, True])
 @pytest.mark.parametrize("quadratic", [False, True])
@@ -129,22 +154,10 @@ def test_fused_search_equals_the_batched_search(per_element, bounded, quadratic)
             evaluate, J0, slope, curvature=curv, c1=0.4, active=active, skip_settled=True,
             first_trials=2, pass_size=3,
         )  # fmt: skip
-        x_ref, u_ref = trials.select(ref[0])
-        grid = 0.5 ** torch.arange(20, dtype=F64)
-        terms = cost.compiled_terms(x, u)
-        assert terms is not None and compiled_step_of(dyn) is not None
-        out = dispatch.armijo_rollout_compiled(
-            *compiled_step_of(dyn), x, u, K, k, lo, hi, grid, J0, slope, curv, 0.4,
-            ROUNDOFF_NOISE * torch.finfo(F64).eps, active, terms,
-        )  # fmt: skip
+        out = _fused_equals_batched(
+            ref, trials, dyn, cost, x, u, K, k, lo, hi, J0, slope, curv, active, atol=1e-14
+        )
     alpha, J, ok, x_new, u_new = out
-    # the same steps and flags; the costs and trajectories to rounding (the same
-    # operations in the same order, but in separately compiled kernels, whose last bits
-    # have been seen to differ between processes)
-    assert torch.equal(alpha, ref[0]) and torch.equal(ok, ref[2])
-    torch.testing.assert_close(J, ref[1], rtol=1e-13, atol=0.0)
-    torch.testing.assert_close(x_new[ok], x_ref[ok], rtol=1e-12, atol=1e-14)
-    torch.testing.assert_close(u_new[ok], u_ref[ok], rtol=1e-12, atol=1e-14)
     # the cases the inputs were built for happened
     if not bounded:  # (clamped, a long step along an ascent direction may pass)
         assert not bool(ok[1]) and float(alpha[1]) == 0.0
@@ -185,17 +198,9 @@ def test_fused_search_on_many_rows_equals_the_batched_search(bounded, monkeypatc
         with monkeypatch.context() as one_row:  # the reference on the one-row step
             one_row.setattr(dispatch, "MIN_BLOCK_ROWS", 10**9)
             ref = armijo_search(evaluate, J0, slope, c1=0.4, active=active, skip_settled=True)
-        x_ref, u_ref = trials.select(ref[0])
-        grid = 0.5 ** torch.arange(20, dtype=F64)
-        out = dispatch.armijo_rollout_compiled(
-            *compiled_step_of(dyn), x, u, K, k, lo, hi, grid, J0, slope, None, 0.4,
-            ROUNDOFF_NOISE * torch.finfo(F64).eps, active, cost.compiled_terms(x, u),
-        )  # fmt: skip
-    alpha, J, ok, x_new, u_new = out
-    assert torch.equal(alpha, ref[0]) and torch.equal(ok, ref[2])
-    torch.testing.assert_close(J, ref[1], rtol=1e-13, atol=0.0)
-    torch.testing.assert_close(x_new[ok], x_ref[ok], rtol=1e-12, atol=1e-13)
-    torch.testing.assert_close(u_new[ok], u_ref[ok], rtol=1e-12, atol=1e-13)
+        alpha, J, ok, _, _ = _fused_equals_batched(
+            ref, trials, dyn, cost, x, u, K, k, lo, hi, J0, slope, None, active, atol=1e-13
+        )
     # the cases the inputs were built for happened, and steps of several sizes
     assert bool(ok[2]) and float(alpha[2]) == 1.0 and not bool(ok[3])
     assert len(set(alpha[ok].tolist())) >= 2

@@ -176,6 +176,19 @@ def _on_rows(step, rows: int):
     return rows_step(step) if rows >= MIN_BLOCK_ROWS else None
 
 
+def _pass_kernel(
+    kernel_name: str, rows_kernel_name: str, step, x_dtype, p_dtype, rows: int, size: int, module
+) -> tuple:
+    """``(kernel, function values)`` for a pass over ``rows`` rows (or line-search
+    elements), ``size`` row-steps in all: ``module``'s ``rows_kernel_name`` with the
+    model's step on many rows at once where :func:`_on_rows` gives one, else
+    :func:`~.model_fns.rollout_kernel`'s ``kernel_name``."""
+    rows_fn = _on_rows(step, rows)
+    if rows_fn is None:
+        return rollout_kernel(kernel_name, step, x_dtype, p_dtype, size, module)
+    return getattr(module, rows_kernel_name), (function_value(rows_fn, "rows", x_dtype, p_dtype),)
+
+
 _pool: ThreadPoolExecutor | None = None
 _pool_size = 0
 _pool_pid = 0  # a forked child inherits the pool object but not its threads
@@ -551,14 +564,10 @@ def closed_loop_rollout_compiled(
         if skip is None
         else skip.detach().expand(lead).reshape(R).contiguous().numpy()
     )
-    rows_fn = _on_rows(step, R)
-    if rows_fn is None:
-        kernel, fns = rollout_kernel(
-            "closed_loop_rollout_kernel", step, un.dtype, params.dtype, R * T
-        )
-    else:  # the rows side by side, the step on all of them at once
-        kernel = _kernels().closed_loop_rows_kernel
-        fns = (function_value(rows_fn, "rows", un.dtype, params.dtype),)
+    kernel, fns = _pass_kernel(
+        "closed_loop_rollout_kernel", "closed_loop_rows_kernel", step, un.dtype, params.dtype,
+        R, R * T, _kernels(),
+    )  # fmt: skip
     _launch(
         kernel,
         R,
@@ -616,14 +625,10 @@ def armijo_rollout_compiled(
     alpha, J = torch.empty_like(J0), torch.empty_like(J0)
     ok = torch.empty(Bsz, dtype=torch.bool)
     curv = J0 if curvature is None else curvature  # unread without the quadratic model
-    rows_fn = _on_rows(step, Bsz)
-    if rows_fn is None:
-        kernel, fns = rollout_kernel(
-            "armijo_rollout_kernel", step, _np_dtype(x.dtype), params.dtype, Bsz * T, _numba_search
-        )
-    else:  # the elements' trials side by side, the step on all their rows at once
-        kernel = _numba_search.armijo_rows_kernel
-        fns = (function_value(rows_fn, "rows", _np_dtype(x.dtype), params.dtype),)
+    kernel, fns = _pass_kernel(
+        "armijo_rollout_kernel", "armijo_rows_kernel", step, _np_dtype(x.dtype), params.dtype,
+        Bsz, Bsz * T, _numba_search,
+    )  # fmt: skip
     _, (xr, ur, Q, QT, R), stage_states = cost_terms
     arrays = (x, u, K.expand(Bsz, T, m, n), k, grid, J0, slope, curv)
     _launch(
