@@ -610,6 +610,7 @@ def _homogeneous_only(monkeypatch):
     import torchslq.lq.solve as solve_mod
 
     monkeypatch.setattr(solve_mod, "_solve_gain", lambda *a, **k: None)
+    monkeypatch.setattr(solve_mod, "gain_addresses", lambda *a, **k: None)
 
 
 @pytest.mark.parametrize("grad", [False, True])
@@ -634,8 +635,9 @@ def test_gain_form_kernels_equal_the_homogeneous_path_and_dense_kkt(shape, grad,
     if shape == "broadcast":  # no batch dim, a time dim of 1, a constant matrix
         args = {**args, "A": args["A"][0], "R": args["R"][:, :1], "Q": args["Q"][0, 0]}
     calls = []
-    real = solve_mod.lq_gain_solve
-    monkeypatch.setattr(solve_mod, "lq_gain_solve", lambda *a: calls.append(1) or real(*a))
+    for kernel in ("lq_gain_solve", "lq_gain_solve_at"):  # (the arrays' or the addresses')
+        real = getattr(solve_mod, kernel)
+        monkeypatch.setattr(solve_mod, kernel, lambda *a, real=real: calls.append(1) or real(*a))
     g = torch.Generator().manual_seed(3)
 
     def run(inputs):
@@ -714,6 +716,82 @@ def test_one_pass_input_arrays_equal_the_general_path():
     ]
     for case in declined:
         assert dispatch.plain_gain_pieces(pieces(case), case["x0"]) is None
+
+
+@pytest.mark.parametrize("dtype", [F64, torch.float32])
+def test_kernels_reading_the_data_at_their_addresses_equal_the_array_launchers(dtype):
+    """A call without a graph passes the tensors' addresses (``gain_addresses``, the
+    ``*_at`` kernels) instead of numpy views. For per-element, shared and mixed data, a
+    constant weight, a time dim of 1 and absent terms, the solve equals the array
+    launcher's (``lq_gain_solve`` on ``_gain_inputs``) bit for bit, and the data check
+    equals ``lq_data_clean`` on a NaN in each piece and an ``R`` that is not positive
+    definite. A call the addresses cannot describe exactly (a wrong matrix size, a
+    stride-0 or transposed piece, a batch that is neither 1 nor x0's, a time dim that is
+    neither 1 nor the horizon, another dtype, a piece that requires grad with grad on)
+    is left to the array path (None): the kernels read the memory without bounds
+    checks."""
+    import torchslq.lq.solve as solve_mod
+    from torchslq._backend import dispatch
+
+    if not dispatch.compiled_available():
+        pytest.skip("numba kernels not importable")
+    T, n, m = 5, 3, 2
+    args = random_problem(seed=8, bsz=3, T=T, n=n, m=m, dtype=dtype)
+    order = ("A", "B", "Q", "R", "x0", "q", "r", "S", "c")
+
+    def pieces(a):
+        return (a["A"], a["B"], a.get("c"), a["Q"], a["R"], a.get("S"), a.get("q"), a.get("r"))
+
+    cases = {
+        "per element": args,
+        "shared": {k: (v if k == "x0" else v[:1]) for k, v in args.items()},
+        "mixed": {k: (v[:1] if k in ("A", "S") else v) for k, v in args.items()},
+        "constant Q, R of one step, A without batch": {
+            **args, "Q": args["Q"][0, 0].contiguous(), "R": args["R"][:, :1].contiguous(),
+            "A": args["A"][0],
+        },
+        "no terms": {k: v for k, v in args.items() if k in ("A", "B", "Q", "R", "x0")},
+    }  # fmt: skip
+    for name, case in cases.items():
+        at = dispatch.gain_addresses(pieces(case), case["x0"], T, n, m)
+        assert at is not None, name
+        full = {k: case.get(k) for k in order}
+        full["Q"] = solve_mod.with_time(full["Q"], 2, T + 1)
+        full["R"] = solve_mod.with_time(full["R"], 2, T)
+        arrays, data_batch, x0n = solve_mod._gain_inputs(*full.values(), torch.Size([3]))
+        assert at[2] == data_batch, name
+        got = dispatch.lq_gain_solve_at(at, T)
+        want = dispatch.lq_gain_solve(arrays, data_batch, x0n, T)
+        assert got.keys() == want.keys()
+        for key in want:
+            np.testing.assert_array_equal(got[key], want[key], err_msg=f"{name}: {key}")
+        assert dispatch.lq_data_clean_at(at) and dispatch.lq_data_clean(arrays, x0n)
+        for k in order:  # a NaN in each piece, then an R that is not PD
+            if case.get(k) is None:
+                continue
+            bad = {**case, k: case[k].clone()}
+            bad[k].view(-1)[-1] = float("nan")
+            at = dispatch.gain_addresses(pieces(bad), bad["x0"], T, n, m)
+            assert not dispatch.lq_data_clean_at(at), f"{name}: NaN in {k}"
+        bad = {**case, "R": -case["R"]}
+        assert not dispatch.lq_data_clean_at(
+            dispatch.gain_addresses(pieces(bad), bad["x0"], T, n, m)
+        )
+    declined = {
+        "a wrong matrix size": {**args, "Q": args["Q"][..., :2, :2].contiguous()},
+        "stride 0": {**args, "Q": args["Q"][:1].expand(3, -1, -1, -1)},
+        "transposed": {**args, "A": args["A"].transpose(-1, -2)},
+        "a batch of 2 against 3": {**args, "B": args["B"][:2]},
+        "a time dim of 2": {**args, "r": args["r"][:, :2].contiguous()},
+        "another dtype": {**args, "r": args["r"].to(F64 if dtype != F64 else torch.float32)},
+        "unbatched x0": {**args, "x0": args["x0"][0]},
+        "requires grad": {**args, "c": args["c"].clone().requires_grad_(True)},
+    }
+    for name, case in declined.items():
+        assert dispatch.gain_addresses(pieces(case), case["x0"], T, n, m) is None, name
+    with torch.no_grad():  # no graph is recorded: the addresses serve
+        case = declined["requires grad"]
+        assert dispatch.gain_addresses(pieces(case), case["x0"], T, n, m) is not None
 
 
 @pytest.mark.all_sizes

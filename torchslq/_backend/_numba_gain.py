@@ -37,6 +37,7 @@ import math
 import numba
 import numpy as np
 
+from ._numba_address import pieces_at
 from ._numba_gemm import acc_tn
 from ._numba_kernels import (  # noqa: F401 (size_witness re-exported)
     _affine_step,
@@ -428,6 +429,16 @@ def gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finit
     )  # fmt: skip
 
 
+@numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy")
+def gain_solve_at_kernel(
+    addresses, dims, x0_address, Kk, P, p, L, s, failed, x, u, lam, cost, finite, nt, mt
+):
+    """:func:`gain_solve_kernel` on the data at ``addresses`` and ``x0_address``
+    (:func:`._numba_address.pieces_at`; ``x0 (x.shape[0], n)``)."""
+    pieces, x0 = pieces_at(addresses, dims, x0_address, x.shape[0], Kk.shape[3] - 1, Kk.shape[2], P)
+    gain_solve_kernel(pieces, x0, Kk, P, p, L, s, failed, x, u, lam, cost, finite, nt, mt)
+
+
 @numba.njit(cache=True, nogil=True, fastmath={"contract"}, error_model="numpy", _nrt=False)
 def rollout_value_kernel(b0, b1, A, Bm, c, Kk, P, p, s, x0, x, u, lam, cost, finite, nt, mt):
     """Per element ``b0 <= e < b1``: the rollout of
@@ -717,6 +728,14 @@ def _all_positive_definite(R):
             if not _cholesky(sym, 0.0, whole, L):
                 return False
     return True
+
+
+@numba.njit(cache=True, nogil=True)
+def data_clean_at_kernel(addresses, dims, x0_address, nb, n, m, like):
+    """:func:`data_clean_kernel` on the data at ``addresses`` and ``x0_address``
+    (:func:`._numba_address.pieces_at`, in ``like``'s dtype)."""
+    pieces, x0 = pieces_at(addresses, dims, x0_address, nb, n, m, like)
+    return data_clean_kernel(pieces, x0)
 
 
 @numba.njit(cache=True, nogil=True)

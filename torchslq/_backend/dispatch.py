@@ -949,6 +949,86 @@ def plain_gain_pieces(
     return tuple(out), 1 if shared else nb, (x0.detach() if x0.requires_grad else x0).numpy()
 
 
+# per piece (A, B, c, Q, R, S, q, r): its matrix or vector shape in terms of (n, m), and
+# whether its time dim has T + 1 steps (else T)
+_PIECE_TAILS = ("nn", "nm", "n", "nn", "mm", "mn", "n", "m")
+_PIECE_TERMINAL = (False, False, False, True, False, False, True, False)
+_ADDRESS_SHAPES: dict = {}  # (n, m, T, B) -> per piece {accepted shape: (batch, time)}
+
+
+def _address_shapes(n: int, m: int, T: int, nb: int) -> tuple[dict, ...]:
+    """Per piece of :func:`gain_addresses`, its accepted shapes and their batch and time
+    sizes (one dict lookup a piece: at B = 1 each check of a shape counts)."""
+    key = (n, m, T, nb)
+    table = _ADDRESS_SHAPES.get(key)
+    if table is None:
+        if len(_ADDRESS_SHAPES) > 256:
+            _ADDRESS_SHAPES.clear()
+        sizes = {"n": n, "m": m}
+        table = []
+        for tail, terminal in zip(_PIECE_TAILS, _PIECE_TERMINAL, strict=True):
+            tail = tuple(sizes[k] for k in tail)
+            shapes = {tail: (1, 1)}
+            for t in (1, T + 1 if terminal else T):
+                shapes[(t, *tail)] = (1, t)
+                for b in (1, nb):
+                    shapes[(b, t, *tail)] = (b, t)
+            table.append(shapes)
+        table = _ADDRESS_SHAPES[key] = tuple(table)
+    return table
+
+
+def gain_addresses(pieces: tuple, x0: Tensor, T: int, n: int, m: int) -> tuple | None:
+    """The LQ data ``pieces`` ``(A, B, c, Q, R, S, q, r)`` (as given to
+    :func:`torchslq.lqr_solve`: ``c, S, q, r`` may be None) and ``x0 (B, n)`` as the
+    addresses the ``*_at`` kernels read them at (:mod:`._numba_address`), for a call
+    that needs no graph; None for any other call (the array launchers then decide).
+
+    Each piece is ``(1 or B, 1 or steps, *tail)``, ``(1 or steps, *tail)`` or its
+    ``tail`` alone (the same in every step), contiguous, on the CPU, in ``x0``'s float
+    dtype, with exactly its tail shape: the kernels read memory at these addresses
+    without bounds checks. Returns ``(addresses, dims, data_batch, x0_address, B, n,
+    m, numpy dtype)``: ``dims`` each piece's batch and time sizes (``(0, 0)`` absent),
+    ``data_batch`` 1 where every piece is shared by the batch (one Riccati pass serves
+    all), else ``B``. (At ``B = 1`` a numpy view of each of nine tensors cost more than
+    the ``(4, 1)``, ``T = 100`` pass itself.)"""
+    if x0.ndim != 2 or not x0.is_cpu or not compiled_available():
+        return None
+    dtype = x0.dtype
+    npd = NP_FLOAT_DTYPES.get(dtype)
+    grad = torch.is_grad_enabled()
+    if npd is None or x0.shape[1] != n or not x0.is_contiguous() or (grad and x0.requires_grad):
+        return None
+    nb = x0.shape[0]
+    addresses, dims = [], ()
+    shared = True
+    for p, shapes in zip(pieces, _address_shapes(n, m, T, nb), strict=True):
+        if p is None:
+            addresses.append(0)
+            dims += (0, 0)
+            continue
+        bt = shapes.get(p.shape)
+        if bt is None or p.dtype != dtype or not p.is_cpu or not p.is_contiguous():
+            return None
+        if grad and p.requires_grad:
+            return None
+        if bt[0] != 1:
+            shared = False
+        addresses.append(p.data_ptr())
+        dims += bt
+    if not _kernels_apply_here():
+        return None
+    return tuple(addresses), dims, 1 if shared else nb, x0.data_ptr(), nb, n, m, npd
+
+
+def lq_data_clean_at(at: tuple) -> bool:
+    """:func:`lq_data_clean` on the data of :func:`gain_addresses`."""
+    addresses, dims, _, x0_address, nb, n, m, npd = at
+    like = _EMPTY_PIECES.get(npd) or _empty_pieces(npd)
+    kernel = _gain_kernels().data_clean_at_kernel
+    return bool(kernel(addresses, dims, x0_address, nb, n, m, like[0]))
+
+
 _GAIN_PLANS: dict = {}  # (n, m, switches) -> _gain_plan's tuple
 
 
@@ -993,20 +1073,7 @@ def lq_gain_solve(
     n, m = pieces[1].shape[-2], pieces[1].shape[-1]
     gain, passes, nt, mt, with_slp = _gain_plan(n, m)
     nb = x0.shape[0]
-    npd = x0.dtype
-    out = (
-        np.empty((data_batch, T, m, n + 1), npd),
-        np.empty((data_batch, T + 1, n, n), npd),
-        np.empty((data_batch, T + 1, n), npd),
-        np.empty((data_batch, T, m, m), npd),
-        np.empty(data_batch, npd),
-        np.empty(data_batch, np.bool_),
-        np.empty((nb, T + 1, n), npd),
-        np.empty((nb, T, m), npd),
-        np.empty((nb, T + 1, n), npd),
-        np.empty(nb, npd),
-        np.empty(nb, np.bool_),
-    )
+    out = _gain_outputs(data_batch, nb, T, n, m, x0.dtype)
     Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten = out
     work = max(nb, data_batch)
     if work * T < 2 * MIN_STEPS_PER_THREAD or _threads(work, T) == 1:  # one launch, not three
@@ -1021,10 +1088,45 @@ def lq_gain_solve(
             gain.rollout_value_kernel, nb, T, pieces[0], pieces[1], pieces[2], Kkn, Pn, pn, sn,
             x0, xn, un, lamn, costn, finiten, nt, mt,
         )  # fmt: skip
+    return _gain_solution_arrays(out)
+
+
+def lq_gain_solve_at(at: tuple, T: int) -> dict[str, np.ndarray] | None:
+    """:func:`lq_gain_solve` on the data of :func:`gain_addresses`, in one launch; None
+    where the solve is large enough to be split over threads (the array launchers then
+    run it)."""
+    addresses, dims, data_batch, x0_address, nb, n, m, npd = at
+    if max(nb, data_batch) * T >= 2 * MIN_STEPS_PER_THREAD and _threads(max(nb, data_batch), T) > 1:
+        return None
+    _, passes, nt, mt, with_slp = _gain_plan(n, m)
+    out = _gain_outputs(data_batch, nb, T, n, m, npd)
+    with_slp(passes.gain_solve_at_kernel, addresses, dims, x0_address, *out, nt, mt)
+    return _gain_solution_arrays(out)
+
+
+def _gain_solution_arrays(out: tuple) -> dict[str, np.ndarray]:
+    Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten = out
     return {
         "Kk": Kkn, "P": Pn, "p": pn, "L": Ln, "s": sn, "failed": failedn, "x": xn, "u": un,
         "lam": lamn, "cost": costn, "finite": finiten,
     }  # fmt: skip
+
+
+def _gain_outputs(data_batch: int, nb: int, T: int, n: int, m: int, npd) -> tuple:
+    """The gain kernels' outputs (:func:`lq_gain_solve`), uninitialised."""
+    return (
+        np.empty((data_batch, T, m, n + 1), npd),
+        np.empty((data_batch, T + 1, n, n), npd),
+        np.empty((data_batch, T + 1, n), npd),
+        np.empty((data_batch, T, m, m), npd),
+        np.empty(data_batch, npd),
+        np.empty(data_batch, np.bool_),
+        np.empty((nb, T + 1, n), npd),
+        np.empty((nb, T, m), npd),
+        np.empty((nb, T + 1, n), npd),
+        np.empty(nb, npd),
+        np.empty(nb, np.bool_),
+    )
 
 
 def lq_gain_gradients(

@@ -34,10 +34,13 @@ from .._backend import (
     compiled_available,
 )
 from .._backend.dispatch import (
+    gain_addresses,
     lq_data_clean,
+    lq_data_clean_at,
     lq_gain_gradients,
     lq_gain_pieces,
     lq_gain_solve,
+    lq_gain_solve_at,
     plain_gain_pieces,
 )
 from .._shapes import broadcast_shapes
@@ -191,7 +194,9 @@ _NON_FINITE = int(Status.NON_FINITE)
 def _finite_status(f: np.ndarray) -> Tensor:
     """``CONVERGED`` where the numpy flags ``f`` are set, else ``NON_FINITE`` (all finite
     the common case: numpy's where costs microseconds)."""
-    return torch.from_numpy(np.zeros(f.shape, np.int64) if f.all() else np.where(f, 0, _NON_FINITE))
+    if f[0] if f.shape[0] == 1 else f.all():
+        return torch.zeros(f.shape[0], dtype=torch.int64)
+    return torch.from_numpy(np.where(f, 0, _NON_FINITE))
 
 
 def lq_status(failed: Tensor | None, finite: Tensor) -> Tensor:
@@ -592,11 +597,23 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, batch: torch.Size, inputs: tuple) ->
     (Written for a small solve's overhead: at ``(n, m) = (4, 1)``, ``B = 1``, ``T = 100``
     the kernel takes about 10 us, and every tensor op here about one: the outputs are
     numpy arrays, sliced and reshaped by numpy, each made a tensor once.)"""
-    data = (A, B, Q, R, x0, q, r, S, c)
-    T, n = A.shape[-3], A.shape[-1]
-    nb = max(math.prod(batch), 1)
     pieces, data_batch, x0n = inputs
-    sol = lq_gain_solve(pieces, data_batch, x0n, T)
+    sol = lq_gain_solve(pieces, data_batch, x0n, A.shape[-3])
+    graph = None
+    if torch.is_grad_enabled() and _any_requires_grad((A, B, Q, R, x0, q, r, S, c)):
+        graph = (pieces, (A, B, Q, R, x0, q, r, S, c))
+    return _gain_solution(sol, batch, data_batch, A.shape[-1], graph)
+
+
+def _gain_solution(
+    sol: dict, batch: torch.Size, data_batch: int, n: int, graph: tuple | None = None
+) -> LQRSolution | None:
+    """The :class:`LQRSolution` of the gain-form kernels' arrays ``sol``
+    (:func:`lq_gain_solve`) for the batch shape ``batch``, the data's own batch
+    ``data_batch`` (1 or ``prod(batch)``); ``graph``: ``(pieces, data)`` where ``x, u,
+    cost`` are to carry gradients to the data (:class:`_GainLQRFunction`). None where an
+    element's factorisation failed."""
+    nb = max(math.prod(batch), 1)
     failed = sol["failed"]
     if failed[0] if data_batch == 1 else failed.any():
         return None
@@ -615,8 +632,8 @@ def _solve_gain(A, B, Q, R, x0, q, r, S, c, batch: torch.Size, inputs: tuple) ->
         status = status.reshape(shape)
     if len(shape) == 1 and data_batch == nb:  # (the common case: no reshape, no expand)
         full = t
-    if torch.is_grad_enabled() and _any_requires_grad(data):
-        x, u, cost = _GainLQRFunction.apply(pieces, sol, batch, *data)
+    if graph is not None:
+        x, u, cost = _GainLQRFunction.apply(graph[0], sol, batch, *graph[1])
     else:
         x, u, cost = full(sol["x"]), full(sol["u"]), full(sol["cost"])
     Kk = sol["Kk"]
@@ -704,6 +721,17 @@ def lqr_solve(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     m = B.shape[-1]
+    if method != "scan":
+        # the common small call (no graph, the data as given): the kernels read the
+        # tensors at their addresses (numpy views of nine tensors cost more than a small
+        # solve); None where it does not apply, or a fault or failure is to be classified
+        at = gain_addresses((A, B, c, Q, R, S, q, r), x0, T, n, m)
+        if at is not None and (not validate or lq_data_clean_at(at)):
+            sol = lq_gain_solve_at(at, T)
+            if sol is not None:
+                sol = _gain_solution(sol, torch.Size((x0.shape[0],)), at[2], n)
+                if sol is not None:
+                    return sol
     Q = with_time(Q, 2, T + 1)
     R = with_time(R, 2, T)
     R_given = R  # before a not-PD element's R is made NaN (below)
