@@ -17,6 +17,8 @@ import numba
 from numba import types
 from numba.extending import intrinsic
 
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
+
 
 @intrinsic
 def _pointer(typingctx, address, like):

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numba
 
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
+
 
 @numba.njit(cache=True, nogil=True, _nrt=False)
 def quadratic_cost_kernel(r0, r1, B, x, u, xr, ur, Q, QT, R, stage_states, J):

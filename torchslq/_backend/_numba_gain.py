@@ -37,6 +37,7 @@ import math
 import numba
 import numpy as np
 
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
 from ._numba_address import pieces_at
 from ._numba_gemm import acc_tn
 from ._numba_kernels import (  # noqa: F401 (size_witness re-exported)

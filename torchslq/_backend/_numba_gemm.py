@@ -24,6 +24,8 @@ from collections.abc import Iterator
 import numba
 import numba.core.config
 
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
+
 
 def with_slp(fn, *args):
     """``fn(*args)`` with LLVM's SLP vectoriser switched on, as :func:`slp_vectorized`:

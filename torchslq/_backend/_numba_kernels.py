@@ -21,6 +21,7 @@ import math
 import numba
 import numpy as np
 
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
 from ._numba_gemm import acc_tn
 from .specialisation import specialised
 

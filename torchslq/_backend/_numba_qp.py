@@ -30,6 +30,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
 from ._numba_kernels import _cholesky, cholesky_solve
 
 # the degrees of freedom up to which the kernels are compiled for their number

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numba
 
 from ..dynamics._numba_net import tanh as _tanh
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
 from ._numba_gemm import acc_tn
 
 

@@ -23,6 +23,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
 from ._numba_cost import quadratic_cost_row
 from ._numba_kernels import _closed_loop_row_set, _closed_loop_rows
 

@@ -11,6 +11,8 @@ from llvmlite import ir
 from numba.core import cgutils, types
 from numba.extending import intrinsic
 
+from .._backend import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
+
 
 @intrinsic
 def _as_float64(typingctx, i):

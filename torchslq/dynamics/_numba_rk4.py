@@ -21,6 +21,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .._backend import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
 from .._backend._numba_kernels import STEP_RK4, rk4_step_with
 from .._backend.model_fns import register_step
 

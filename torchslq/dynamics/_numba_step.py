@@ -10,6 +10,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from .._backend import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
+
 
 @numba.njit(nogil=True, cache=True)
 def step_derivatives_kernel(
