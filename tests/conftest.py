@@ -78,6 +78,10 @@ def _bound_kernels_by_the_test_alone(monkeypatch):
 #: the sizes that keep LQ kernels compiled for their own (n, m) in the suite: the
 #: cart-pole's, the pendulum's and the unicycle's, which most solver tests use
 SPECIALISED_SIZES = ((4, 1), (2, 1), (3, 2))
+#: the QPs' reduced sizes that keep interior-point kernels of their own in the suite: the
+#: most used one (3) and the container crane PS10's (8); the LQDO tests meet six others,
+#: each 10-12 s of compilation (the set-up's and the iterations' kernels) with a cold cache
+SPECIALISED_QP_SIZES = (3, 8)
 
 
 @pytest.fixture(autouse=True)
@@ -88,18 +92,25 @@ def _specialised_sizes_of_the_zoo(request):
     with a cold cache, and the suite's random problems draw dozens of sizes. Every
     other size runs the kernels that read their sizes at run time, which
     ``tests/test_lq_kernel.py`` and ``tests/test_gain_codegen.py`` check the
-    specialised ones against. ``TORCHSLQ_TEST_ALL_SIZES=1`` runs every test with all
+    specialised ones against. The same for the QP interior point's reduced sizes
+    (:data:`SPECIALISED_QP_SIZES`; ``tests/test_lqdo_qp.py`` checks the two kinds of
+    kernels against each other). ``TORCHSLQ_TEST_ALL_SIZES=1`` runs every test with all
     sizes specialised."""
     if request.node.get_closest_marker("all_sizes") or os.environ.get("TORCHSLQ_TEST_ALL_SIZES"):
         yield
         return
-    from torchslq._backend.specialisation import limit_specialised_sizes
+    from torchslq._backend.specialisation import (
+        limit_specialised_qp_sizes,
+        limit_specialised_sizes,
+    )
 
     old = limit_specialised_sizes(SPECIALISED_SIZES)
+    old_qp = limit_specialised_qp_sizes(SPECIALISED_QP_SIZES)
     try:
         yield
     finally:
         limit_specialised_sizes(old)
+        limit_specialised_qp_sizes(old_qp)
 
 
 @pytest.fixture

@@ -127,6 +127,36 @@ def test_reduced_newton_system_matches_the_known_solution_and_the_full_one(bound
         torch.testing.assert_close(mu, mu_star, rtol=1e-7, atol=1e-7)
 
 
+@pytest.mark.all_sizes
+def test_limited_qp_specialisations_run_the_general_kernels_with_the_same_results():
+    """``limit_specialised_qp_sizes`` keeps interior-point kernels compiled for the
+    reduced size ``r`` for the sizes it names; another ``r`` runs the kernels that read
+    it at run time: the same solution, bit for bit, and the known one. Bad sizes are a
+    ValueError; the previous setting comes back."""
+    from torchslq._backend import _numba_qp
+    from torchslq.lq import compiled_available
+    from torchslq.lqdo import limit_specialised_qp_sizes
+
+    if not compiled_available():
+        pytest.skip("numba kernels not importable")
+    qp = known_qp(B=4, n=9, me=5, mi=4, n_act=2, seed=11, bounds=True)  # r = 4
+    H, f, A, b, G, h, z_star = qp[:7]
+    assert len(_numba_qp.witness_r(4)) == 4
+    own = qp_solve(H, f, A, b, G, h, *qp[9:], kkt="reduced")
+    old = limit_specialised_qp_sizes([3])
+    try:
+        assert _numba_qp.witness_r(4) == () and len(_numba_qp.witness_r(3)) == 3
+        general = qp_solve(H, f, A, b, G, h, *qp[9:], kkt="reduced")
+        with pytest.raises(ValueError, match="reduced sizes"):
+            limit_specialised_qp_sizes([0])
+    finally:
+        assert limit_specialised_qp_sizes(old) == frozenset({3})
+    assert len(_numba_qp.witness_r(4)) == 4
+    for a, b_ in zip(general, own, strict=True):
+        assert torch.equal(a, b_)
+    torch.testing.assert_close(general[0], z_star, rtol=1e-8, atol=1e-8)
+
+
 def test_reduced_newton_system_gradients_against_finite_differences():
     H, f, A, b, G, h, z_star, _, _, lb, ub = known_qp(
         B=2, n=5, me=2, mi=3, n_act=2, seed=7, bounds=True

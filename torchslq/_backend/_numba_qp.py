@@ -32,6 +32,7 @@ import numpy as np
 
 from . import _numba_cache  # noqa: F401 (before any kernel: the library's cache stamp)
 from ._numba_kernels import _cholesky, cholesky_solve
+from .specialisation import specialised_qp
 
 # the degrees of freedom up to which the kernels are compiled for their number
 WITNESS_MAX_R = 16
@@ -40,8 +41,9 @@ WITNESS_MAX_R = 16
 def witness_r(r: int) -> tuple:
     """The kernels' ``rt`` argument: ``r`` zeros up to :data:`WITNESS_MAX_R` (numba types
     a tuple by its length, so the kernel is compiled for that ``r``: measured 13% faster
-    on the container crane PS10, ``r = 8``, with the same bits), else empty."""
-    return (0,) * r if r <= WITNESS_MAX_R else ()
+    on the container crane PS10, ``r = 8``, with the same bits), else empty (also for
+    sizes left out by :func:`.specialisation.limit_specialised_qp_sizes`)."""
+    return (0,) * r if r <= WITNESS_MAX_R and specialised_qp(r) else ()
 
 
 @numba.njit(nogil=True, cache=True)

@@ -8,7 +8,10 @@ new size is compiled once, 5-20 s on one core, then cached on disk. A program th
 meets many sizes, and cares more for its first calls than for the last factor of two
 on them, names the sizes that are worth it with :func:`limit_specialised_sizes`; every
 other size then runs the kernels that read their sizes at run time (the same results
-to rounding, compiled once for all sizes).
+to rounding, compiled once for all sizes). :func:`limit_specialised_qp_sizes` does the
+same for the compiled interior point of :mod:`torchslq.lqdo` (its kernels are compiled
+for the reduced size ``r`` of a QP, the variables left free by its equality
+constraints: 5-7 s each).
 """
 
 from __future__ import annotations
@@ -42,4 +45,34 @@ def limit_specialised_sizes(
                 raise ValueError(f"sizes must be pairs (n, m) of positive ints, got {pair!r}")
             pairs.append((int(pair[0]), int(pair[1])))
         _only = frozenset(pairs)
+    return old
+
+
+_only_qp: frozenset[int] | None = None
+
+
+def specialised_qp(r: int) -> bool:
+    """Whether a QP of reduced size ``r`` may get interior-point kernels of its own (up
+    to :data:`torchslq._backend._numba_qp.WITNESS_MAX_R`)."""
+    return _only_qp is None or r in _only_qp
+
+
+def limit_specialised_qp_sizes(sizes: Iterable[int] | None) -> frozenset[int] | None:
+    """Compile the QP interior point's kernels (the reduced Newton system's set-up and
+    iterations of :func:`torchslq.lqdo.qp_solve` on the CPU) for their own reduced size
+    ``r`` (the number of variables left free by the equality constraints) only for
+    ``sizes``; None (the default) lets every ``r`` small enough have them. Every other
+    ``r`` runs the kernels that read it at run time (the same results, compiled once).
+    Returns the previous setting (pass it back to restore). Process-wide."""
+    global _only_qp
+    old = _only_qp
+    if sizes is None:
+        _only_qp = None
+    else:
+        rs = []
+        for r in sizes:
+            if not isinstance(r, int) or isinstance(r, bool) or r < 1:
+                raise ValueError(f"sizes must be positive ints (reduced sizes r), got {r!r}")
+            rs.append(int(r))
+        _only_qp = frozenset(rs)
     return old

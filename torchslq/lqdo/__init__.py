@@ -8,6 +8,7 @@ fixed-parameter method (nested co-design) with exact upper-level gradients.
 See ``docs/lqdo.md``.
 """
 
+from .._backend.specialisation import limit_specialised_qp_sizes
 from .backends import QPSolution, qp_solve, solve, solve_dense, solve_sparse
 from .problem import LQDOProblem, detect_olq
 from .qlin import QLINResult, Quasilinearization
@@ -28,6 +29,7 @@ __all__ = [
     "TwoLevel",
     "detect_olq",
     "lgl",
+    "limit_specialised_qp_sizes",
     "qp_solve",
     "solve",
     "solve_dense",
