@@ -792,6 +792,16 @@ def test_kernels_reading_the_data_at_their_addresses_equal_the_array_launchers(d
     with torch.no_grad():  # no graph is recorded: the addresses serve
         case = declined["requires grad"]
         assert dispatch.gain_addresses(pieces(case), case["x0"], T, n, m) is not None
+    seen = []
+
+    def under_vmap(A):  # a transform's tensors have no address: declined, not an error
+        case = {k: (A[None] if k == "A" else v[:1]) for k, v in args.items()}
+        seen.append(dispatch.gain_addresses(pieces(case), case["x0"], T, n, m))
+        return A.sum()
+
+    with torch.no_grad():
+        torch.func.vmap(under_vmap)(args["A"])
+    assert seen == [None]
 
 
 @pytest.mark.all_sizes

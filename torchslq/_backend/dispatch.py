@@ -994,6 +994,8 @@ def gain_addresses(pieces: tuple, x0: Tensor, T: int, n: int, m: int) -> tuple |
     the ``(4, 1)``, ``T = 100`` pass itself.)"""
     if x0.ndim != 2 or not x0.is_cpu or not compiled_available():
         return None
+    if not _kernels_apply_here():  # (first: a transform's or a tracer's tensors have no address)
+        return None
     dtype = x0.dtype
     npd = NP_FLOAT_DTYPES.get(dtype)
     grad = torch.is_grad_enabled()
@@ -1016,8 +1018,6 @@ def gain_addresses(pieces: tuple, x0: Tensor, T: int, n: int, m: int) -> tuple |
             shared = False
         addresses.append(p.data_ptr())
         dims += bt
-    if not _kernels_apply_here():
-        return None
     return tuple(addresses), dims, 1 if shared else nb, x0.data_ptr(), nb, n, m, npd
 
 
