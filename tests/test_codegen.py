@@ -402,6 +402,36 @@ def test_kernels_given_function_values_equal_the_bound_kernels(monkeypatch, fres
         assert torch.equal(a, b)
 
 
+def test_inlined_model_kernels_serve_small_passes(fresh_bound):
+    """``inline_model_kernels()``: a small solve (B = 1) runs the generated module's
+    kernels with the model's functions inlined, which otherwise only a pass of
+    ``MIN_ROWS`` rows takes, and reaches the generic kernels' solution in the same
+    iterations; the previous setting comes back."""
+    from torchslq.dynamics import inline_model_kernels
+
+    bound = fresh_bound
+    step = ts.discretize(UserCartPole(), 0.05)
+    eye = torch.eye(4, dtype=torch.float64)
+    goal = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=torch.float64)  # move the cart
+    cost = ts.QuadraticCost(Q=0.1 * eye, R=0.05 * torch.eye(1).double(), Qf=50 * eye, x_ref=goal)
+    problem = ts.Problem(step, cost, 30)
+    x0 = torch.tensor([[0.0, 0.3, 0.0, 0.0]], dtype=torch.float64)
+    solver = ts.ILQR(max_iter=200, tol=1e-6, progress=False)
+    generic = solver.solve(problem, x0)
+    assert not bound._TAKEN  # small passes: the kernels taking function values
+    old = inline_model_kernels(True)
+    try:
+        inlined = solver.solve(problem, x0)
+    finally:
+        assert inline_model_kernels(old) is True
+    taken = {key[1] for key in bound._TAKEN}
+    assert {"jacobians_only_kernel", "armijo_rollout_kernel"} <= taken, taken
+    assert bool(generic.converged.all()) and bool(inlined.converged.all())
+    assert torch.equal(inlined.iterations, generic.iterations)
+    torch.testing.assert_close(inlined.u, generic.u, rtol=1e-10, atol=1e-12)
+    torch.testing.assert_close(inlined.cost, generic.cost, rtol=1e-12, atol=0)
+
+
 def test_straight_line_jacobians_equal_the_lanes_kernel(monkeypatch, fresh_bound):
     """A generated continuous model's Jacobian-only kernel (every stage in local
     variables, the model's constant zeros left out of the chain rule) gives the lanes

@@ -33,6 +33,8 @@ import numpy as np
 #: a pass over fewer rows (points, or rollout element-steps) runs the generic kernels
 MIN_ROWS = 1024
 
+_ALWAYS = False  # inline_model_kernels: every pass takes the bound kernels
+
 _BOUND: dict = {}
 _TAKEN: set = set()  # (rhs, kernel name, dtype) a large pass has taken in this process
 _NOTED: dict = {}  # module -> {(kernel name, dtype)} read from its .taken file
@@ -112,7 +114,7 @@ def bound_kernels(fn, rows: int, kernel: str, dtype) -> ModuleType | None:
     key = (fn, kernel, np.dtype(dtype).str)
     if key in _TAKEN:
         return module
-    if rows >= MIN_ROWS:
+    if rows >= MIN_ROWS or _ALWAYS:
         _TAKEN.add(key)
         _note(module, kernel, key[2])
         return module
@@ -120,3 +122,21 @@ def bound_kernels(fn, rows: int, kernel: str, dtype) -> ModuleType | None:
         _TAKEN.add(key)
         return module
     return None
+
+
+def inline_model_kernels(enabled: bool = True) -> bool:
+    """Run every pass of a model whose code is generated (:mod:`torchslq.dynamics.codegen`)
+    on the kernels compiled with the model's functions inlined, whatever the pass's
+    size; returns the previous setting (process-wide).
+
+    For a real-time loop of small solves: measured on the user cart-pole (RK4, T = 50,
+    B = 1, ILQR), about 10% less time per iteration, alternating in one process (the
+    same iterates: the two kinds of kernels compute the same bits,
+    ``tests/test_codegen.py``). The first pass of each kernel compiles it: seconds per
+    model (7 s for the cart-pole's), once per machine (numba caches them with the
+    model's module, and later processes take them for small passes too). Off (the
+    default), a small solve starts without that compilation and a pass of
+    :data:`MIN_ROWS` rows or more takes them."""
+    global _ALWAYS
+    old, _ALWAYS = _ALWAYS, bool(enabled)
+    return old

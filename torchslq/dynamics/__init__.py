@@ -1,5 +1,6 @@
 """Dynamics models: base classes, discretisation and linearisation."""
 
+from .._backend.bound import inline_model_kernels
 from .base import CompiledDerivatives, ContinuousDynamics, Dynamics, state_control_dims
 from .discretize import DiscretizedDynamics, discretize
 from .linearize import (
@@ -22,6 +23,7 @@ __all__ = [
     "discretize",
     "dynamics_hessians",
     "dynamics_vhp",
+    "inline_model_kernels",
     "linearize",
     "linearize_with_hessians",
     "linearize_with_vhp",
