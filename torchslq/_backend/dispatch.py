@@ -200,6 +200,12 @@ def _threads(nb: int, T: int) -> int:
     return max(1, min(torch.get_num_threads(), nb, (nb * max(T, 1)) // MIN_STEPS_PER_THREAD))
 
 
+def _one_launch(nb: int, T: int) -> bool:
+    """Whether a gain-form solve over ``nb`` elements of ``T`` steps is one launch on the
+    calling thread (too small to split over threads, or one thread)."""
+    return nb * T < 2 * MIN_STEPS_PER_THREAD or _threads(nb, T) == 1
+
+
 def _launch(kernel, nb: int, T: int, *args) -> None:
     """Run ``kernel(b0, b1, *args)`` over the batch ``[0, nb)``, split into contiguous
     chunks over ``torch.get_num_threads()`` threads when the pass is large enough.
@@ -982,7 +988,8 @@ def gain_addresses(pieces: tuple, x0: Tensor, T: int, n: int, m: int) -> tuple |
     """The LQ data ``pieces`` ``(A, B, c, Q, R, S, q, r)`` (as given to
     :func:`torchslq.lqr_solve`: ``c, S, q, r`` may be None) and ``x0 (B, n)`` as the
     addresses the ``*_at`` kernels read them at (:mod:`._numba_address`), for a call
-    that needs no graph; None for any other call (the array launchers then decide).
+    that needs no graph and is one launch on one thread; None for any other call (the
+    array launchers then decide).
 
     Each piece is ``(1 or B, 1 or steps, *tail)``, ``(1 or steps, *tail)`` or its
     ``tail`` alone (the same in every step), contiguous, on the CPU, in ``x0``'s float
@@ -1018,7 +1025,10 @@ def gain_addresses(pieces: tuple, x0: Tensor, T: int, n: int, m: int) -> tuple |
             shared = False
         addresses.append(p.data_ptr())
         dims += bt
-    return tuple(addresses), dims, 1 if shared else nb, x0.data_ptr(), nb, n, m, npd
+    data_batch = 1 if shared else nb
+    if not _one_launch(max(nb, data_batch), T):  # (the array launchers split it)
+        return None
+    return tuple(addresses), dims, data_batch, x0.data_ptr(), nb, n, m, npd
 
 
 def lq_data_clean_at(at: tuple) -> bool:
@@ -1076,7 +1086,7 @@ def lq_gain_solve(
     out = _gain_outputs(data_batch, nb, T, n, m, x0.dtype)
     Kkn, Pn, pn, Ln, sn, failedn, xn, un, lamn, costn, finiten = out
     work = max(nb, data_batch)
-    if work * T < 2 * MIN_STEPS_PER_THREAD or _threads(work, T) == 1:  # one launch, not three
+    if _one_launch(work, T):  # one launch, not three
         # (LLVM's SLP switch for its register-blocked products, when first compiled)
         with_slp(passes.gain_solve_kernel, pieces, x0, *out, nt, mt)
     else:
@@ -1091,13 +1101,9 @@ def lq_gain_solve(
     return _gain_solution_arrays(out)
 
 
-def lq_gain_solve_at(at: tuple, T: int) -> dict[str, np.ndarray] | None:
-    """:func:`lq_gain_solve` on the data of :func:`gain_addresses`, in one launch; None
-    where the solve is large enough to be split over threads (the array launchers then
-    run it)."""
+def lq_gain_solve_at(at: tuple, T: int) -> dict[str, np.ndarray]:
+    """:func:`lq_gain_solve` on the data of :func:`gain_addresses`, in one launch."""
     addresses, dims, data_batch, x0_address, nb, n, m, npd = at
-    if max(nb, data_batch) * T >= 2 * MIN_STEPS_PER_THREAD and _threads(max(nb, data_batch), T) > 1:
-        return None
     _, passes, nt, mt, with_slp = _gain_plan(n, m)
     out = _gain_outputs(data_batch, nb, T, n, m, npd)
     with_slp(passes.gain_solve_at_kernel, addresses, dims, x0_address, *out, nt, mt)

@@ -721,17 +721,18 @@ def lqr_solve(
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}, got {method!r}")
     m = B.shape[-1]
+    gain_failed = False  # the gain-form kernels ran on clean data and an element failed
     if method != "scan":
         # the common small call (no graph, the data as given): the kernels read the
         # tensors at their addresses (numpy views of nine tensors cost more than a small
         # solve); None where it does not apply, or a fault or failure is to be classified
         at = gain_addresses((A, B, c, Q, R, S, q, r), x0, T, n, m)
         if at is not None and (not validate or lq_data_clean_at(at)):
-            sol = lq_gain_solve_at(at, T)
+            sol = _gain_solution(lq_gain_solve_at(at, T), torch.Size((x0.shape[0],)), at[2], n)
             if sol is not None:
-                sol = _gain_solution(sol, torch.Size((x0.shape[0],)), at[2], n)
-                if sol is not None:
-                    return sol
+                return sol
+            # the homogeneous path below classifies the failure; the data are clean
+            gain_failed, validate = True, False
     Q = with_time(Q, 2, T + 1)
     R = with_time(R, 2, T)
     R_given = R  # before a not-PD element's R is made NaN (below)
@@ -742,7 +743,9 @@ def lqr_solve(
 
     # on the CPU: the gain-form kernels' arrays of the data (None where they do not apply)
     # (the common call's in one pass: plain_gain_pieces)
-    gain_inputs = None if method == "scan" else plain_gain_pieces((A, B, c, Q, R, S, q, r), x0)
+    gain_inputs = (
+        None if method == "scan" or gain_failed else plain_gain_pieces((A, B, c, Q, R, S, q, r), x0)
+    )
     if gain_inputs is not None:
         batch = torch.Size((x0.shape[0],))
     if validate:
@@ -767,7 +770,7 @@ def lqr_solve(
             faulty = bool((nonfinite | not_pd).any())
         # below, validate means: some element's data have a fault (its status says which)
         validate = faulty
-    if method != "scan" and not validate:
+    if method != "scan" and not validate and not gain_failed:
         # on the CPU: the gain-form kernels straight from the data, with or without a
         # graph (None where they do not apply, or an element failed: the homogeneous
         # path below then classifies the failures)
