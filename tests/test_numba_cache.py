@@ -34,15 +34,16 @@ def inner(x):
     return {value} * x
 """
 RUN = """
-import importlib.util
+import importlib
 import sys
+import types
 from pathlib import Path
-# (the module alone, without importing torch)
-spec = importlib.util.spec_from_file_location(
-    "_numba_cache", Path({root!r}) / "torchslq" / "_backend" / "_numba_cache.py"
-)
-_numba_cache = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(_numba_cache)
+# (the backend's directory as a package of its own: the module and its helpers, without
+# importing torch)
+backend = types.ModuleType("backend")
+backend.__path__ = [str(Path({root!r}) / "torchslq" / "_backend")]
+sys.modules["backend"] = backend
+_numba_cache = importlib.import_module("backend._numba_cache")
 if {library}:  # the two modules as the library's own files
     _numba_cache._DOMAINS[:] = [Path({tmp!r})]
     _numba_cache._DIGEST_ROOTS[:] = [Path({tmp!r})]

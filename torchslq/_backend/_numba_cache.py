@@ -20,10 +20,11 @@ Imported by every module that defines kernels, before its first kernel.
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 
 from numba.core import caching
+
+from .source_modules import cache_root
 
 _PACKAGE = Path(__file__).resolve().parent.parent  # torchslq/
 # the directories whose files' functions get the library's stamp: the package, and
@@ -33,11 +34,6 @@ _DOMAINS: list[Path] = [_PACKAGE]
 # these directories (the generated modules' own text is numba's own stamp)
 _DIGEST_ROOTS: list[Path] = [_PACKAGE / "_backend", _PACKAGE / "dynamics"]
 _digest: str | None = None
-
-
-def _generated_code_root() -> Path:
-    root = os.environ.get("TORCHSLQ_CACHE_DIR")
-    return (Path(root) if root else Path.home() / ".cache" / "torchslq").resolve()
 
 
 def library_digest() -> str:
@@ -61,7 +57,7 @@ def library_digest() -> str:
 
 def _in_library(py_file: str) -> bool:
     path = Path(py_file).resolve()
-    return any(path.is_relative_to(d) for d in (*_DOMAINS, _generated_code_root()))
+    return any(path.is_relative_to(d) for d in (*_DOMAINS, cache_root().resolve()))
 
 
 class LibraryCacheLocator(caching._CacheLocator):

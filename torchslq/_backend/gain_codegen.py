@@ -28,11 +28,10 @@ its compiled code beside it, as the library's own kernels.
 from __future__ import annotations
 
 import hashlib
-import os
 from pathlib import Path
 from types import ModuleType
 
-from .source_modules import import_source, write_atomic
+from .source_modules import cache_root, import_source, write_atomic
 from .specialisation import specialised
 
 #: the largest ``n (n + m)`` generated
@@ -337,9 +336,7 @@ def _directories() -> list[Path]:
     """Where generated modules are written, in order of preference: beside the package
     (numba caches the library's own kernels there too), then torchslq's cache directory
     (``TORCHSLQ_CACHE_DIR``, by default ``~/.cache/torchslq``)."""
-    root = os.environ.get("TORCHSLQ_CACHE_DIR")
-    base = Path(root) if root else Path.home() / ".cache" / "torchslq"
-    return [Path(__file__).resolve().parent / "_generated", base / "lq_generated"]
+    return [Path(__file__).resolve().parent / "_generated", cache_root() / "lq_generated"]
 
 
 def gain_kernels(n: int, m: int) -> ModuleType | None:

@@ -12,6 +12,13 @@ from pathlib import Path
 from types import ModuleType
 
 
+def cache_root() -> Path:
+    """torchslq's cache directory: ``TORCHSLQ_CACHE_DIR``, by default
+    ``~/.cache/torchslq`` (generated modules that cannot be written beside the package)."""
+    root = os.environ.get("TORCHSLQ_CACHE_DIR")
+    return Path(root) if root else Path.home() / ".cache" / "torchslq"
+
+
 def write_atomic(path: Path, text: str) -> None:
     """``text`` into ``path`` through a temporary file and a rename: a concurrent
     process sees all of it or nothing (OSError where the directory is not writable)."""

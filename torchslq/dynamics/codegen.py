@@ -73,7 +73,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from .._backend.source_modules import import_source, write_atomic
+from .._backend.source_modules import cache_root, import_source, write_atomic
 from .._pinned import _PINNED, solve_scope
 from ._symbolic import Unsupported as _Unsupported
 from ._symbolic import as_array, evaluate, symbols
@@ -500,9 +500,7 @@ def _make_graph(fn, x, u, ps):
 
 
 def _cache_dir() -> Path | None:
-    root = os.environ.get("TORCHSLQ_CACHE_DIR")
-    base = Path(root) if root else Path.home() / ".cache" / "torchslq"
-    d = base / f"generated_v{CODEGEN_VERSION}"
+    d = cache_root() / f"generated_v{CODEGEN_VERSION}"
     try:
         d.mkdir(parents=True, exist_ok=True)
     except OSError:
