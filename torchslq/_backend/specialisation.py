@@ -11,7 +11,7 @@ other size then runs the kernels that read their sizes at run time (the same res
 to rounding, compiled once for all sizes). :func:`limit_specialised_qp_sizes` does the
 same for the compiled interior point of :mod:`torchslq.lqdo` (its kernels are compiled
 for the reduced size ``r`` of a QP, the variables left free by its equality
-constraints: 5-7 s each).
+constraints: 10-12 s for each ``r``, the set-up's and the iterations' kernels).
 """
 
 from __future__ import annotations
