@@ -533,3 +533,34 @@ def test_warm_start_from_a_nearby_qp_reaches_its_solution_in_fewer_iterations(kk
     other = DenseQP(H=H, f=f, A=A, b=b, G=G, h=h, c=torch.zeros(4))
     with pytest.raises(ValueError, match="warm is for QPs of 80 variables"):
         solve_dense(other, warm=first.start)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_compiled_scatter_equals_index_add_bit_for_bit_and_keeps_gradients(dtype, monkeypatch):
+    """The dense matrices of a QP from its shared pattern: the compiled per-element
+    scatter against ``index_add_`` (duplicate positions summed in pattern order), and the
+    torch path, with its graph, where the values require grad."""
+    import torchslq.lqdo.qp as qp_module
+
+    calls = []
+    compiled = qp_module.scatter_compiled
+    monkeypatch.setattr(qp_module, "scatter_compiled", lambda *a: calls.append(1) or compiled(*a))
+    g = torch.Generator().manual_seed(3)
+    m, n, B, nnz = 7, 5, 6, 60  # 60 entries in 35 positions: duplicates
+    idx = torch.stack(
+        [torch.randint(0, m, (nnz,), generator=g), torch.randint(0, n, (nnz,), generator=g)]
+    )
+    val = torch.randn(B, nnz, generator=g, dtype=dtype)
+    expected = torch.zeros(B, m * n, dtype=dtype).index_add_(1, idx[0] * n + idx[1], val)
+    out = qp_module._scatter(idx, val, m, n)
+    assert calls, "the compiled scatter was not taken"
+    assert out.shape == (B, m, n) and out.dtype == dtype
+    assert torch.equal(out.reshape(B, -1), expected)
+    # with a graph: the torch path, same values, d(sum w*out)/dval = w at each position
+    calls.clear()
+    v = val.clone().requires_grad_(True)
+    w = torch.randn(B, m, n, generator=g, dtype=dtype)
+    out_g = qp_module._scatter(idx, v, m, n)
+    assert not calls and torch.equal(out_g.detach(), out)
+    (grad,) = torch.autograd.grad((w * out_g).sum(), v)
+    assert torch.equal(grad, w.reshape(B, -1)[:, idx[0] * n + idx[1]])

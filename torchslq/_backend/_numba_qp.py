@@ -455,3 +455,18 @@ def basic_solve_kernel(b0, b1, LU, g, out):
                 y[k] -= L[k, i] * yi
         for i in range(me):
             out[e, i] = -y[i]
+
+
+@numba.njit(nogil=True, cache=True)
+def scatter_rows_kernel(b0, b1, lin, val, out):
+    """``out[e] = 0; out[e, lin[k]] += val[e, k]`` for the elements ``b0 <= e < b1``:
+    dense ``out (B, m n)`` from a sparsity pattern shared by the batch (``lin (nnz,)``
+    flat positions, duplicates summed in pattern order) and ``val (B, nnz)``. One
+    element's row is zeroed and filled while in cache; ``Tensor.index_add_`` along
+    dim 1 adds each pattern entry to all elements in turn, a stride of ``m n`` apart."""
+    nnz = lin.shape[0]
+    for e in range(b0, b1):
+        row = out[e]
+        row[:] = 0.0
+        for k in range(nnz):
+            row[lin[k]] += val[e, k]

@@ -1238,6 +1238,24 @@ def reduced_setup_compiled(
     return Z, z0, HZ, ZHZ, C, Hz
 
 
+def scatter_compiled(lin: Tensor, val: Tensor, size: int) -> Tensor:
+    """Dense ``(B, size)`` rows from values ``val (B, nnz)`` at the flat positions ``lin
+    (nnz,)`` shared by the batch, duplicates summed
+    (:func:`._numba_qp.scatter_rows_kernel`); the same sums, in the same order, as
+    ``zeros(B, size).index_add_(1, lin, val)``. A float CPU ``val`` without a graph."""
+    from . import _numba_qp
+
+    B = val.shape[0]
+    # numpy's memory: a large block comes from the system on huge pages (see
+    # torchslq.lqdo.qp._scatter); the kernel writes every entry
+    out = np.empty((B, size), NP_FLOAT_DTYPES[val.dtype])
+    _launch(
+        _numba_qp.scatter_rows_kernel, B, max(1, lin.numel() // 64),
+        _np(lin.to(torch.int64)), _np(val), out,
+    )  # fmt: skip
+    return torch.from_numpy(out)
+
+
 def basic_solve_compiled(LU: Tensor, g: Tensor) -> Tensor:
     """``-(L1 U)^{-1} g`` per element (:func:`._numba_qp.basic_solve_kernel`): the
     reduced system's multipliers of ``A z = b`` from ``g (B, me)``, the gradient on the

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from .._backend.dispatch import NP_FLOAT_DTYPES
+from .._backend.dispatch import NP_FLOAT_DTYPES, can_use_compiled, scatter_compiled
 from .kkt import Inequalities
 
 __all__ = ["SparseQP", "DenseQP"]
@@ -32,6 +32,10 @@ __all__ = ["SparseQP", "DenseQP"]
 def _scatter(idx: Tensor, val: Tensor, m: int, n: int) -> Tensor:
     """Dense ``(B, m, n)`` from a shared pattern ``idx (2, nnz)`` and values ``(B, nnz)``."""
     B = val.shape[0]
+    if m * n and idx.shape[1] and can_use_compiled(val):
+        # one element's row at a time, in cache (index_add_ along dim 1 strides over the
+        # batch for every pattern entry): crane PS10, B = 256, 6% of a QLIN solve
+        return scatter_compiled(idx[0] * n + idx[1], val, m * n).reshape(B, m, n)
     npd = NP_FLOAT_DTYPES.get(val.dtype) if val.is_cpu else None
     if npd is not None and B * m * n >= 1 << 16:
         # numpy's zeroed memory on the CPU: a large block comes from the system already
