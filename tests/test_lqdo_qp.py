@@ -564,3 +564,21 @@ def test_compiled_scatter_equals_index_add_bit_for_bit_and_keeps_gradients(dtype
     assert not calls and torch.equal(out_g.detach(), out)
     (grad,) = torch.autograd.grad((w * out_g).sum(), v)
     assert torch.equal(grad, w.reshape(B, -1)[:, idx[0] * n + idx[1]])
+
+
+def test_compiled_abs_max_equals_amax_amin_with_zeros_and_nan():
+    """The rank test's scale ``max |A|`` per element: the compiled pass against
+    ``maximum(amax, -amin)``, rows of zeros (0) and rows with a NaN (NaN) included."""
+    from torchslq._backend.dispatch import abs_max_rows_compiled
+
+    g = torch.Generator().manual_seed(5)
+    A = torch.randn(6, 4, 7, generator=g)
+    A[1] = 0.0
+    A[2, 3, 1] = float("nan")
+    A[3] = -A[3].abs()  # the largest magnitude negative
+    flat = A.reshape(6, -1)
+    expected = torch.maximum(flat.amax(-1), -flat.amin(-1))
+    out = abs_max_rows_compiled(A)
+    assert torch.equal(out[~expected.isnan()], expected[~expected.isnan()])
+    assert torch.equal(out.isnan(), expected.isnan()) and bool(out[2].isnan())
+    assert float(out[1]) == 0.0 and float(out[3]) == float(A[3].abs().max())

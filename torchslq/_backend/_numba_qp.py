@@ -470,3 +470,20 @@ def scatter_rows_kernel(b0, b1, lin, val, out):
         row[:] = 0.0
         for k in range(nnz):
             row[lin[k]] += val[e, k]
+
+
+@numba.njit(nogil=True, cache=True)
+def abs_max_rows_kernel(b0, b1, M, out):
+    """``out[e] = max_j |M[e, j]|`` for the elements ``b0 <= e < b1`` of ``M (B, k)``
+    (NaN where a row holds one, as ``amax``; 0 for an empty row): one pass where
+    ``max(amax, -amin)`` made two."""
+    k = M.shape[1]
+    for e in range(b0, b1):
+        best = 0.0
+        for j in range(k):
+            a = abs(M[e, j])
+            if a > best or a != a:
+                best = a
+                if a != a:
+                    break
+        out[e] = best

@@ -1256,6 +1256,19 @@ def scatter_compiled(lin: Tensor, val: Tensor, size: int) -> Tensor:
     return torch.from_numpy(out)
 
 
+def abs_max_rows_compiled(M: Tensor) -> Tensor:
+    """``(B,)`` ``max |M[e]|`` over each element's entries of a float CPU ``M (B, ...)``
+    without a graph (:func:`._numba_qp.abs_max_rows_kernel`): the value of
+    ``maximum(amax, -amin)``, NaN where an element holds one."""
+    from . import _numba_qp
+
+    B = M.shape[0]
+    out = M.new_empty(B)
+    flat = _np(M.reshape(B, -1))
+    _launch(_numba_qp.abs_max_rows_kernel, B, max(1, flat.shape[1] // 64), flat, _np(out))
+    return out
+
+
 def basic_solve_compiled(LU: Tensor, g: Tensor) -> Tensor:
     """``-(L1 U)^{-1} g`` per element (:func:`._numba_qp.basic_solve_kernel`): the
     reduced system's multipliers of ``A z = b`` from ``g (B, me)``, the gradient on the

@@ -33,7 +33,11 @@ import torch
 from torch import Tensor
 
 from .._backend import can_use_compiled
-from .._backend.dispatch import basic_solve_compiled, reduced_setup_compiled
+from .._backend.dispatch import (
+    abs_max_rows_compiled,
+    basic_solve_compiled,
+    reduced_setup_compiled,
+)
 
 __all__ = ["KKT_METHODS", "Inequalities", "FullKKT", "ReducedKKT", "newton_system"]
 
@@ -446,9 +450,12 @@ def newton_system(
     LU, piv, info = _lu_factor(A.mT)
     perm = _permutation(piv, n)
     diag = LU.diagonal(dim1=-2, dim2=-1).abs()
-    # (amax and amin: a third of aminmax's time on this CPU build)
-    lo, hi = A.reshape(B, -1).amin(-1), A.reshape(B, -1).amax(-1)
-    scale = torch.maximum(hi, -lo).clamp_min(torch.finfo(A.dtype).tiny)
+    if can_use_compiled(A):  # one pass (crane PS10, B = 256: 2.6 ms -> 1 ms a QP)
+        scale = abs_max_rows_compiled(A)
+    else:  # (amax and amin: a third of aminmax's time on this CPU build)
+        lo, hi = A.reshape(B, -1).amin(-1), A.reshape(B, -1).amax(-1)
+        scale = torch.maximum(hi, -lo)
+    scale = scale.clamp_min(torch.finfo(A.dtype).tiny)
     # a tiny pivot flags a (nearly) dependent row of A
     deficient = bool((diag.amin(-1) <= 10 * n * torch.finfo(A.dtype).eps * scale).any())
     if deficient or bool((info != 0).any()):
