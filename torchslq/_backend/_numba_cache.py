@@ -22,9 +22,13 @@ from __future__ import annotations
 import hashlib
 from pathlib import Path
 
-from numba.core import caching
+from ._numba_start import prepare
 
-from .source_modules import cache_root
+prepare()  # (before numba's target loads: see _numba_start)
+
+from numba.core import caching  # noqa: E402
+
+from .source_modules import cache_root  # noqa: E402
 
 _PACKAGE = Path(__file__).resolve().parent.parent  # torchslq/
 # the directories whose files' functions get the library's stamp: the package, and

@@ -37,6 +37,9 @@ def import_source(
     ``sys.modules``."""
     if name in sys.modules:
         return sys.modules[name]
+    from ._numba_start import prepare
+
+    prepare()  # the generated modules import numba (see _numba_start)
     spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
