@@ -482,8 +482,9 @@ def abs_max_rows_kernel(b0, b1, M, out):
         best = 0.0
         for j in range(k):
             a = abs(M[e, j])
-            if a > best or a != a:
+            if a != a:  # NaN: the row's maximum, as amax's
                 best = a
-                if a != a:
-                    break
+                break
+            if a > best:
+                best = a
         out[e] = best
